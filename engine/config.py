@@ -1,0 +1,414 @@
+"""``twin.toml`` -> typed, validated configuration.
+
+The format is documented in ``docs/config.md``. Every error raised here is a
+:class:`ConfigError` whose message names the file, the key and what was
+expected, e.g. ``twin.toml: devices[1].array.rows: expected an integer >= 1,
+got 0``.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+SCHEMA_VERSION = 1
+
+DEVICE_KINDS = ("access_point", "robot")
+ROLES = ("tx", "rx", "txrx")
+ROBOT_MODELS = ("burger", "waffle")
+PATTERNS = ("iso", "dipole", "hw_dipole", "tr38901")
+POLARIZATIONS = ("V", "H", "VH", "cross")
+TRACER_BACKENDS = ("sionna", "grid")
+
+
+class ConfigError(ValueError):
+    """A configuration or scene-folder file is invalid.
+
+    The message always starts with the file name and the key or object.
+    """
+
+
+# --------------------------------------------------------------------------- types
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    name: str
+    file: Path  #: absolute path of the Mitsuba XML
+    frequency_hz: float
+
+
+@dataclass(frozen=True)
+class OFDMConfig:
+    num_subcarriers: int
+    subcarrier_spacing_hz: float
+    num_symbols: int
+    cyclic_prefix_samples: int = 72
+
+    @property
+    def bandwidth_hz(self) -> float:
+        """N * delta f, Hz."""
+        return self.num_subcarriers * self.subcarrier_spacing_hz
+
+    @property
+    def symbol_time_s(self) -> float:
+        """OFDM symbol duration with cyclic prefix, s."""
+        n = self.num_subcarriers
+        return (n + self.cyclic_prefix_samples) / (n * self.subcarrier_spacing_hz)
+
+
+@dataclass(frozen=True)
+class NoiseConfig:
+    temperature_k: float = 290.0
+    noise_figure_db: float = 7.0
+
+
+@dataclass(frozen=True)
+class TracerConfig:
+    backend: str = "sionna"
+    max_depth: int = 3
+    samples_per_src: int = 100_000
+    max_num_paths_per_src: int = 1_000_000
+    los: bool = True
+    specular_reflection: bool = True
+    diffuse_reflection: bool = False
+    refraction: bool = True
+    diffraction: bool = False
+    seed: int = 42
+
+
+@dataclass(frozen=True)
+class ArrayConfig:
+    rows: int
+    cols: int
+    vertical_spacing: float  #: wavelengths
+    horizontal_spacing: float  #: wavelengths
+    pattern: str = "iso"
+    polarization: str = "V"
+
+    @property
+    def num_ant(self) -> int:
+        """Antenna ports (dual polarization doubles the elements)."""
+        dual = self.polarization in ("VH", "cross")
+        return self.rows * self.cols * (2 if dual else 1)
+
+
+@dataclass(frozen=True)
+class DeviceConfig:
+    name: str
+    kind: str
+    role: str
+    position: tuple[float, float, float]
+    orientation: tuple[float, float, float]  #: roll, pitch, yaw (rad)
+    power_dbm: float
+    array: ArrayConfig
+    subcarriers: tuple[int, int]
+    symbols: tuple[int, int]
+    model: str | None = None  #: robots only
+    antenna_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @property
+    def is_tx(self) -> bool:
+        return self.role in ("tx", "txrx")
+
+    @property
+    def is_rx(self) -> bool:
+        return self.role in ("rx", "txrx")
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    tx: str
+    rx: str
+
+
+@dataclass(frozen=True)
+class TwinConfig:
+    """The whole ``twin.toml``, validated."""
+
+    path: Path
+    scene: SceneConfig
+    ofdm: OFDMConfig
+    noise: NoiseConfig
+    tracer: TracerConfig
+    devices: tuple[DeviceConfig, ...]
+    links: tuple[LinkConfig, ...]
+    schema: int = SCHEMA_VERSION
+    raw: dict = field(default_factory=dict, repr=False, compare=False)
+
+    @property
+    def folder(self) -> Path:
+        return self.path.parent
+
+    def device(self, name: str) -> DeviceConfig:
+        for d in self.devices:
+            if d.name == name:
+                return d
+        raise KeyError(f"{self.path.name}: no device named {name!r}")
+
+
+# --------------------------------------------------------------------------- reader
+
+
+class _Reader:
+    """Pulls typed values out of a TOML table and reports errors by key path."""
+
+    def __init__(self, file: Path):
+        self.file = file
+
+    def fail(self, key: str, msg: str) -> ConfigError:
+        return ConfigError(f"{self.file}: {key}: {msg}")
+
+    def table(self, data: dict, key: str, prefix: str, *, required: bool = True) -> dict:
+        full = f"{prefix}{key}"
+        if key not in data:
+            if required:
+                raise self.fail(full, "missing table")
+            return {}
+        val = data[key]
+        if not isinstance(val, dict):
+            raise self.fail(full, f"expected a table, got {type(val).__name__}")
+        return val
+
+    def check_keys(self, data: dict, allowed: tuple[str, ...], prefix: str) -> None:
+        for k in data:
+            if k not in allowed:
+                raise self.fail(f"{prefix}{k}", f"unknown key (allowed: {', '.join(allowed)})")
+
+    _MISSING = object()
+
+    def get(self, data: dict, key: str, prefix: str, default: Any = _MISSING) -> Any:
+        if key in data:
+            return data[key]
+        if default is self._MISSING:
+            raise self.fail(f"{prefix}{key}", "missing required key")
+        return default
+
+    def number(self, data, key, prefix, default=_MISSING, *, positive=False,
+               nonneg=False) -> float:
+        v = self.get(data, key, prefix, default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise self.fail(f"{prefix}{key}", f"expected a finite number, got {v!r}")
+        if positive and v <= 0:
+            raise self.fail(f"{prefix}{key}", f"expected a positive number, got {v!r}")
+        if nonneg and v < 0:
+            raise self.fail(f"{prefix}{key}", f"expected a number >= 0, got {v!r}")
+        return float(v)
+
+    def integer(self, data, key, prefix, default=_MISSING, *, minimum: int | None = None) -> int:
+        v = self.get(data, key, prefix, default)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.fail(f"{prefix}{key}", f"expected an integer, got {v!r}")
+        if minimum is not None and v < minimum:
+            raise self.fail(f"{prefix}{key}", f"expected an integer >= {minimum}, got {v!r}")
+        return v
+
+    def boolean(self, data, key, prefix, default=_MISSING) -> bool:
+        v = self.get(data, key, prefix, default)
+        if not isinstance(v, bool):
+            raise self.fail(f"{prefix}{key}", f"expected true or false, got {v!r}")
+        return v
+
+    def string(self, data, key, prefix, default=_MISSING, *, choices=None) -> str:
+        v = self.get(data, key, prefix, default)
+        if not isinstance(v, str) or not v:
+            raise self.fail(f"{prefix}{key}", f"expected a non-empty string, got {v!r}")
+        if choices is not None and v not in choices:
+            raise self.fail(f"{prefix}{key}", f"expected one of {', '.join(choices)}, got {v!r}")
+        return v
+
+    def vector(self, data, key, prefix, n: int, default=_MISSING) -> tuple[float, ...]:
+        v = self.get(data, key, prefix, default)
+        ok = (isinstance(v, (list, tuple)) and len(v) == n
+              and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                      and math.isfinite(x) for x in v))
+        if not ok:
+            raise self.fail(f"{prefix}{key}", f"expected {n} finite numbers, got {v!r}")
+        return tuple(float(x) for x in v)
+
+    def range_(self, data, key, prefix, default, upper: int) -> tuple[int, int]:
+        v = self.get(data, key, prefix, default)
+        ok = (isinstance(v, (list, tuple)) and len(v) == 2
+              and all(isinstance(x, int) and not isinstance(x, bool) for x in v))
+        if not ok:
+            raise self.fail(f"{prefix}{key}", f"expected [start, stop] integers, got {v!r}")
+        start, stop = v
+        if not 0 <= start < stop <= upper:
+            raise self.fail(f"{prefix}{key}",
+                            f"expected 0 <= start < stop <= {upper}, got [{start}, {stop}]")
+        return (start, stop)
+
+
+_TOP_KEYS = ("schema", "scene", "ofdm", "noise", "tracer", "devices", "links")
+_DEVICE_KEYS = ("name", "kind", "role", "position", "orientation", "power_dbm", "array",
+                "subcarriers", "symbols", "model", "antenna_offset")
+_ARRAY_KEYS = ("rows", "cols", "vertical_spacing", "horizontal_spacing", "pattern",
+               "polarization")
+
+
+def _parse_array(r: _Reader, data: dict, prefix: str) -> ArrayConfig:
+    r.check_keys(data, _ARRAY_KEYS, prefix)
+    return ArrayConfig(
+        rows=r.integer(data, "rows", prefix, minimum=1),
+        cols=r.integer(data, "cols", prefix, minimum=1),
+        vertical_spacing=r.number(data, "vertical_spacing", prefix, 0.5, positive=True),
+        horizontal_spacing=r.number(data, "horizontal_spacing", prefix, 0.5, positive=True),
+        pattern=r.string(data, "pattern", prefix, "iso", choices=PATTERNS),
+        polarization=r.string(data, "polarization", prefix, "V", choices=POLARIZATIONS),
+    )
+
+
+def _parse_device(r: _Reader, data: Any, i: int, ofdm: OFDMConfig) -> DeviceConfig:
+    prefix = f"devices[{i}]."
+    if not isinstance(data, dict):
+        raise r.fail(f"devices[{i}]", "expected a table")
+    r.check_keys(data, _DEVICE_KEYS, prefix)
+    name = r.string(data, "name", prefix)
+    prefix = f"devices[{i}] ({name})."
+    kind = r.string(data, "kind", prefix, choices=DEVICE_KINDS)
+    model = None
+    offset = (0.0, 0.0, 0.0)
+    if kind == "robot":
+        model = r.string(data, "model", prefix, "burger", choices=ROBOT_MODELS)
+        offset = r.vector(data, "antenna_offset", prefix, 3, [0.0, 0.0, 0.25])
+    else:
+        for k in ("model", "antenna_offset"):
+            if k in data:
+                raise r.fail(f"{prefix}{k}", "only robots have this key")
+    return DeviceConfig(
+        name=name,
+        kind=kind,
+        role=r.string(data, "role", prefix, choices=ROLES),
+        position=r.vector(data, "position", prefix, 3),
+        orientation=r.vector(data, "orientation", prefix, 3, [0.0, 0.0, 0.0]),
+        power_dbm=r.number(data, "power_dbm", prefix),
+        array=_parse_array(r, r.table(data, "array", prefix), f"{prefix}array."),
+        subcarriers=r.range_(data, "subcarriers", prefix, [0, ofdm.num_subcarriers],
+                             ofdm.num_subcarriers),
+        symbols=r.range_(data, "symbols", prefix, [0, ofdm.num_symbols], ofdm.num_symbols),
+        model=model,
+        antenna_offset=offset,
+    )
+
+
+def parse_config(data: dict, path: Path) -> TwinConfig:
+    """Validate a parsed ``twin.toml`` dictionary.
+
+    Args:
+        data: the dictionary ``tomllib`` returned.
+        path: the file it came from (used in messages and to resolve ``scene.file``).
+
+    Raises:
+        ConfigError: naming the file, key and what was expected.
+    """
+    path = Path(path)
+    r = _Reader(path)
+    r.check_keys(data, _TOP_KEYS, "")
+    schema = r.integer(data, "schema", "", SCHEMA_VERSION)
+    if schema != SCHEMA_VERSION:
+        raise r.fail("schema", f"this engine reads schema {SCHEMA_VERSION}, got {schema}")
+
+    s = r.table(data, "scene", "")
+    r.check_keys(s, ("name", "file", "frequency_hz"), "scene.")
+    scene_file = (path.parent / r.string(s, "file", "scene.")).resolve()
+    scene = SceneConfig(
+        name=r.string(s, "name", "scene."),
+        file=scene_file,
+        frequency_hz=r.number(s, "frequency_hz", "scene.", positive=True),
+    )
+
+    o = r.table(data, "ofdm", "")
+    r.check_keys(o, ("num_subcarriers", "subcarrier_spacing_hz", "num_symbols",
+                     "cyclic_prefix_samples"), "ofdm.")
+    ofdm = OFDMConfig(
+        num_subcarriers=r.integer(o, "num_subcarriers", "ofdm.", minimum=1),
+        subcarrier_spacing_hz=r.number(o, "subcarrier_spacing_hz", "ofdm.", positive=True),
+        num_symbols=r.integer(o, "num_symbols", "ofdm.", minimum=1),
+        cyclic_prefix_samples=r.integer(o, "cyclic_prefix_samples", "ofdm.", 72, minimum=0),
+    )
+
+    n = r.table(data, "noise", "", required=False)
+    r.check_keys(n, ("temperature_k", "noise_figure_db"), "noise.")
+    noise = NoiseConfig(
+        temperature_k=r.number(n, "temperature_k", "noise.", 290.0, positive=True),
+        noise_figure_db=r.number(n, "noise_figure_db", "noise.", 7.0, nonneg=True),
+    )
+
+    t = r.table(data, "tracer", "", required=False)
+    d = TracerConfig()
+    r.check_keys(t, tuple(d.__dataclass_fields__), "tracer.")
+    tracer = TracerConfig(
+        backend=r.string(t, "backend", "tracer.", d.backend, choices=TRACER_BACKENDS),
+        max_depth=r.integer(t, "max_depth", "tracer.", d.max_depth, minimum=0),
+        samples_per_src=r.integer(t, "samples_per_src", "tracer.", d.samples_per_src, minimum=1),
+        max_num_paths_per_src=r.integer(t, "max_num_paths_per_src", "tracer.",
+                                        d.max_num_paths_per_src, minimum=1),
+        los=r.boolean(t, "los", "tracer.", d.los),
+        specular_reflection=r.boolean(t, "specular_reflection", "tracer.",
+                                      d.specular_reflection),
+        diffuse_reflection=r.boolean(t, "diffuse_reflection", "tracer.", d.diffuse_reflection),
+        refraction=r.boolean(t, "refraction", "tracer.", d.refraction),
+        diffraction=r.boolean(t, "diffraction", "tracer.", d.diffraction),
+        seed=r.integer(t, "seed", "tracer.", d.seed, minimum=0),
+    )
+
+    devs = r.get(data, "devices", "")
+    if not isinstance(devs, list) or not devs:
+        raise r.fail("devices", "expected a non-empty array of tables [[devices]]")
+    devices = tuple(_parse_device(r, dv, i, ofdm) for i, dv in enumerate(devs))
+    seen: set[str] = set()
+    for i, dv in enumerate(devices):
+        if dv.name in seen:
+            raise r.fail(f"devices[{i}].name", f"duplicate device name {dv.name!r}")
+        seen.add(dv.name)
+
+    lks = r.get(data, "links", "", [])
+    if not isinstance(lks, list):
+        raise r.fail("links", "expected an array of tables [[links]]")
+    by_name = {dv.name: dv for dv in devices}
+    links = []
+    for i, lk in enumerate(lks):
+        prefix = f"links[{i}]."
+        if not isinstance(lk, dict):
+            raise r.fail(f"links[{i}]", "expected a table")
+        r.check_keys(lk, ("tx", "rx"), prefix)
+        tx, rx = r.string(lk, "tx", prefix), r.string(lk, "rx", prefix)
+        for key, nm, want in (("tx", tx, "is_tx"), ("rx", rx, "is_rx")):
+            if nm not in by_name:
+                raise r.fail(f"{prefix}{key}", f"unknown device {nm!r} "
+                             f"(devices: {', '.join(by_name)})")
+            if not getattr(by_name[nm], want):
+                raise r.fail(f"{prefix}{key}", f"device {nm!r} has role "
+                             f"{by_name[nm].role!r}, which cannot {key[:2]}")
+        if tx == rx:
+            raise r.fail(prefix.rstrip("."), f"a link needs two devices, got {tx!r} twice")
+        links.append(LinkConfig(tx=tx, rx=rx))
+
+    return TwinConfig(path=path, scene=scene, ofdm=ofdm, noise=noise, tracer=tracer,
+                      devices=devices, links=tuple(links), schema=schema, raw=data)
+
+
+def load_config(path: str | Path) -> TwinConfig:
+    """Read and validate a ``twin.toml`` (or a scene folder holding one).
+
+    Args:
+        path: the file, or its folder.
+
+    Raises:
+        ConfigError: the file is missing, not TOML, or invalid; the message names
+            the file, key and reason.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "twin.toml"
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such file (expected a twin.toml or a scene folder)")
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    return parse_config(data, path)

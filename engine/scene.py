@@ -1,0 +1,209 @@
+"""The twin's scene: a validated scene folder, loaded into Sionna RT.
+
+:func:`load_scene` reads ``twin.toml`` and ``scene.xml``, checks every object
+(material known and defined at the carrier frequency, mesh present and
+readable) and every device (inside the room), and only then builds the
+Sionna scene, so a bad folder fails with a message naming the file and the
+object instead of deep inside Mitsuba.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from engine.config import ConfigError, TwinConfig, load_config
+from engine.meshes import MeshError, read_ply
+
+log = logging.getLogger(__name__)
+
+#: Metres a device may stand outside the union of the meshes' bounding boxes
+#: (an AP mounted flush on a wall's outer face is still "in the room").
+BOUNDS_TOLERANCE_M = 0.05
+
+
+def itu_materials() -> dict[str, dict[tuple[float, float], tuple]]:
+    """Sionna's ITU-R P.2040 table: ``name -> {(f_min_GHz, f_max_GHz): (a, b, c, d)}``."""
+    from sionna.rt.radio_materials.itu import ITU_MATERIALS_PROPERTIES
+
+    return ITU_MATERIALS_PROPERTIES
+
+
+def itu_bands(name: str) -> list[tuple[float, float]]:
+    """Frequency bands (GHz) in which ITU material ``name`` is defined."""
+    return sorted(itu_materials()[name])
+
+
+def itu_defined_at(name: str, frequency_hz: float) -> bool:
+    """Whether ITU material ``name`` has parameters at ``frequency_hz``."""
+    f = frequency_hz / 1e9
+    return any(lo <= f <= hi for lo, hi in itu_bands(name))
+
+
+@dataclass(frozen=True)
+class ObjectInfo:
+    """One object of the scene folder.
+
+    Attributes:
+        name: Sionna's object name (the shape id without ``mesh-``).
+        material: ITU material type, e.g. ``"concrete"``.
+        thickness: material thickness, m.
+        mesh_file: absolute path of the PLY.
+        bounds_min, bounds_max: world bounding box ``[3]``, m.
+        mesh_sha256: hash of the mesh file's bytes.
+    """
+
+    name: str
+    material: str
+    thickness: float
+    mesh_file: Path
+    bounds_min: tuple[float, float, float]
+    bounds_max: tuple[float, float, float]
+    mesh_sha256: str
+
+
+@dataclass
+class TwinScene:
+    """A loaded scene folder: configuration, objects, and the Sionna scene.
+
+    Attributes:
+        config: the validated ``twin.toml``.
+        objects: ``name -> ObjectInfo`` in file order.
+        bounds_min, bounds_max: the room's extent (union of all objects), m.
+    """
+
+    config: TwinConfig
+    objects: dict[str, ObjectInfo]
+    bounds_min: np.ndarray
+    bounds_max: np.ndarray
+    _sionna: object = field(default=None, repr=False)
+
+    @property
+    def sionna(self):
+        """The ``sionna.rt.Scene`` (loaded on first use, ``merge_shapes=False``)."""
+        if self._sionna is None:
+            import sionna.rt as rt
+
+            sc = rt.load_scene(str(self.config.scene.file), merge_shapes=False)
+            sc.frequency = self.config.scene.frequency_hz
+            self._sionna = sc
+        return self._sionna
+
+    def content_hash(self) -> str:
+        """SHA-256 over what shapes the radio channel: geometry, materials, frequency-free.
+
+        Two folders with the same meshes and materials hash the same; any moved
+        vertex or changed material changes it. The carrier frequency is kept
+        separately in databases' metadata.
+        """
+        h = hashlib.sha256()
+        for name in sorted(self.objects):
+            o = self.objects[name]
+            h.update(f"{name}\0{o.material}\0{o.thickness!r}\0{o.mesh_sha256}\n".encode())
+        return h.hexdigest()
+
+    def contains(self, point, tol: float = BOUNDS_TOLERANCE_M) -> bool:
+        """Whether ``point`` ``[3]`` (m) lies inside the room's bounding box."""
+        p = np.asarray(point, dtype=float)
+        return bool(np.all(p >= self.bounds_min - tol) and np.all(p <= self.bounds_max + tol))
+
+
+def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInfo]:
+    try:
+        root = ET.parse(xml_path).getroot()
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{xml_path}: scene file not found") from exc
+    except ET.ParseError as exc:
+        raise ConfigError(f"{xml_path}: not valid XML: {exc}") from exc
+    if root.tag != "scene":
+        raise ConfigError(f"{xml_path}: root element is <{root.tag}>, expected <scene>")
+
+    table = itu_materials()
+    mats: dict[str, tuple[str, float]] = {}
+    for b in root.iter("bsdf"):
+        bid = b.get("id", "")
+        if b.get("type") != "itu-radio-material":
+            raise ConfigError(f"{xml_path}: bsdf {bid!r}: type {b.get('type')!r} is not "
+                              "supported (expected 'itu-radio-material')")
+        vals = {c.get("name"): c.get("value") for c in b}
+        mtype = vals.get("type")
+        if mtype not in table:
+            raise ConfigError(f"{xml_path}: bsdf {bid!r}: unknown ITU material {mtype!r} "
+                              f"(known: {', '.join(sorted(table))})")
+        try:
+            thick = float(vals.get("thickness", "0.1"))
+        except ValueError as exc:
+            raise ConfigError(f"{xml_path}: bsdf {bid!r}: thickness "
+                              f"{vals.get('thickness')!r} is not a number") from exc
+        if not thick > 0:
+            raise ConfigError(f"{xml_path}: bsdf {bid!r}: thickness must be > 0 m, got {thick}")
+        mats[bid] = (mtype, thick)
+
+    objects: dict[str, ObjectInfo] = {}
+    for s in root.iter("shape"):
+        sid = s.get("id", "")
+        name = sid[5:] if sid.startswith("mesh-") else sid
+        if s.get("type") != "ply":
+            raise ConfigError(f"{xml_path}: shape {name!r}: type {s.get('type')!r} "
+                              "is not supported (expected 'ply')")
+        fname = next((c.get("value") for c in s.iter("string")
+                      if c.get("name") == "filename"), None)
+        ref = next((c.get("id") for c in s.iter("ref")), None)
+        if fname is None:
+            raise ConfigError(f"{xml_path}: shape {name!r}: no <string name=\"filename\">")
+        if ref not in mats:
+            raise ConfigError(f"{xml_path}: shape {name!r}: material reference {ref!r} "
+                              "is not a bsdf defined in the file")
+        mtype, thick = mats[ref]
+        if not itu_defined_at(mtype, frequency_hz):
+            bands = ", ".join(f"{lo:g}-{hi:g} GHz" for lo, hi in itu_bands(mtype))
+            raise ConfigError(f"{xml_path}: object {name!r}: material {mtype!r} is not defined "
+                              f"at {frequency_hz / 1e9:g} GHz (defined: {bands})")
+        mesh_path = (xml_path.parent / fname).resolve()
+        try:
+            mesh = read_ply(mesh_path)
+        except MeshError as exc:
+            raise ConfigError(f"{xml_path}: object {name!r}: {exc}") from exc
+        lo, hi = mesh.bounds
+        if name in objects:
+            raise ConfigError(f"{xml_path}: object {name!r} appears twice")
+        objects[name] = ObjectInfo(
+            name=name, material=mtype, thickness=thick, mesh_file=mesh_path,
+            bounds_min=tuple(lo.tolist()), bounds_max=tuple(hi.tolist()),
+            mesh_sha256=hashlib.sha256(mesh_path.read_bytes()).hexdigest())
+    if not objects:
+        raise ConfigError(f"{xml_path}: the scene has no objects")
+    return objects
+
+
+def load_scene(path: str | Path, *, load_sionna: bool = True) -> TwinScene:
+    """Load and validate a scene folder (or its ``twin.toml``).
+
+    Args:
+        path: the scene folder or its ``twin.toml``.
+        load_sionna: build the Sionna scene now (else on first use of ``.sionna``).
+
+    Raises:
+        ConfigError: any invalid file, key, object or device; the message names it.
+    """
+    cfg = load_config(path)
+    objects = _parse_scene_xml(cfg.scene.file, cfg.scene.frequency_hz)
+    lo = np.min([o.bounds_min for o in objects.values()], axis=0)
+    hi = np.max([o.bounds_max for o in objects.values()], axis=0)
+    scene = TwinScene(config=cfg, objects=objects, bounds_min=lo, bounds_max=hi)
+    for i, d in enumerate(cfg.devices):
+        if not scene.contains(d.position):
+            raise ConfigError(
+                f"{cfg.path}: devices[{i}] ({d.name}).position: {list(d.position)} lies "
+                f"outside the room (x {lo[0]:.2f}..{hi[0]:.2f}, y {lo[1]:.2f}..{hi[1]:.2f}, "
+                f"z {lo[2]:.2f}..{hi[2]:.2f} m)")
+    if load_sionna:
+        scene.sionna  # noqa: B018 - force the load so Mitsuba errors surface here
+    log.info("loaded %s: %d objects, %d devices, %d links", cfg.scene.name, len(objects),
+             len(cfg.devices), len(cfg.links))
+    return scene

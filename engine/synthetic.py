@@ -1,0 +1,145 @@
+"""Write small scene folders from code: analytic test rooms without Blender.
+
+Used by the engine's tests and benchmarks (a closed box room, a single
+reflector) so that the engine can be checked without ``bpy``. The files follow
+``docs/config.md`` exactly as the add-on's exporter writes them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+
+def box_mesh(lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """Closed axis-aligned box: vertices ``[8, 3]``, outward triangles ``[12, 3]``."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    v = np.array([[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1])
+                  for x in (lo[0], hi[0])])
+    f = np.array([[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4],
+                  [2, 6, 3], [3, 6, 7], [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]])
+    return v, f
+
+
+def quad_mesh(corners) -> tuple[np.ndarray, np.ndarray]:
+    """Planar quad from 4 corners ``[4, 3]`` (counter-clockwise seen from the normal)."""
+    return np.asarray(corners, float), np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Binary little-endian PLY with float32 ``x y z`` and uchar/int triangle lists."""
+    vertices = np.asarray(vertices, "<f4")
+    faces = np.asarray(faces, "<i4")
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              f"element face {len(faces)}\nproperty list uchar int vertex_indices\n"
+              "end_header\n").encode("ascii")
+    rec = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", 3)])
+    rec["n"], rec["i"] = 3, faces
+    path.write_bytes(header + vertices.tobytes() + rec.tobytes())
+
+
+@dataclass
+class SyntheticObject:
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    material: str = "concrete"
+    thickness: float = 0.2
+
+
+@dataclass
+class SyntheticDevice:
+    name: str
+    kind: str
+    role: str
+    position: tuple[float, float, float]
+    rows: int = 1
+    cols: int = 1
+    power_dbm: float = 20.0
+    orientation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    extra: dict = field(default_factory=dict)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return repr(float(v)) if isinstance(v, float) else str(v)
+
+
+def write_scene_folder(folder: str | Path, objects: list[SyntheticObject],
+                       devices: list[SyntheticDevice], links: list[tuple[str, str]],
+                       *, frequency_hz: float = 2.4e9, name: str = "synthetic",
+                       num_subcarriers: int = 1024, subcarrier_spacing_hz: float = 78125.0,
+                       num_symbols: int = 14, tracer: dict | None = None) -> Path:
+    """Write ``scene.xml``, ``meshes/*.ply`` and ``twin.toml``; return the folder."""
+    folder = Path(folder)
+    (folder / "meshes").mkdir(parents=True, exist_ok=True)
+    mats = sorted({(o.material, o.thickness) for o in objects})
+    mat_id = {m: f"mat-{m[0]}-{m[1]:g}" for m in mats}
+    xml = ['<scene version="2.1.0">']
+    for m in mats:
+        xml += [f'    <bsdf type="itu-radio-material" id="{mat_id[m]}">',
+                f'        <string name="type" value="{m[0]}"/>',
+                f'        <float name="thickness" value="{m[1]:g}"/>', "    </bsdf>"]
+    for o in objects:
+        write_ply(folder / "meshes" / f"{o.name}.ply", o.vertices, o.faces)
+        xml += [f'    <shape type="ply" id="mesh-{o.name}">',
+                f'        <string name="filename" value="meshes/{o.name}.ply"/>',
+                '        <boolean name="face_normals" value="true"/>',
+                f'        <ref id="{mat_id[(o.material, o.thickness)]}" name="bsdf"/>',
+                "    </shape>"]
+    xml.append("</scene>\n")
+    (folder / "scene.xml").write_text("\n".join(xml))
+
+    t = ["schema = 1", "", "[scene]", f'name = "{name}"', 'file = "scene.xml"',
+         f"frequency_hz = {frequency_hz!r}", "", "[ofdm]",
+         f"num_subcarriers = {num_subcarriers}",
+         f"subcarrier_spacing_hz = {float(subcarrier_spacing_hz)!r}",
+         f"num_symbols = {num_symbols}", "cyclic_prefix_samples = 72", ""]
+    if tracer:
+        t += ["[tracer]"] + [f"{k} = {_toml_value(v)}" for k, v in tracer.items()] + [""]
+    for d in devices:
+        t += ["[[devices]]", f'name = "{d.name}"', f'kind = "{d.kind}"', f'role = "{d.role}"',
+              f"position = {_toml_value(list(d.position))}",
+              f"orientation = {_toml_value(list(d.orientation))}",
+              f"power_dbm = {float(d.power_dbm)!r}"]
+        t += [f"{k} = {_toml_value(v)}" for k, v in d.extra.items()]
+        t += ["[devices.array]", f"rows = {d.rows}", f"cols = {d.cols}",
+              "vertical_spacing = 0.5", "horizontal_spacing = 0.5", 'pattern = "iso"',
+              'polarization = "V"', ""]
+    for tx, rx in links:
+        t += ["[[links]]", f'tx = "{tx}"', f'rx = "{rx}"', ""]
+    (folder / "twin.toml").write_text("\n".join(t))
+    return folder
+
+
+def box_room(folder: str | Path, size=(6.0, 4.0, 3.0), *, material: str = "concrete",
+             devices: list[SyntheticDevice] | None = None,
+             links: list[tuple[str, str]] | None = None, **kw) -> Path:
+    """A closed room ``[0, sx] x [0, sy] x [0, sz]`` made of six separate slabs.
+
+    Each wall is a thin box (0.1 m) just outside the room volume, so its inner
+    face lies exactly on the room boundary.
+    """
+    sx, sy, sz = size
+    w = 0.1
+    slabs = {
+        "floor": ((0, 0, -w), (sx, sy, 0)), "ceiling": ((0, 0, sz), (sx, sy, sz + w)),
+        "wall_xmin": ((-w, 0, 0), (0, sy, sz)), "wall_xmax": ((sx, 0, 0), (sx + w, sy, sz)),
+        "wall_ymin": ((0, -w, 0), (sx, 0, sz)), "wall_ymax": ((0, sy, 0), (sx, sy + w, sz)),
+    }
+    objects = [SyntheticObject(n, *box_mesh(lo, hi), material=material)
+               for n, (lo, hi) in slabs.items()]
+    if devices is None:
+        devices = [SyntheticDevice("AP1", "access_point", "tx", (1.0, 1.0, 2.0), rows=2, cols=2),
+                   SyntheticDevice("robot1", "robot", "rx", (sx / 2, sy / 2, 0.0), cols=2,
+                                   extra={"model": "burger", "antenna_offset": [0.0, 0.0, 0.25]})]
+        links = [("AP1", "robot1")]
+    return write_scene_folder(folder, objects, devices, links or [], **kw)
