@@ -1,0 +1,142 @@
+"""ROS 2-shaped message types for the topic bus, the devices and recording.
+
+Field names and units follow the ROS 2 definitions (``sensor_msgs``,
+``nav_msgs``, ``geometry_msgs``) so that a message converts one-to-one to
+CDR for a ROS 2 peer or an MCAP file. Arrays are numpy; times are float
+seconds here (``Header.stamp``) and split into ``sec``/``nanosec`` only at
+the serialization edge.
+
+Every type has ``ROS_TYPE`` (e.g. ``"sensor_msgs/msg/LaserScan"``);
+:data:`MESSAGE_TYPES` maps those names to the classes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+def _zeros(n: int):
+    return field(default_factory=lambda: np.zeros(n))
+
+
+def _cov(n: int):
+    return field(default_factory=lambda: np.zeros((n, n)))
+
+
+@dataclass
+class Header:
+    stamp: float = 0.0  #: s since the epoch of the source's clock
+    frame_id: str = ""
+
+
+@dataclass
+class Vector3:
+    ROS_TYPE = "geometry_msgs/msg/Vector3"
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+
+
+@dataclass
+class Pose:
+    """Position (m) and orientation quaternion ``[x, y, z, w]``."""
+
+    ROS_TYPE = "geometry_msgs/msg/Pose"
+    position: np.ndarray = _zeros(3)
+    orientation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
+
+
+@dataclass
+class PoseStamped:
+    ROS_TYPE = "geometry_msgs/msg/PoseStamped"
+    header: Header = field(default_factory=Header)
+    pose: Pose = field(default_factory=Pose)
+
+
+@dataclass
+class Twist:
+    """Linear (m/s) and angular (rad/s) velocity ``[3]`` each."""
+
+    ROS_TYPE = "geometry_msgs/msg/Twist"
+    linear: np.ndarray = _zeros(3)
+    angular: np.ndarray = _zeros(3)
+
+
+@dataclass
+class Odometry:
+    ROS_TYPE = "nav_msgs/msg/Odometry"
+    header: Header = field(default_factory=lambda: Header(frame_id="odom"))
+    child_frame_id: str = "base_link"
+    pose: Pose = field(default_factory=Pose)
+    pose_covariance: np.ndarray = _cov(6)
+    twist: Twist = field(default_factory=Twist)
+    twist_covariance: np.ndarray = _cov(6)
+
+
+@dataclass
+class Imu:
+    """Orientation quaternion, angular velocity (rad/s), linear acceleration (m/s^2)."""
+
+    ROS_TYPE = "sensor_msgs/msg/Imu"
+    header: Header = field(default_factory=lambda: Header(frame_id="imu_link"))
+    orientation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
+    orientation_covariance: np.ndarray = _cov(3)
+    angular_velocity: np.ndarray = _zeros(3)
+    angular_velocity_covariance: np.ndarray = _cov(3)
+    linear_acceleration: np.ndarray = _zeros(3)
+    linear_acceleration_covariance: np.ndarray = _cov(3)
+
+
+@dataclass
+class LaserScan:
+    """A planar scan: ``ranges [M]`` m (inf = no return), ``intensities [M]``."""
+
+    ROS_TYPE = "sensor_msgs/msg/LaserScan"
+    header: Header = field(default_factory=lambda: Header(frame_id="base_scan"))
+    angle_min: float = 0.0
+    angle_max: float = 0.0
+    angle_increment: float = 0.0
+    time_increment: float = 0.0
+    scan_time: float = 0.0
+    range_min: float = 0.0
+    range_max: float = 0.0
+    ranges: np.ndarray = _zeros(0)
+    intensities: np.ndarray = _zeros(0)
+
+
+@dataclass
+class Image:
+    """``data`` is ``[height, width, channels]`` uint8 (or ``[h, w]`` uint16 depth)."""
+
+    ROS_TYPE = "sensor_msgs/msg/Image"
+    header: Header = field(default_factory=lambda: Header(frame_id="camera"))
+    height: int = 0
+    width: int = 0
+    encoding: str = "rgb8"
+    data: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), np.uint8))
+
+
+@dataclass
+class BatteryState:
+    ROS_TYPE = "sensor_msgs/msg/BatteryState"
+    header: Header = field(default_factory=Header)
+    voltage: float = 0.0  #: V
+
+
+MESSAGE_TYPES: dict[str, type] = {
+    cls.ROS_TYPE: cls
+    for cls in (Vector3, Pose, PoseStamped, Twist, Odometry, Imu, LaserScan, Image, BatteryState)
+}
+
+
+def yaw_to_quaternion(yaw: float) -> np.ndarray:
+    """Quaternion ``[x, y, z, w]`` of a rotation by ``yaw`` rad about Z."""
+    return np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+
+
+def quaternion_to_yaw(q) -> float:
+    """Yaw (rad) of a quaternion ``[x, y, z, w]``."""
+    x, y, z, w = q
+    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))

@@ -1,0 +1,104 @@
+"""engine/scene.py: loading a scene folder into Sionna RT, validation of objects and devices."""
+
+import numpy as np
+import pytest
+
+from engine.config import ConfigError
+from engine.meshes import read_ply
+from engine.scene import itu_defined_at, load_scene
+from engine.synthetic import SyntheticDevice, SyntheticObject, box_mesh, box_room, write_scene_folder
+
+
+@pytest.fixture()
+def folder(tmp_path):
+    return box_room(tmp_path / "room")
+
+
+def test_loads_into_sionna_with_objects_separate(folder):
+    scene = load_scene(folder)
+    names = set(scene.sionna.objects)
+    assert names == {"floor", "ceiling", "wall_xmin", "wall_xmax", "wall_ymin", "wall_ymax"}
+    assert scene.sionna.frequency[0] == pytest.approx(2.4e9)
+    floor = scene.sionna.objects["floor"]
+    assert floor.radio_material.itu_type == "concrete"
+    assert float(floor.radio_material.thickness[0]) == pytest.approx(0.2)
+    np.testing.assert_allclose(scene.bounds_min, [-0.1, -0.1, -0.1], atol=1e-6)
+    np.testing.assert_allclose(scene.bounds_max, [6.1, 4.1, 3.1], atol=1e-6)
+
+
+def test_content_hash_tracks_geometry_and_material(tmp_path):
+    a = load_scene(box_room(tmp_path / "a"), load_sionna=False)
+    b = load_scene(box_room(tmp_path / "b"), load_sionna=False)
+    assert a.content_hash() == b.content_hash()
+    c = load_scene(box_room(tmp_path / "c", size=(6.0, 4.0, 3.01)), load_sionna=False)
+    assert c.content_hash() != a.content_hash()
+    d = load_scene(box_room(tmp_path / "d", material="brick"), load_sionna=False)
+    assert d.content_hash() != a.content_hash()
+
+
+def test_ply_reader_matches_written_mesh(tmp_path):
+    v, f = box_mesh((0, 0, 0), (1, 2, 3))
+    from engine.synthetic import write_ply
+    write_ply(tmp_path / "b.ply", v, f)
+    m = read_ply(tmp_path / "b.ply")
+    np.testing.assert_allclose(m.vertices, v)
+    np.testing.assert_array_equal(m.faces, f)
+
+
+def test_itu_bands_from_sionna():
+    assert itu_defined_at("concrete", 2.4e9)
+    assert not itu_defined_at("floorboard", 2.4e9)
+    assert itu_defined_at("floorboard", 60e9)
+
+
+def _xml_edit(folder, old, new):
+    p = folder / "scene.xml"
+    t = p.read_text()
+    assert old in t
+    p.write_text(t.replace(old, new, 1))
+
+
+def test_unknown_material(folder):
+    _xml_edit(folder, 'value="concrete"', 'value="unobtainium"')
+    with pytest.raises(ConfigError, match=r"scene\.xml: bsdf 'mat-concrete-0.2': unknown ITU material 'unobtainium'"):
+        load_scene(folder, load_sionna=False)
+
+
+def test_material_undefined_at_frequency(tmp_path):
+    objs = [SyntheticObject("parquet", *box_mesh((0, 0, -0.1), (4, 4, 0)), material="floorboard"),
+            SyntheticObject("wall", *box_mesh((0, 0, 0), (0.1, 4, 3)))]
+    dev = [SyntheticDevice("AP1", "access_point", "tx", (1, 1, 1))]
+    folder = write_scene_folder(tmp_path / "f", objs, dev, [])
+    with pytest.raises(ConfigError, match=r"object 'parquet': material 'floorboard' is not defined at 2.4 GHz \(defined: 50-100 GHz"):
+        load_scene(folder, load_sionna=False)
+
+
+def test_missing_mesh(folder):
+    (folder / "meshes" / "ceiling.ply").unlink()
+    with pytest.raises(ConfigError, match=r"object 'ceiling': .*ceiling\.ply: cannot read mesh file"):
+        load_scene(folder, load_sionna=False)
+
+
+@pytest.mark.parametrize("damage,reason", [
+    (lambda b: b[:-20], "truncated or corrupt"),
+    (lambda b: b"garbage" + b, "not a PLY file"),
+    (lambda b: b.replace(b"binary_little_endian", b"binary_big_endian"), "unsupported PLY format"),
+])
+def test_corrupt_mesh(folder, damage, reason):
+    p = folder / "meshes" / "wall_xmin.ply"
+    p.write_bytes(damage(p.read_bytes()))
+    with pytest.raises(ConfigError, match=rf"object 'wall_xmin': .*wall_xmin\.ply: {reason}"):
+        load_scene(folder, load_sionna=False)
+
+
+def test_broken_xml(folder):
+    _xml_edit(folder, "</scene>", "</scen>")
+    with pytest.raises(ConfigError, match=r"scene\.xml: not valid XML"):
+        load_scene(folder, load_sionna=False)
+
+
+def test_device_outside_room(tmp_path):
+    devs = [SyntheticDevice("AP1", "access_point", "tx", (7.5, 1.0, 2.0))]
+    folder = box_room(tmp_path / "r", devices=devs, links=[])
+    with pytest.raises(ConfigError, match=r"devices\[0\] \(AP1\)\.position: \[7\.5, 1\.0, 2\.0\] lies outside the room"):
+        load_scene(folder, load_sionna=False)
