@@ -1,0 +1,179 @@
+"""Multipath component analysis (MCA): fingerprint localization with delay profiles.
+
+After Zayets and Steinbach, "Robust WiFi-based indoor localization using
+multipath component analysis", IPIN 2017 (see
+``shared/reference/localization.md``). A fingerprint is, per access point, an
+unordered set of path lengths ``d = c * tau`` (m). The score of a database
+point with lengths ``f_1..f_L`` against measured lengths ``d_1..d_J`` is
+
+    sum over APs, sum over j of (eps - |d_j - f_nearest(j)|)^2  if that distance < eps
+
+and the best-scoring points, averaged with their scores as weights (k-best),
+give the estimate.
+
+The query is exact but avoids touching all ``P x A x J x L`` distances: an
+upper-bound table over length bins (one row of ``P`` scores per AP and bin)
+scores every point with ``A x J`` row additions, then exact scores are
+computed only for candidates in upper-bound order until no remaining
+candidate can beat the current k-th best (branch and bound).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LocationEstimate:
+    """Result of one query.
+
+    Attributes:
+        position: ``[3]`` weighted estimate, m.
+        best_indices: ``[k]`` database indices, best first.
+        best_scores: ``[k]`` their MCA scores (m^2), descending.
+        candidates_scored: how many points needed an exact score.
+    """
+
+    position: np.ndarray
+    best_indices: np.ndarray
+    best_scores: np.ndarray
+    candidates_scored: int
+
+
+def _pad_sorted(db: np.ndarray) -> np.ndarray:
+    """Sort each fingerprint's lengths, NaN (no path) last."""
+    db = np.asarray(db, dtype=np.float64)
+    return np.sort(np.where(np.isfinite(db), db, np.inf), axis=-1)
+
+
+class MCALocalizer:
+    """MCA over a whole fingerprint database, vectorised.
+
+    Args:
+        positions: ``[P, 3]`` database positions, m.
+        lengths: ``[P, A, L]`` path lengths ``c * tau`` per point and access
+            point, m; NaN or inf pads missing paths.
+        eps: matching radius, m (0.5 in the published comparison).
+        k: number of best points averaged (k = 1 is nearest neighbour).
+        bin_m: width of the upper-bound table's length bins, m.
+
+    Raises:
+        ValueError: inconsistent shapes, non-finite positions, eps or k out of range.
+    """
+
+    def __init__(self, positions, lengths, *, eps: float = 0.5, k: int = 4,
+                 bin_m: float = 0.05) -> None:
+        positions = np.asarray(positions, dtype=np.float64)
+        lengths = _pad_sorted(lengths)
+        if positions.ndim != 2 or positions.shape[1] != 3:
+            raise ValueError(f"positions: expected shape [P, 3], got {positions.shape}")
+        if lengths.ndim != 3 or lengths.shape[0] != positions.shape[0]:
+            raise ValueError(f"lengths: expected shape [P={positions.shape[0]}, A, L], "
+                             f"got {lengths.shape}")
+        if not np.isfinite(positions).all():
+            raise ValueError("positions: contains NaN or inf")
+        if not eps > 0:
+            raise ValueError(f"eps: expected a positive radius in m, got {eps}")
+        if not 1 <= k <= len(positions):
+            raise ValueError(f"k: expected 1..{len(positions)}, got {k}")
+        self.positions, self.lengths = positions, lengths
+        self.eps, self.k, self.bin_m = float(eps), int(k), float(bin_m)
+        self._build_table()
+
+    @property
+    def num_aps(self) -> int:
+        return self.lengths.shape[1]
+
+    def _build_table(self) -> None:
+        P, A, L = self.lengths.shape
+        finite = self.lengths[np.isfinite(self.lengths)]
+        top = (finite.max() if finite.size else 0.0) + self.eps + self.bin_m
+        nb = int(np.ceil(top / self.bin_m)) + 1
+        # Upper bound per (AP, bin, point): the best score any length inside the
+        # bin can get, from the nearest database length minus half a bin.
+        table = np.zeros((A, nb, P), dtype=np.float32)
+        reach = int(np.ceil(self.eps / self.bin_m)) + 1
+        centres = (np.arange(nb) + 0.5) * self.bin_m
+        cols = np.arange(P)
+        for a in range(A):
+            for l in range(L):
+                f = self.lengths[:, a, l]
+                ok = np.isfinite(f)
+                if not ok.any():
+                    continue
+                b0 = np.floor(f[ok] / self.bin_m).astype(np.int64)
+                for off in range(-reach, reach + 1):
+                    b = b0 + off
+                    inb = (b >= 0) & (b < nb)
+                    bb, pp = b[inb], cols[ok][inb]
+                    d = np.maximum(np.abs(centres[bb] - f[ok][inb]) - self.bin_m / 2, 0.0)
+                    s = np.where(d < self.eps, (self.eps - d) ** 2, 0.0).astype(np.float32)
+                    np.maximum.at(table[a], (bb, pp), s)
+        self._table, self._nbins = table, nb
+
+    def exact_scores(self, measured: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        """Exact MCA scores of database points ``idx`` ``[M]`` -> ``[M]`` (m^2).
+
+        ``measured`` is ``[A, J]`` lengths in m, NaN-padded.
+        """
+        db = self.lengths[idx]  # [M, A, L]
+        diff = np.abs(measured[None, :, :, None] - db[:, :, None, :])  # [M, A, J, L]
+        near = np.min(diff, axis=-1)  # [M, A, J]
+        s = np.where(near < self.eps, (self.eps - near) ** 2, 0.0)
+        return np.nansum(s, axis=(1, 2))
+
+    def _check_measured(self, measured) -> np.ndarray:
+        m = np.asarray(measured, dtype=np.float64)
+        if m.ndim == 1 and self.num_aps == 1:
+            m = m[None]
+        if m.ndim != 2 or m.shape[0] != self.num_aps:
+            raise ValueError(f"measured: expected [A={self.num_aps}, J] path lengths in m, "
+                             f"got shape {m.shape}")
+        if np.isinf(m).any() or (m[np.isfinite(m)] < 0).any():
+            raise ValueError("measured: path lengths must be finite and >= 0 (NaN pads)")
+        return m
+
+    def __call__(self, measured) -> LocationEstimate:
+        """Localize one measurement.
+
+        Args:
+            measured: ``[A, J]`` measured path lengths per AP, m (NaN pads).
+
+        Returns:
+            The k-best weighted estimate (all-zero scores fall back to an
+            unweighted mean of the k candidates with the highest bound).
+        """
+        m = self._check_measured(measured)
+        ub = np.zeros(self._table.shape[2], dtype=np.float32)
+        for a in range(self.num_aps):
+            dj = m[a][np.isfinite(m[a])]
+            bins = np.floor(dj / self.bin_m).astype(np.int64)
+            bins = bins[(bins >= 0) & (bins < self._nbins)]
+            if bins.size:
+                ub += self._table[a, bins].sum(axis=0)
+        order = np.argsort(-ub, kind="stable")
+        k = self.k
+        best_i = np.empty(0, dtype=np.int64)
+        best_s = np.empty(0)
+        start, chunk = 0, max(64, 4 * k)
+        while start < len(order):
+            idx = order[start:start + chunk]
+            s = self.exact_scores(m, idx)
+            best_i = np.concatenate([best_i, idx])
+            best_s = np.concatenate([best_s, s])
+            keep = np.argsort(-best_s, kind="stable")[:k]
+            best_i, best_s = best_i[keep], best_s[keep]
+            start += chunk
+            # Float32 table: allow a hair of slack before declaring the bound met.
+            if len(best_s) == k and start < len(order) and ub[order[start]] <= best_s[-1] - 1e-6:
+                break
+            chunk *= 2
+        w = best_s
+        if w.sum() > 0:
+            pos = (w[:, None] * self.positions[best_i]).sum(0) / w.sum()
+        else:
+            pos = self.positions[best_i].mean(0)
+        return LocationEstimate(position=pos, best_indices=best_i, best_scores=best_s,
+                                candidates_scored=min(start, len(order)))
