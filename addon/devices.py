@@ -1,0 +1,169 @@
+"""Access points, robots, links and scene-level radio settings as plain functions.
+
+Devices are Blender *empties*: they carry radio settings in ``Object.isac``
+but no geometry, so the exporter writes them to ``twin.toml`` and never into
+``scene.xml``. Orientation follows the twin's convention [roll, pitch, yaw]
+applied as Rz(yaw) Ry(pitch) Rx(roll), which is Blender's 'XYZ' Euler order;
+an array's boresight is its local +x axis (as in Sionna).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import bpy
+
+from .modelling import get_collection
+
+DEVICE_COLLECTION = "Devices"
+
+#: TurtleBot3 footprints (x, y, z) in m, for display only.
+ROBOT_SIZES = {"burger": (0.138, 0.178, 0.192), "waffle": (0.281, 0.306, 0.141)}
+
+
+def _set_array(props, rows, cols, vertical_spacing, horizontal_spacing, pattern, polarization):
+    props.array_rows = int(rows)
+    props.array_cols = int(cols)
+    props.vertical_spacing = float(vertical_spacing)
+    props.horizontal_spacing = float(horizontal_spacing)
+    props.pattern = pattern
+    props.polarization = polarization
+
+
+def _new_empty(name: str, location, orientation, display: str, size: float, scene):
+    scene = scene if scene is not None else bpy.context.scene
+    obj = bpy.data.objects.new(name, None)
+    obj.empty_display_type = display
+    obj.empty_display_size = size
+    obj.location = tuple(location)
+    obj.rotation_mode = "XYZ"
+    obj.rotation_euler = tuple(orientation)
+    get_collection(scene, DEVICE_COLLECTION).objects.link(obj)
+    return obj
+
+
+def add_access_point(
+    name: str = "AP",
+    location: Sequence[float] = (0.0, 0.0, 2.0),
+    orientation: Sequence[float] = (0.0, 0.0, 0.0),
+    *,
+    rows: int = 1,
+    cols: int = 1,
+    vertical_spacing: float = 0.5,
+    horizontal_spacing: float = 0.5,
+    pattern: str = "iso",
+    polarization: str = "V",
+    power_dbm: float = 20.0,
+    role: str = "tx",
+    scene=None,
+):
+    """An access point: an empty at the array centre whose +x axis is the boresight.
+
+    Args:
+        name: device name (the object name; Blender appends .001 on a clash).
+        location: array centre, m.
+        orientation: [roll, pitch, yaw], rad.
+        rows, cols: planar array size (>= 1).
+        vertical_spacing, horizontal_spacing: element spacing, wavelengths.
+        pattern: "iso" | "dipole" | "hw_dipole" | "tr38901".
+        polarization: "V" | "H" | "VH" | "cross".
+        power_dbm: total transmit power, dBm.
+        role: "tx" | "rx" | "txrx".
+
+    Returns:
+        The new empty object.
+    """
+    obj = _new_empty(name, location, orientation, "ARROWS", 0.2, scene)
+    p = obj.isac
+    p.device_kind = "ACCESS_POINT"
+    p.role = role
+    p.power_dbm = float(power_dbm)
+    _set_array(p, rows, cols, vertical_spacing, horizontal_spacing, pattern, polarization)
+    return obj
+
+
+def add_robot(
+    name: str = "robot",
+    location: Sequence[float] = (0.0, 0.0, 0.0),
+    yaw: float = 0.0,
+    *,
+    model: str = "burger",
+    rows: int = 1,
+    cols: int = 1,
+    vertical_spacing: float = 0.5,
+    horizontal_spacing: float = 0.5,
+    pattern: str = "iso",
+    polarization: str = "V",
+    antenna_offset: Sequence[float] = (0.0, 0.0, 0.25),
+    power_dbm: float = 10.0,
+    role: str = "rx",
+    scene=None,
+):
+    """A robot: an empty at base_link on the floor, heading ``yaw`` rad (x forward, REP-103).
+
+    Args:
+        location: base_link position, m (z = 0 on the floor).
+        model: "burger" | "waffle" (TurtleBot3).
+        antenna_offset: array centre in base_link, m.
+        Other arguments as :func:`add_access_point`.
+    """
+    size = max(ROBOT_SIZES.get(model, (0.2, 0.2, 0.2))) / 2
+    obj = _new_empty(name, location, (0.0, 0.0, yaw), "CUBE", size, scene)
+    p = obj.isac
+    p.device_kind = "ROBOT"
+    p.robot_model = model
+    p.role = role
+    p.power_dbm = float(power_dbm)
+    p.antenna_offset = tuple(antenna_offset)
+    _set_array(p, rows, cols, vertical_spacing, horizontal_spacing, pattern, polarization)
+    return obj
+
+
+def device_objects(scene) -> list:
+    """Access points and robots of ``scene``, sorted by name."""
+    return sorted((o for o in scene.objects if o.isac.device_kind != "NONE"),
+                  key=lambda o: o.name)
+
+
+def set_radio_settings(
+    scene,
+    *,
+    frequency_hz: float | None = None,
+    num_subcarriers: int | None = None,
+    subcarrier_spacing_hz: float | None = None,
+    num_symbols: int | None = None,
+    cyclic_prefix_samples: int | None = None,
+    twin_name: str | None = None,
+) -> None:
+    """Set the scene-level carrier (Hz) and OFDM numerology; ``None`` leaves a value as is."""
+    p = scene.isac
+    if frequency_hz is not None:
+        p.frequency_hz = float(frequency_hz)
+    if num_subcarriers is not None:
+        p.num_subcarriers = int(num_subcarriers)
+    if subcarrier_spacing_hz is not None:
+        p.subcarrier_spacing_hz = float(subcarrier_spacing_hz)
+    if num_symbols is not None:
+        p.num_symbols = int(num_symbols)
+    if cyclic_prefix_samples is not None:
+        p.cyclic_prefix_samples = int(cyclic_prefix_samples)
+    if twin_name is not None:
+        p.twin_name = twin_name
+
+
+def add_link(scene, tx: str, rx: str):
+    """Append a link tx -> rx (device object names); checked at export. Returns the item."""
+    item = scene.isac.links.add()
+    item.tx = tx
+    item.rx = rx
+    scene.isac.links_index = len(scene.isac.links) - 1
+    return item
+
+
+def remove_link(scene, index: int) -> None:
+    """Remove link number ``index``; raises IndexError when out of range."""
+    links = scene.isac.links
+    if not 0 <= index < len(links):
+        raise IndexError(f"No link number {index} (scene has {len(links)})")
+    links.remove(index)
+    scene.isac.links_index = min(scene.isac.links_index, max(len(links) - 1, 0))

@@ -1,0 +1,303 @@
+"""Export a Blender scene to an ISAC Twin scene folder (format: docs/config.md).
+
+``export_scene(context_or_scene, folder)`` is the one entry point; the
+operator, ``bpy`` scripts and tests all call it. It first validates the
+whole scene and refuses with an :class:`ExportError` listing every problem
+(each message names the object, device or link at fault), then writes:
+
+- ``scene.xml`` + ``meshes/<name>.ply`` (what Sionna RT loads),
+- ``twin.toml`` (devices, links, numerology),
+- ``<scene>.dae``, ``<scene>.stl``, ``<scene>.usdc`` (interchange formats).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+
+import bpy
+
+from .. import materials
+from .geometry import WorldMesh, world_mesh, write_ply
+from .interchange import write_dae, write_stl, write_usd
+from .mitsuba_xml import material_id, write_scene_xml
+from .numbers import clean
+from .twin_toml import write_twin_toml
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+_KIND = {"ACCESS_POINT": "access_point", "ROBOT": "robot"}
+
+
+class ExportError(ValueError):
+    """The scene cannot be exported; ``problems`` holds one message per fault."""
+
+    def __init__(self, problems: list[str]):
+        self.problems = list(problems)
+        super().__init__("Export refused:\n  " + "\n  ".join(self.problems))
+
+
+@dataclass
+class ExportReport:
+    """What :func:`export_scene` wrote.
+
+    Attributes:
+        folder: the scene folder.
+        files: written files relative to ``folder``, sorted (POSIX separators).
+        objects: exported geometry object names (file-safe), sorted.
+        materials: material ids in scene.xml, sorted.
+        devices: device names, sorted.
+        links: (tx, rx) pairs in order.
+        warnings: non-fatal remarks.
+    """
+
+    folder: Path
+    files: list[str] = field(default_factory=list)
+    objects: list[str] = field(default_factory=list)
+    materials: list[str] = field(default_factory=list)
+    devices: list[str] = field(default_factory=list)
+    links: list[tuple[str, str]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+
+def safe_name(name: str) -> str:
+    """Blender object name made file-safe: characters outside [A-Za-z0-9_-] become '_'."""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", name)
+
+
+def _finite_positive(x: float) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x) and x > 0
+
+
+def _resolve(context_or_scene):
+    """(scene, context-like with view_layer, evaluated depsgraph)."""
+    ctx = bpy.context
+    if isinstance(context_or_scene, bpy.types.Scene):
+        scene = context_or_scene
+        if ctx.scene == scene:
+            return scene, ctx, ctx.evaluated_depsgraph_get()
+        view_layer = scene.view_layers[0]
+        depsgraph = scene.view_layers[0].depsgraph
+        depsgraph.update()
+        return scene, SimpleNamespace(view_layer=view_layer), depsgraph
+    ctx = context_or_scene
+    return ctx.scene, ctx, ctx.evaluated_depsgraph_get()
+
+
+def geometry_objects(scene) -> list:
+    """Mesh objects that go into scene.xml (not devices, not helpers), sorted by name."""
+    return sorted((o for o in scene.objects if o.type == "MESH"
+                   and o.isac.device_kind == "NONE" and o.isac.export_geometry),
+                  key=lambda o: o.name)
+
+
+def validate_settings(scene) -> list[str]:
+    """Problems with the scene-level radio settings (frequency Hz, OFDM numerology)."""
+    p = scene.isac
+    out = []
+    if not _finite_positive(p.frequency_hz):
+        out.append(f"Scene '{scene.name}': frequency must be > 0 Hz, got {p.frequency_hz}")
+    for key in ("num_subcarriers", "num_symbols"):
+        if getattr(p, key) < 1:
+            out.append(f"Scene '{scene.name}': {key} must be >= 1, got {getattr(p, key)}")
+    if not _finite_positive(p.subcarrier_spacing_hz):
+        out.append(f"Scene '{scene.name}': subcarrier spacing must be > 0 Hz, "
+                   f"got {p.subcarrier_spacing_hz}")
+    if p.cyclic_prefix_samples < 0:
+        out.append(f"Scene '{scene.name}': cyclic_prefix_samples must be >= 0, "
+                   f"got {p.cyclic_prefix_samples}")
+    return out
+
+
+def validate_device(obj) -> list[str]:
+    """Problems with one device object's radio settings."""
+    p = obj.isac
+    out = []
+    if p.array_rows < 1 or p.array_cols < 1:
+        out.append(f"Device '{obj.name}': array rows and cols must be >= 1, "
+                   f"got {p.array_rows} x {p.array_cols}")
+    for key in ("vertical_spacing", "horizontal_spacing"):
+        if not _finite_positive(getattr(p, key)):
+            out.append(f"Device '{obj.name}': {key} must be > 0 wavelengths, "
+                       f"got {getattr(p, key)}")
+    if not math.isfinite(p.power_dbm):
+        out.append(f"Device '{obj.name}': power_dbm must be finite, got {p.power_dbm}")
+    return out
+
+
+def _collect(scene, depsgraph):
+    """Validate everything; return (meshes, shapes, devices, links) or raise ExportError."""
+    problems = validate_settings(scene)
+    freq = float(scene.isac.frequency_hz)
+
+    meshes: list[tuple[WorldMesh, str, float]] = []
+    used: dict[str, str] = {}
+    for obj in geometry_objects(scene):
+        name = safe_name(obj.name)
+        if name in used:
+            problems.append(f"Object '{obj.name}': file-safe name '{name}' clashes with "
+                            f"object '{used[name]}'; rename one of them")
+            continue
+        used[name] = obj.name
+        mat, thickness = obj.isac.itu_material, float(obj.isac.thickness)
+        if mat == materials.NO_MATERIAL:
+            problems.append(f"Object '{obj.name}': no ITU radio material assigned "
+                            "(tag it, or untick 'Export geometry')")
+            continue
+        if not materials.is_defined_at(mat, freq) and math.isfinite(freq):
+            problems.append(materials.band_message(obj.name, mat, freq))
+        if not _finite_positive(thickness):
+            problems.append(f"Object '{obj.name}': material thickness must be > 0 m, "
+                            f"got {thickness}")
+        wm = world_mesh(obj, depsgraph, name)
+        if wm.num_triangles == 0:
+            problems.append(f"Object '{obj.name}': mesh is empty (no faces)")
+            continue
+        if wm.area <= 1e-12:
+            problems.append(f"Object '{obj.name}': mesh has zero area "
+                            "(zero dimension or collapsed faces)")
+            continue
+        meshes.append((wm, mat, thickness))
+
+    devices = []
+    dev_names: dict[str, str] = {}
+    for obj in sorted((o for o in scene.objects if o.isac.device_kind != "NONE"),
+                      key=lambda o: o.name):
+        key = safe_name(obj.name)
+        if key in dev_names:
+            problems.append(f"Device '{obj.name}': name duplicates device '{dev_names[key]}' "
+                            "(names must stay unique when made file-safe)")
+        elif key in used:
+            problems.append(f"Device '{obj.name}': name duplicates geometry object "
+                            f"'{used[key]}'")
+        dev_names[key] = obj.name
+        problems += validate_device(obj)
+        devices.append(obj)
+
+    by_name = {o.name: o for o in devices}
+    links = []
+    seen = set()
+    for i, link in enumerate(scene.isac.links):
+        tag = f"Link {i + 1} ({link.tx or '?'} -> {link.rx or '?'})"
+        bad = False
+        for end, name, roles in (("tx", link.tx, ("tx", "txrx")), ("rx", link.rx, ("rx", "txrx"))):
+            if name not in by_name:
+                problems.append(f"{tag}: {end} '{name}' is not a device in the scene")
+                bad = True
+            elif by_name[name].isac.role not in roles:
+                problems.append(f"{tag}: device '{name}' has role "
+                                f"'{by_name[name].isac.role}', cannot be the {end} end")
+                bad = True
+        if not bad and link.tx == link.rx:
+            problems.append(f"{tag}: a device cannot link to itself")
+        elif not bad and (link.tx, link.rx) in seen:
+            problems.append(f"{tag}: duplicate link")
+        seen.add((link.tx, link.rx))
+        links.append((link.tx, link.rx))
+
+    if problems:
+        raise ExportError(problems)
+    return meshes, devices, links
+
+
+def _device_entry(obj, depsgraph) -> dict:
+    p = obj.isac
+    mw = obj.evaluated_get(depsgraph).matrix_world
+    pos = [clean(float(x), 1e-9) for x in mw.translation]
+    rot = [clean(float(a)) for a in mw.to_euler("XYZ")]
+    entry: dict = {"name": obj.name, "kind": _KIND[p.device_kind], "role": p.role}
+    if p.device_kind == "ROBOT":
+        entry["model"] = p.robot_model
+        entry["antenna_offset"] = [clean(float(x), 1e-9) for x in p.antenna_offset]
+    entry.update({
+        "position": pos,
+        "orientation": rot,
+        "power_dbm": float(p.power_dbm),
+        "array": {
+            "rows": int(p.array_rows),
+            "cols": int(p.array_cols),
+            "vertical_spacing": float(p.vertical_spacing),
+            "horizontal_spacing": float(p.horizontal_spacing),
+            "pattern": p.pattern,
+            "polarization": p.polarization,
+        },
+    })
+    return entry
+
+
+def twin_data(scene, devices, links, depsgraph) -> dict:
+    """The twin.toml content as nested dicts, in the key order of docs/config.md."""
+    p = scene.isac
+    return {
+        "schema": SCHEMA_VERSION,
+        "scene": {"name": p.twin_name or scene.name, "file": "scene.xml",
+                  "frequency_hz": float(p.frequency_hz)},
+        "ofdm": {"num_subcarriers": int(p.num_subcarriers),
+                 "subcarrier_spacing_hz": float(p.subcarrier_spacing_hz),
+                 "num_symbols": int(p.num_symbols),
+                 "cyclic_prefix_samples": int(p.cyclic_prefix_samples)},
+        "devices": [_device_entry(o, depsgraph) for o in devices],
+        "links": [{"tx": tx, "rx": rx} for tx, rx in links],
+    }
+
+
+def export_scene(context_or_scene, folder, *, interchange: bool = True) -> ExportReport:
+    """Validate and export a scene to a scene folder.
+
+    Args:
+        context_or_scene: a ``bpy.types.Context`` or ``bpy.types.Scene``.
+        folder: target directory (created); stale ``meshes/*.ply`` are removed.
+        interchange: also write ``<scene>.dae``, ``.stl`` and ``.usdc``.
+
+    Returns:
+        An :class:`ExportReport`.
+
+    Raises:
+        ExportError: the scene is invalid; nothing has been written.
+    """
+    folder_text = str(folder)
+    if folder_text.startswith("//"):
+        if not bpy.data.filepath:
+            raise ExportError([f"Scene folder '{folder_text}' is relative to the .blend file, "
+                               "which has not been saved: save it or choose an absolute folder"])
+        folder_text = bpy.path.abspath(folder_text)
+    scene, ctx, depsgraph = _resolve(context_or_scene)
+    meshes, devices, links = _collect(scene, depsgraph)
+
+    folder = Path(folder_text).resolve()
+    mesh_dir = folder / "meshes"
+    mesh_dir.mkdir(parents=True, exist_ok=True)
+    report = ExportReport(folder=folder)
+    keep = set()
+    for wm, _, _ in meshes:
+        write_ply(mesh_dir / f"{wm.name}.ply", wm)
+        keep.add(f"{wm.name}.ply")
+        report.files.append(f"meshes/{wm.name}.ply")
+    for stale in mesh_dir.glob("*.ply"):
+        if stale.name not in keep:
+            stale.unlink()
+    shapes = [(wm.name, t, d) for wm, t, d in meshes]
+    write_scene_xml(folder / "scene.xml", shapes)
+    write_twin_toml(folder / "twin.toml", twin_data(scene, devices, links, depsgraph))
+    report.files += ["scene.xml", "twin.toml"]
+
+    if interchange:
+        base = safe_name(scene.isac.twin_name or scene.name)
+        write_dae(folder / f"{base}.dae", meshes, base)
+        write_stl(folder / f"{base}.stl", [m for m, _, _ in meshes], base)
+        by_safe = {safe_name(o.name): o for o in geometry_objects(scene)}
+        write_usd(folder / f"{base}.usdc", [by_safe[m.name] for m, _, _ in meshes], ctx)
+        report.files += [f"{base}.dae", f"{base}.stl", f"{base}.usdc"]
+
+    report.files.sort()
+    report.objects = sorted(s[0] for s in shapes)
+    report.materials = sorted({material_id(t, d) for _, t, d in shapes})
+    report.devices = sorted(o.name for o in devices)
+    report.links = links
+    log.info("exported %d objects, %d devices to %s", len(meshes), len(devices), folder)
+    return report

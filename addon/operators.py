@@ -1,0 +1,223 @@
+"""Operators: thin, undoable wrappers around the plain functions."""
+
+from __future__ import annotations
+
+import math
+
+import bpy
+from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, StringProperty
+
+from . import devices, materials, modelling
+from .exporter import ExportError, export_scene
+from .properties import PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES
+
+_OPTS = {"REGISTER", "UNDO"}
+_FURNITURE_ITEMS = [(k, k.replace("_", " ").title(), "") for k in modelling.FURNITURE_PRESETS]
+_MATERIAL_ITEMS = [i for i in materials.material_enum_items() if i[0] != materials.NO_MATERIAL]
+
+
+def parse_polygon(text: str) -> list[tuple[float, float]]:
+    """Parse ``"x0,y0; x1,y1; ..."`` (m) into [(x, y), ...]; raises ValueError on bad text."""
+    pts = []
+    for chunk in text.replace("\n", ";").split(";"):
+        if chunk.strip():
+            parts = chunk.replace(" ", "").split(",")
+            if len(parts) != 2:
+                raise ValueError(f"Bad vertex '{chunk.strip()}': expected 'x,y'")
+            pts.append((float(parts[0]), float(parts[1])))
+    return pts
+
+
+class _Reporting:
+    """Run ``self.run(context)``; turn ValueError into an operator error report."""
+
+    def execute(self, context):
+        try:
+            self.run(context)
+        except (ValueError, IndexError) as exc:
+            self.report({"ERROR"}, str(exc))
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+
+class ISAC_OT_add_room(_Reporting, bpy.types.Operator):
+    """Add a rectangular room (floor, ceiling, four walls) from a ground plan"""
+
+    bl_idname = "isac.add_room"
+    bl_label = "Add Room"
+    bl_options = _OPTS
+
+    width: FloatProperty(name="Width (x)", default=8.0, min=0.01, unit="LENGTH")
+    depth: FloatProperty(name="Depth (y)", default=6.0, min=0.01, unit="LENGTH")
+    height: FloatProperty(name="Height", default=3.0, min=0.01, unit="LENGTH")
+    wall_thickness: FloatProperty(name="Wall thickness", default=0.2, min=0.001, unit="LENGTH")
+    name: StringProperty(name="Name", default="Room")
+
+    def run(self, context):
+        modelling.create_room(self.width, self.depth, self.height, self.wall_thickness,
+                              name=self.name, scene=context.scene)
+
+
+class ISAC_OT_add_room_polygon(_Reporting, bpy.types.Operator):
+    """Add a room whose footprint is a polygon given as 'x,y; x,y; ...' in metres"""
+
+    bl_idname = "isac.add_room_polygon"
+    bl_label = "Add Room from Footprint"
+    bl_options = _OPTS
+
+    vertices: StringProperty(name="Footprint", default="0,0; 6,0; 6,4; 3,6; 0,4")
+    height: FloatProperty(name="Height", default=3.0, min=0.01, unit="LENGTH")
+    wall_thickness: FloatProperty(name="Wall thickness", default=0.2, min=0.001, unit="LENGTH")
+    name: StringProperty(name="Name", default="Room")
+
+    def run(self, context):
+        modelling.create_room_from_polygon(parse_polygon(self.vertices), self.height,
+                                           self.wall_thickness, name=self.name,
+                                           scene=context.scene)
+
+
+class ISAC_OT_add_furniture(_Reporting, bpy.types.Operator):
+    """Add a furniture box from a preset"""
+
+    bl_idname = "isac.add_furniture"
+    bl_label = "Add Furniture"
+    bl_options = _OPTS
+
+    kind: EnumProperty(name="Preset", items=_FURNITURE_ITEMS, default="table")
+    location: FloatVectorProperty(name="Location", size=3, subtype="TRANSLATION", unit="LENGTH")
+    rotation_z: FloatProperty(name="Rotation Z", subtype="ANGLE", unit="ROTATION")
+
+    def run(self, context):
+        modelling.add_furniture(self.kind, tuple(self.location), self.rotation_z,
+                                scene=context.scene)
+
+
+class _ArrayProps:
+    rows: IntProperty(name="Rows", default=1, min=1)
+    cols: IntProperty(name="Columns", default=1, min=1)
+    pattern: EnumProperty(name="Pattern", items=PATTERNS, default="iso")
+    polarization: EnumProperty(name="Polarization", items=POLARIZATIONS, default="V")
+
+
+class ISAC_OT_add_access_point(_Reporting, _ArrayProps, bpy.types.Operator):
+    """Add an access point (empty; +x is the array boresight)"""
+
+    bl_idname = "isac.add_access_point"
+    bl_label = "Add Access Point"
+    bl_options = _OPTS
+
+    name: StringProperty(name="Name", default="AP")
+    location: FloatVectorProperty(name="Location", size=3, default=(0.0, 0.0, 2.0),
+                                  subtype="TRANSLATION", unit="LENGTH")
+    yaw: FloatProperty(name="Yaw", subtype="ANGLE", unit="ROTATION")
+    power_dbm: FloatProperty(name="Power (dBm)", default=20.0)
+    role: EnumProperty(name="Role", items=ROLES, default="tx")
+
+    def run(self, context):
+        devices.add_access_point(self.name, tuple(self.location), (0.0, 0.0, self.yaw),
+                                 rows=self.rows, cols=self.cols, pattern=self.pattern,
+                                 polarization=self.polarization, power_dbm=self.power_dbm,
+                                 role=self.role, scene=context.scene)
+
+
+class ISAC_OT_add_robot(_Reporting, _ArrayProps, bpy.types.Operator):
+    """Add a TurtleBot3 robot carrying an antenna array"""
+
+    bl_idname = "isac.add_robot"
+    bl_label = "Add Robot"
+    bl_options = _OPTS
+
+    name: StringProperty(name="Name", default="robot")
+    location: FloatVectorProperty(name="Location", size=3, subtype="TRANSLATION", unit="LENGTH")
+    yaw: FloatProperty(name="Yaw", subtype="ANGLE", unit="ROTATION", default=math.pi / 2)
+    model: EnumProperty(name="Model", items=ROBOT_MODELS, default="burger")
+    role: EnumProperty(name="Role", items=ROLES, default="rx")
+
+    def run(self, context):
+        devices.add_robot(self.name, tuple(self.location), self.yaw, model=self.model,
+                          rows=self.rows, cols=self.cols, pattern=self.pattern,
+                          polarization=self.polarization, role=self.role, scene=context.scene)
+
+
+class ISAC_OT_tag_material(_Reporting, bpy.types.Operator):
+    """Assign an ITU radio material and thickness to all selected meshes"""
+
+    bl_idname = "isac.tag_material"
+    bl_label = "Tag Selection"
+    bl_options = _OPTS
+
+    material: EnumProperty(name="ITU material", items=_MATERIAL_ITEMS, default="concrete")
+    thickness: FloatProperty(name="Thickness", default=0.1, min=0.0001, unit="LENGTH")
+
+    @classmethod
+    def poll(cls, context):
+        return bool(context.selected_objects)
+
+    def run(self, context):
+        n = materials.tag_objects(context.selected_objects, self.material, self.thickness)
+        self.report({"INFO"}, f"Tagged {n} object(s) as {self.material}")
+
+
+class ISAC_OT_add_link(_Reporting, bpy.types.Operator):
+    """Add a link (edge of the network graph) from a transmitter to a receiver"""
+
+    bl_idname = "isac.add_link"
+    bl_label = "Add Link"
+    bl_options = _OPTS
+
+    tx: StringProperty(name="Tx device")
+    rx: StringProperty(name="Rx device")
+
+    def run(self, context):
+        devices.add_link(context.scene, self.tx, self.rx)
+
+
+class ISAC_OT_remove_link(_Reporting, bpy.types.Operator):
+    """Remove the active link"""
+
+    bl_idname = "isac.remove_link"
+    bl_label = "Remove Link"
+    bl_options = _OPTS
+
+    index: IntProperty(name="Index", default=-1, description="Link to remove; -1 = active")
+
+    def run(self, context):
+        idx = self.index if self.index >= 0 else context.scene.isac.links_index
+        devices.remove_link(context.scene, idx)
+
+
+class ISAC_OT_export_scene(_Reporting, bpy.types.Operator):
+    """Export the scene folder (scene.xml, meshes, twin.toml, DAE/STL/USD)"""
+
+    bl_idname = "isac.export_scene"
+    bl_label = "Export Scene Folder"
+    bl_options = _OPTS
+
+    directory: StringProperty(name="Folder", subtype="DIR_PATH",
+                              description="Empty = the scene's export folder setting")
+
+    def run(self, context):
+        folder = self.directory or context.scene.isac.export_directory
+        try:
+            report = export_scene(context, folder)
+        except ExportError as exc:
+            for line in exc.problems:
+                self.report({"ERROR"}, line)
+            raise ValueError(str(exc)) from exc
+        self.report({"INFO"}, f"Exported {len(report.objects)} objects, "
+                              f"{len(report.devices)} devices to {report.folder}")
+
+
+CLASSES = (ISAC_OT_add_room, ISAC_OT_add_room_polygon, ISAC_OT_add_furniture,
+           ISAC_OT_add_access_point, ISAC_OT_add_robot, ISAC_OT_tag_material,
+           ISAC_OT_add_link, ISAC_OT_remove_link, ISAC_OT_export_scene)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister() -> None:
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

@@ -1,0 +1,131 @@
+"""Sidebar panels (View3D > Sidebar > ISAC Twin). UI only: draw() reads, never computes."""
+
+from __future__ import annotations
+
+import bpy
+
+from . import materials
+
+CATEGORY = "ISAC Twin"
+
+
+class _Base:
+    bl_space_type = "VIEW_3D"
+    bl_region_type = "UI"
+    bl_category = CATEGORY
+
+
+class ISAC_UL_links(bpy.types.UIList):
+    """One row per link: tx -> rx."""
+
+    def draw_item(self, context, layout, data, item, icon, active_data, active_propname, index):
+        row = layout.row(align=True)
+        row.prop(item, "tx", text="", emboss=False)
+        row.label(text="", icon="FORWARD")
+        row.prop(item, "rx", text="", emboss=False)
+
+
+class ISAC_PT_scene(_Base, bpy.types.Panel):
+    """Carrier, numerology, band warnings and export."""
+
+    bl_label = "Scene"
+    bl_idname = "ISAC_PT_scene"
+
+    def draw(self, context):
+        layout = self.layout
+        p = context.scene.isac
+        col = layout.column(align=True)
+        col.prop(p, "twin_name")
+        col.prop(p, "frequency_hz")
+        box = layout.box()
+        box.label(text="OFDM")
+        for key in ("num_subcarriers", "subcarrier_spacing_hz", "num_symbols",
+                    "cyclic_prefix_samples"):
+            box.prop(p, key)
+        for text in materials.band_warnings(context.scene):
+            layout.label(text=text, icon="ERROR")
+        layout.prop(p, "export_directory")
+        layout.operator("isac.export_scene", icon="EXPORT")
+
+
+class ISAC_PT_modelling(_Base, bpy.types.Panel):
+    """Room, furniture and device creation."""
+
+    bl_label = "Modelling"
+    bl_idname = "ISAC_PT_modelling"
+
+    def draw(self, context):
+        layout = self.layout
+        col = layout.column(align=True)
+        col.operator("isac.add_room", icon="MESH_CUBE")
+        col.operator("isac.add_room_polygon", icon="MOD_BUILD")
+        col.operator("isac.add_furniture", icon="OUTLINER_OB_MESH")
+        col = layout.column(align=True)
+        col.operator("isac.add_access_point", icon="OUTLINER_OB_LIGHTPROBE")
+        col.operator("isac.add_robot", icon="OUTLINER_OB_ARMATURE")
+
+
+class ISAC_PT_object(_Base, bpy.types.Panel):
+    """Radio settings of the active object: material for geometry, array for devices."""
+
+    bl_label = "Object"
+    bl_idname = "ISAC_PT_object"
+
+    def draw(self, context):
+        layout = self.layout
+        obj = context.active_object
+        if obj is None:
+            layout.label(text="No active object")
+            return
+        p = obj.isac
+        layout.label(text=obj.name, icon="OBJECT_DATA")
+        layout.prop(p, "device_kind")
+        if p.device_kind == "NONE":
+            layout.prop(p, "export_geometry")
+            layout.prop(p, "itu_material")
+            layout.prop(p, "thickness")
+            layout.operator("isac.tag_material", icon="MATERIAL")
+            return
+        layout.prop(p, "role")
+        layout.prop(p, "power_dbm")
+        if p.device_kind == "ROBOT":
+            layout.prop(p, "robot_model")
+            layout.prop(p, "antenna_offset")
+        box = layout.box()
+        box.label(text="Antenna array")
+        row = box.row(align=True)
+        row.prop(p, "array_rows")
+        row.prop(p, "array_cols")
+        row = box.row(align=True)
+        row.prop(p, "vertical_spacing")
+        row.prop(p, "horizontal_spacing")
+        box.prop(p, "pattern")
+        box.prop(p, "polarization")
+
+
+class ISAC_PT_links(_Base, bpy.types.Panel):
+    """The network graph's links."""
+
+    bl_label = "Links"
+    bl_idname = "ISAC_PT_links"
+
+    def draw(self, context):
+        layout = self.layout
+        p = context.scene.isac
+        layout.template_list("ISAC_UL_links", "", p, "links", p, "links_index", rows=3)
+        row = layout.row(align=True)
+        row.operator("isac.add_link", icon="ADD")
+        row.operator("isac.remove_link", icon="REMOVE")
+
+
+CLASSES = (ISAC_UL_links, ISAC_PT_scene, ISAC_PT_modelling, ISAC_PT_object, ISAC_PT_links)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+
+
+def unregister() -> None:
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)
