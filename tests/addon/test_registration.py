@@ -1,0 +1,160 @@
+"""Registration, properties, operators and panels of the add-on (headless bpy)."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+pytestmark = pytest.mark.blender
+
+ADDON_DIR = Path(__file__).resolve().parents[2] / "addon"
+
+
+def test_manifest_and_bl_info(addon_module):
+    manifest = tomllib.loads((ADDON_DIR / "blender_manifest.toml").read_text())
+    assert manifest["schema_version"] == "1.0.0"
+    assert manifest["id"] == "isac_twin"
+    assert manifest["blender_version_min"] == "4.2.0"
+    assert manifest["license"] == ["SPDX:Apache-2.0"]
+    assert addon_module.bl_info["blender"] == (4, 2, 0)
+
+
+def test_addon_never_imports_the_engine():
+    for path in ADDON_DIR.rglob("*.py"):
+        text = path.read_text()
+        assert "import engine" not in text and "from engine" not in text, path
+        for heavy in ("sionna", "mitsuba", "numpy"):
+            assert f"import {heavy}" not in text and f"from {heavy}" not in text, path
+
+
+def test_registered_types(addon_module):
+    assert hasattr(bpy.types.Object, "isac")
+    assert hasattr(bpy.types.Scene, "isac")
+    for name in ("ISAC_PT_scene", "ISAC_PT_modelling", "ISAC_PT_object", "ISAC_PT_links"):
+        panel = getattr(bpy.types, name)
+        assert panel.bl_space_type == "VIEW_3D" and panel.bl_category == "ISAC Twin"
+    for op in ("add_room", "add_room_polygon", "add_furniture", "add_access_point", "add_robot",
+               "tag_material", "add_link", "remove_link", "export_scene"):
+        assert hasattr(bpy.ops.isac, op), op
+
+
+def test_operators_are_undoable(addon_module):
+    from addon import operators
+
+    for cls in operators.CLASSES:
+        assert {"REGISTER", "UNDO"} <= set(cls.bl_options), cls.bl_idname
+
+
+def test_default_properties(scene):
+    p = scene.isac
+    assert p.frequency_hz == pytest.approx(2.4e9)
+    assert (p.num_subcarriers, p.num_symbols, p.cyclic_prefix_samples) == (1024, 14, 72)
+    assert p.subcarrier_spacing_hz == 78125.0
+    cube = bpy.data.objects.new("c", bpy.data.meshes.new("c"))
+    scene.collection.objects.link(cube)
+    assert cube.isac.itu_material == "none" and cube.isac.device_kind == "NONE"
+    cube.isac.itu_material = "floorboard"
+    assert cube.isac.itu_material == "floorboard"
+
+
+def test_operator_add_room_and_polygon(scene):
+    assert bpy.ops.isac.add_room(width=4.0, depth=3.0, height=2.5, wall_thickness=0.1,
+                                 name="R") == {"FINISHED"}
+    names = {o.name for o in scene.objects}
+    assert {"R_Floor", "R_Ceiling", "R_Wall_1", "R_Wall_4"} <= names
+    assert bpy.ops.isac.add_room_polygon(vertices="0,0; 5,0; 5,5; 0,5; -2,2", height=3.0,
+                                         name="P") == {"FINISHED"}
+    assert "P_Wall_5" in {o.name for o in scene.objects}
+    with pytest.raises(RuntimeError, match="at least 3 vertices"):
+        bpy.ops.isac.add_room_polygon(vertices="0,0; 1,1", name="Bad")
+
+
+def test_operator_furniture_devices_links(scene):
+    assert bpy.ops.isac.add_furniture(kind="rack", location=(1, 2, 0), rotation_z=0.5) == {"FINISHED"}
+    rack = scene.objects["Rack"]
+    assert rack.isac.itu_material == "metal"
+    assert rack.rotation_euler.z == pytest.approx(0.5)
+    assert bpy.ops.isac.add_access_point(name="AP", rows=2, cols=4) == {"FINISHED"}
+    assert bpy.ops.isac.add_robot(name="bot", model="waffle") == {"FINISHED"}
+    ap, bot = scene.objects["AP"], scene.objects["bot"]
+    assert ap.type == "EMPTY" and ap.isac.device_kind == "ACCESS_POINT"
+    assert (ap.isac.array_rows, ap.isac.array_cols) == (2, 4)
+    assert bot.isac.device_kind == "ROBOT" and bot.isac.robot_model == "waffle"
+    assert bpy.ops.isac.add_link(tx="AP", rx="bot") == {"FINISHED"}
+    assert [(li.tx, li.rx) for li in scene.isac.links] == [("AP", "bot")]
+    assert bpy.ops.isac.remove_link() == {"FINISHED"}
+    assert len(scene.isac.links) == 0
+
+
+def test_operator_tag_material(scene):
+    bpy.ops.isac.add_furniture(kind="table")
+    bpy.ops.isac.add_furniture(kind="chair")
+    objs = [scene.objects["Table"], scene.objects["Chair"]]
+    with bpy.context.temp_override(selected_objects=objs):
+        assert bpy.ops.isac.tag_material(material="plywood", thickness=0.05) == {"FINISHED"}
+    assert all(o.isac.itu_material == "plywood" for o in objs)
+    assert all(o.isac.thickness == pytest.approx(0.05) for o in objs)
+
+
+def test_operator_export(scene, tmp_path):
+    bpy.ops.isac.add_room(width=3.0, depth=3.0, height=2.0)
+    assert bpy.ops.isac.export_scene(directory=str(tmp_path)) == {"FINISHED"}
+    assert (tmp_path / "scene.xml").is_file() and (tmp_path / "twin.toml").is_file()
+    scene.objects["Room_Floor"].isac.itu_material = "floorboard"
+    with pytest.raises(RuntimeError, match="Room_Floor.*floorboard"):
+        bpy.ops.isac.export_scene(directory=str(tmp_path / "bad"))
+
+
+def test_scene_panel_draws_settings_and_band_warning(scene, layout_stub):
+    from addon import panels
+
+    bpy.ops.isac.add_room(width=3.0, depth=3.0, height=2.0)
+    scene.objects["Room_Floor"].isac.itu_material = "floorboard"
+    panels.ISAC_PT_scene.draw(SimpleNamespace(layout=layout_stub), SimpleNamespace(scene=scene))
+    calls = layout_stub.calls
+    for key in ("frequency_hz", "num_subcarriers", "subcarrier_spacing_hz", "num_symbols",
+                "cyclic_prefix_samples", "export_directory"):
+        assert ("prop", key) in calls, key
+    assert ("operator", "isac.export_scene") in calls
+    warnings = [c for c in calls if c[0] == "label" and c[2] == "ERROR"]
+    assert len(warnings) == 1
+    assert "Room_Floor" in warnings[0][1] and "floorboard" in warnings[0][1]
+    assert "2.4 GHz" in warnings[0][1]
+
+
+def test_object_panel_geometry_and_device(scene, layout_stub):
+    from addon import devices, modelling, panels
+
+    table = modelling.add_furniture("table", scene=scene)
+    panels.ISAC_PT_object.draw(SimpleNamespace(layout=layout_stub),
+                               SimpleNamespace(scene=scene, active_object=table))
+    assert {("prop", "itu_material"), ("prop", "thickness"),
+            ("operator", "isac.tag_material")} <= set(layout_stub.calls)
+    layout_stub.calls.clear()
+    bot = devices.add_robot("bot", scene=scene)
+    panels.ISAC_PT_object.draw(SimpleNamespace(layout=layout_stub),
+                               SimpleNamespace(scene=scene, active_object=bot))
+    drawn = {c[1] for c in layout_stub.calls if c[0] == "prop"}
+    assert {"role", "power_dbm", "robot_model", "antenna_offset", "array_rows", "array_cols",
+            "vertical_spacing", "horizontal_spacing", "pattern", "polarization"} <= drawn
+    assert "itu_material" not in drawn
+
+
+def test_modelling_and_links_panels(scene, layout_stub):
+    from addon import panels
+
+    ctx = SimpleNamespace(scene=scene, active_object=None)
+    panels.ISAC_PT_modelling.draw(SimpleNamespace(layout=layout_stub), ctx)
+    panels.ISAC_PT_links.draw(SimpleNamespace(layout=layout_stub), ctx)
+    panels.ISAC_PT_object.draw(SimpleNamespace(layout=layout_stub), ctx)
+    ops = {c[1] for c in layout_stub.calls if c[0] == "operator"}
+    assert {"isac.add_room", "isac.add_room_polygon", "isac.add_furniture",
+            "isac.add_access_point", "isac.add_robot", "isac.add_link",
+            "isac.remove_link"} <= ops
+    assert ("template_list", "ISAC_UL_links", "links") in layout_stub.calls
+    assert ("label", "No active object", "NONE") in layout_stub.calls
