@@ -1,0 +1,205 @@
+"""What every device driver shares: lifecycle, read loop, reconnect, stats.
+
+A driver owns one serial-like connection and one thread. The thread connects
+(:meth:`DeviceDriver._connect`), then calls :meth:`DeviceDriver._poll` until
+the device is lost (an exception, or no valid frame for ``stale_timeout``
+seconds), then disconnects and retries with exponential backoff. Messages go
+out through a plain ``publish(topic, msg)`` callable, so the bus's
+``node.publish`` plugs straight in.
+
+Each driver declares the topics it publishes and their message types in
+``MESSAGE_TYPES``; :mod:`engine.devices.conformance` checks that it keeps to
+them.
+"""
+
+from __future__ import annotations
+
+import logging
+import termios
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar
+
+log = logging.getLogger(__name__)
+
+#: ``publish(topic, msg)``: where drivers send their messages.
+Publish = Callable[[str, Any], None]
+
+
+class DeviceError(RuntimeError):
+    """A device answered wrongly or not at all (message names port and field)."""
+
+
+class DeviceTimeout(DeviceError):
+    """No (valid) answer within the allowed time."""
+
+
+def _discard(topic: str, msg: Any) -> None:
+    pass
+
+
+@dataclass
+class DriverStats:
+    """Counters a driver keeps; read them from any thread (plain ints)."""
+
+    frames_ok: int = 0  #: valid frames decoded (nodes, capsules, status packets)
+    frames_bad: int = 0  #: frames dropped: check bit, checksum/CRC, truncation
+    bytes_dropped: int = 0  #: bytes skipped while resynchronising
+    timeouts: int = 0  #: requests that got no answer in time
+    connects: int = 0  #: successful connections (1 + reconnects)
+    disconnects: int = 0  #: connections lost (device unplugged, silent, I/O error)
+    published: dict[str, int] = field(default_factory=dict)  #: messages per topic
+    last_error: str = ""
+
+    @property
+    def reconnects(self) -> int:
+        return max(0, self.connects - 1)
+
+
+class DeviceDriver:
+    """Base of the serial device drivers (RPLIDAR, OpenCR).
+
+    Args:
+        url: serial port path or pyserial URL (``pty://...`` for emulators).
+        publish: ``publish(topic, msg)``; messages are dropped if ``None``.
+        stale_timeout: s without a valid frame before the device counts as lost.
+        backoff_initial: s before the first reconnect attempt.
+        backoff_max: s, cap of the doubling reconnect delay.
+    """
+
+    #: topic -> message class published there.
+    MESSAGE_TYPES: ClassVar[dict[str, type]] = {}
+
+    def __init__(
+        self,
+        url: str,
+        publish: Publish | None = None,
+        *,
+        stale_timeout: float = 1.0,
+        backoff_initial: float = 0.05,
+        backoff_max: float = 2.0,
+    ) -> None:
+        self.url = url
+        self.publish_fn: Publish = publish or _discard
+        self.stale_timeout = stale_timeout
+        self.backoff_initial = backoff_initial
+        self.backoff_max = backoff_max
+        self.stats = DriverStats()
+        self._stop_evt = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._connected = False
+        self._last_valid = time.monotonic()
+        self._pub_cond = threading.Condition()
+
+    # -- to implement -------------------------------------------------------
+    def _connect(self) -> None:
+        """Open the port and bring the device into streaming state."""
+        raise NotImplementedError
+
+    def _disconnect(self) -> None:
+        """Close the port; must not raise."""
+        raise NotImplementedError
+
+    def _poll(self) -> None:
+        """One read-loop iteration: read, decode, publish. Raise if the port is gone."""
+        raise NotImplementedError
+
+    # -- lifecycle ------------------------------------------------------------
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def connected(self) -> bool:
+        return self._connected
+
+    def start(self) -> "DeviceDriver":
+        """Start the read-loop thread (returns at once; connection is retried)."""
+        if self.running:
+            return self
+        self._stop_evt.clear()
+        self._thread = threading.Thread(target=self._run, name=f"{type(self).__name__}({self.url})", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 2.0) -> None:
+        """Stop the thread and close the port; waits at most ``timeout`` s."""
+        self._stop_evt.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            if self._thread.is_alive():
+                log.error("%s: read loop did not stop within %.1f s", self.url, timeout)
+            self._thread = None
+
+    def __enter__(self) -> "DeviceDriver":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def wait_published(self, topic: str, count: int, timeout: float) -> bool:
+        """Block until ``stats.published[topic] >= count``; False on timeout (s)."""
+        deadline = time.monotonic() + timeout
+        with self._pub_cond:
+            while self.stats.published.get(topic, 0) < count:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._pub_cond.wait(remaining)
+        return True
+
+    # -- helpers for subclasses -------------------------------------------------
+    def _publish(self, topic: str, msg: Any) -> None:
+        try:
+            self.publish_fn(topic, msg)
+        except Exception:
+            log.exception("%s: publish(%r) raised; message dropped", self.url, topic)
+        with self._pub_cond:
+            self.stats.published[topic] = self.stats.published.get(topic, 0) + 1
+            self._pub_cond.notify_all()
+
+    def _mark_valid(self) -> None:
+        """Note that a valid frame arrived (resets the stale timer)."""
+        self._last_valid = time.monotonic()
+
+    def _safe_disconnect(self) -> None:
+        try:
+            self._disconnect()
+        except Exception:
+            log.exception("%s: error while closing", self.url)
+        self._connected = False
+
+    def _run(self) -> None:
+        backoff = self.backoff_initial
+        while not self._stop_evt.is_set():
+            if not self._connected:
+                try:
+                    self._connect()
+                except Exception as exc:  # noqa: BLE001 - any failure means "retry later"
+                    self.stats.last_error = f"{self.url}: connect failed: {exc}"
+                    log.info("%s; retry in %.2f s", self.stats.last_error, backoff)
+                    self._safe_disconnect()
+                    self._stop_evt.wait(backoff)
+                    backoff = min(backoff * 2, self.backoff_max)
+                    continue
+                self._connected = True
+                self.stats.connects += 1
+                self._last_valid = time.monotonic()
+                backoff = self.backoff_initial
+                log.info("%s: connected (connection #%d)", self.url, self.stats.connects)
+            try:
+                self._poll()
+                idle = time.monotonic() - self._last_valid
+                if idle > self.stale_timeout:
+                    raise DeviceTimeout(f"{self.url}: no valid frame for {idle:.2f} s")
+            except Exception as exc:  # noqa: BLE001
+                expected = isinstance(exc, (OSError, DeviceError, termios.error)) or type(exc).__name__ == "SerialException"
+                self.stats.disconnects += 1
+                self.stats.last_error = f"{self.url}: {exc}"
+                log.warning("%s: device lost (%s); reconnecting in %.2f s", self.url, exc, backoff,
+                            exc_info=not expected)
+                self._safe_disconnect()
+                self._stop_evt.wait(backoff)
+                backoff = min(backoff * 2, self.backoff_max)
+        self._safe_disconnect()

@@ -1,0 +1,182 @@
+"""Conformance checker for device drivers, run against an emulated device.
+
+:func:`check_driver` drives a :class:`~engine.devices.base.DeviceDriver`
+through what a real robot does to it and reports each step:
+
+1. ``data``: it opens the port and publishes every declared topic;
+2. ``garbage`` / ``corrupt`` / ``truncate``: after each injected fault it
+   keeps publishing, and corrupt/truncated frames show up in
+   ``stats.frames_bad`` (or ``timeouts``/``bytes_dropped``), not as a crash;
+3. ``unplug``: when the port disappears it notices (``stats.disconnects``),
+   retries with backoff, and publishes again after the device comes back;
+4. ``silent``: when the device stops answering it notices and recovers;
+5. ``types``: everything it published is on a declared topic with the
+   declared message type;
+6. ``stop``: its thread ends within the timeout.
+
+The emulator must offer ``start()``, ``url``, ``unplug()``, ``replug()``,
+``silent`` and ``inject_fault(kind)`` (see :class:`~engine.devices.emulated.EmulatedSerialDevice`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from engine.devices.base import DeviceDriver, Publish
+
+log = logging.getLogger(__name__)
+
+DriverFactory = Callable[[str, Publish], DeviceDriver]
+
+
+@dataclass
+class CheckResult:
+    name: str
+    ok: bool
+    detail: str
+    seconds: float
+
+
+@dataclass
+class ConformanceReport:
+    driver: str
+    results: list[CheckResult] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return bool(self.results) and all(r.ok for r in self.results)
+
+    def __str__(self) -> str:
+        lines = [f"conformance of {self.driver}: {'PASS' if self.ok else 'FAIL'}"]
+        lines += [f"  [{'ok' if r.ok else 'FAIL'}] {r.name:9s} {r.seconds:5.2f} s  {r.detail}" for r in self.results]
+        return "\n".join(lines)
+
+
+class _Recorder:
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.messages: list[tuple[str, Any]] = []
+
+    def __call__(self, topic: str, msg: Any) -> None:
+        with self.lock:
+            self.messages.append((topic, msg))
+
+
+def _wait(cond: Callable[[], bool], timeout: float, poll: float = 0.01) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(poll)
+    return cond()
+
+
+def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float = 5.0,
+                 faults: tuple[str, ...] = ("garbage", "corrupt", "truncate"),
+                 unplug_s: float = 0.3, check_silent: bool = True) -> ConformanceReport:
+    """Run the conformance steps; never raises for a failing driver (see the report).
+
+    Args:
+        driver_factory: ``f(url, publish) -> driver`` (not started).
+        emulator: emulated device (started here if it is not running).
+        timeout: s allowed for each step to show its effect.
+        faults: fault kinds to inject, each must be supported by the emulator.
+        unplug_s: s the device stays unplugged (and silent).
+        check_silent: also run the "device stops answering" step.
+    """
+    if getattr(emulator, "_thread", None) is None:
+        emulator.start()
+    rec = _Recorder()
+    driver = driver_factory(emulator.url, rec)
+    report = ConformanceReport(type(driver).__name__)
+    topics = list(driver.MESSAGE_TYPES)
+    stats = driver.stats
+
+    def step(name: str, fn: Callable[[], tuple[bool, str]]) -> bool:
+        t0 = time.monotonic()
+        try:
+            ok, detail = fn()
+        except Exception as exc:  # noqa: BLE001 - a check that raises is a failed check
+            log.exception("conformance step %s raised", name)
+            ok, detail = False, f"raised {type(exc).__name__}: {exc}"
+        report.results.append(CheckResult(name, ok, detail, time.monotonic() - t0))
+        return ok
+
+    def counts() -> dict[str, int]:
+        return {t: stats.published.get(t, 0) for t in topics}
+
+    def more_on_all(before: dict[str, int], n: int = 2) -> Callable[[], bool]:
+        return lambda: all(stats.published.get(t, 0) >= before[t] + n for t in topics)
+
+    try:
+        driver.start()
+
+        def data() -> tuple[bool, str]:
+            ok = _wait(more_on_all({t: 0 for t in topics}, 1), timeout)
+            return ok, f"published {counts()} (declared {topics})"
+
+        if not step("data", data):
+            return report
+
+        for kind in faults:
+            def fault(kind: str = kind) -> tuple[bool, str]:
+                bad0 = stats.frames_bad + stats.timeouts + stats.bytes_dropped
+                before = counts()
+                emulator.inject_fault(kind)
+                ok = _wait(more_on_all(before, 3), timeout)
+                bad = stats.frames_bad + stats.timeouts + stats.bytes_dropped - bad0
+                alive = driver.running
+                if kind == "garbage":
+                    good = ok and alive
+                else:
+                    good = ok and alive and _wait(lambda: stats.frames_bad + stats.timeouts + stats.bytes_dropped > bad0, 0.5)
+                return good, (f"data resumed={ok}, thread alive={alive}, frames_bad={stats.frames_bad}, "
+                              f"timeouts={stats.timeouts}, bytes_dropped={stats.bytes_dropped} (+{bad})")
+
+            step(kind, fault)
+
+        def unplug() -> tuple[bool, str]:
+            disc0, conn0 = stats.disconnects, stats.connects
+            emulator.unplug()
+            noticed = _wait(lambda: stats.disconnects > disc0, timeout)
+            time.sleep(unplug_s)
+            before = counts()
+            emulator.replug()
+            resumed = _wait(lambda: stats.connects > conn0 and more_on_all(before, 2)(), timeout + driver.backoff_max)
+            return noticed and resumed, (f"noticed={noticed}, resumed={resumed}, disconnects={stats.disconnects}, "
+                                         f"connects={stats.connects}, last_error={stats.last_error!r}")
+
+        step("unplug", unplug)
+
+        if check_silent:
+            def silent() -> tuple[bool, str]:
+                disc0 = stats.disconnects
+                emulator.silent = True
+                noticed = _wait(lambda: stats.disconnects > disc0, timeout + driver.stale_timeout)
+                time.sleep(unplug_s)
+                before = counts()
+                emulator.silent = False
+                resumed = _wait(more_on_all(before, 2), timeout + driver.backoff_max)
+                return noticed and resumed, f"noticed={noticed}, resumed={resumed}, disconnects={stats.disconnects}"
+
+            step("silent", silent)
+
+        def types() -> tuple[bool, str]:
+            with rec.lock:
+                msgs = list(rec.messages)
+            wrong = [(t, type(m).__name__) for t, m in msgs
+                     if t not in driver.MESSAGE_TYPES or not isinstance(m, driver.MESSAGE_TYPES[t])]
+            return not wrong, f"{len(msgs)} messages, {len(wrong)} off-contract {wrong[:3]}"
+
+        step("types", types)
+    finally:
+        def stop() -> tuple[bool, str]:
+            driver.stop(timeout)
+            return not driver.running, "thread joined" if not driver.running else "thread still running"
+
+        step("stop", stop)
+    return report

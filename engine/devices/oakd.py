@@ -1,0 +1,211 @@
+"""Luxonis OAK-D driver (depthai 3.x): colour, stereo depth and IMU -> ``Image``/``Imu``.
+
+depthai is an optional extra (``pip install 'isac-twin[oakd]'``, ~100 MB) and
+is imported only when a driver is opened. With no device attached,
+:meth:`OakD.open` fails fast (``getAllAvailableDevices()`` is checked first;
+``DEPTHAI_SEARCH_TIMEOUT`` is set short unless the user set it) with
+:class:`OakDNotFound` instead of the library's multi-second search.
+
+Published topics (names configurable): ``camera/color/image_raw``
+(``rgb8``), ``camera/depth/image_raw`` (``16UC1``, mm), ``camera/imu``.
+The frame conversions (:func:`imgframe_to_image`, :func:`imu_packet_to_imu`)
+work on real ``dai.ImgFrame``/``dai.IMUPacket`` objects and are tested with
+a host-only pipeline (no device).
+
+Not verified against hardware: the device pipeline in :meth:`OakD._connect`
+follows the depthai v3 API (``Camera.build``/``requestOutput``,
+``StereoDepth``, ``IMU``) but has only run up to "no device found" here.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from typing import Any
+
+import numpy as np
+
+from engine.devices.base import DeviceDriver, DeviceError, Publish
+from engine.msgs import Header, Image, Imu
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SEARCH_TIMEOUT_MS = 500
+
+
+class OakDUnavailable(DeviceError):
+    """depthai is not installed."""
+
+
+class OakDNotFound(DeviceError):
+    """No OAK device is attached (or the requested one is not)."""
+
+
+def import_depthai(search_timeout_ms: int = DEFAULT_SEARCH_TIMEOUT_MS) -> Any:
+    """Import depthai lazily, with a short device-search timeout unless one is set.
+
+    Raises:
+        OakDUnavailable: depthai is not installed.
+    """
+    os.environ.setdefault("DEPTHAI_SEARCH_TIMEOUT", str(int(search_timeout_ms)))
+    try:
+        import depthai as dai  # noqa: PLC0415 - optional extra
+    except ImportError as exc:
+        raise OakDUnavailable("depthai is not installed; install the optional extra: "
+                              "pip install 'isac-twin[oakd]' (depthai==3.12.0)") from exc
+    return dai
+
+
+def _host_stamp(dai: Any, msg: Any) -> float:
+    """Epoch s of a depthai message (its timestamp is on the host steady clock)."""
+    try:
+        age = (dai.Clock.now() - msg.getTimestamp()).total_seconds()
+    except Exception:  # noqa: BLE001 - unset timestamps
+        age = 0.0
+    return time.time() - max(0.0, age)
+
+
+def imgframe_to_image(frame: Any, frame_id: str, stamp: float | None = None) -> Image:
+    """``dai.ImgFrame`` -> ``Image``: RGB888i/BGR888i -> ``rgb8`` ``[h, w, 3]``,
+    GRAY8 -> ``mono8`` ``[h, w]``, RAW16 (depth, mm) -> ``16UC1`` ``[h, w]`` uint16.
+
+    Raises:
+        DeviceError: for frame types not handled here (names the type).
+    """
+    dai = import_depthai()
+    t = frame.getType()
+    T = dai.ImgFrame.Type
+    arr = np.asarray(frame.getFrame())
+    if t == T.RGB888i:
+        data, enc = arr.reshape(frame.getHeight(), frame.getWidth(), 3).copy(), "rgb8"
+    elif t == T.BGR888i:
+        data, enc = arr.reshape(frame.getHeight(), frame.getWidth(), 3)[..., ::-1].copy(), "rgb8"
+    elif t == T.GRAY8:
+        data, enc = arr.reshape(frame.getHeight(), frame.getWidth()).copy(), "mono8"
+    elif t == T.RAW16:
+        data, enc = arr.reshape(frame.getHeight(), frame.getWidth()).astype(np.uint16, copy=True), "16UC1"
+    else:
+        raise DeviceError(f"OAK-D: ImgFrame type {t.name} is not converted (request RGB888i, GRAY8 or RAW16)")
+    return Image(header=Header(stamp=_host_stamp(dai, frame) if stamp is None else stamp, frame_id=frame_id),
+                 height=int(frame.getHeight()), width=int(frame.getWidth()), encoding=enc, data=data)
+
+
+def imu_packet_to_imu(packet: Any, frame_id: str, stamp: float | None = None) -> Imu:
+    """``dai.IMUPacket`` -> ``Imu`` (rad/s, m/s^2, quaternion ``[x, y, z, w]``)."""
+    dai = import_depthai()
+    a, g, q = packet.acceleroMeter, packet.gyroscope, packet.rotationVector
+    return Imu(header=Header(stamp=_host_stamp(dai, a) if stamp is None else stamp, frame_id=frame_id),
+               orientation=np.array([q.i, q.j, q.k, q.real], dtype=float),
+               angular_velocity=np.array([g.x, g.y, g.z], dtype=float),
+               linear_acceleration=np.array([a.x, a.y, a.z], dtype=float))
+
+
+class OakD(DeviceDriver):
+    """OAK-D colour + stereo depth + IMU.
+
+    Args:
+        device_id: device id (MxId) or ``""`` for the first one found.
+        publish: ``publish(topic, msg)``.
+        color_size: (width, height) px of the colour stream.
+        depth_size: (width, height) px of each mono camera / depth.
+        fps: frames per second.
+        imu_rate_hz: IMU report rate.
+        search_timeout_ms: ``DEPTHAI_SEARCH_TIMEOUT`` if the user did not set it.
+        topics: override of ``{"color": ..., "depth": ..., "imu": ...}``.
+    """
+
+    MESSAGE_TYPES = {"camera/color/image_raw": Image, "camera/depth/image_raw": Image, "camera/imu": Imu}
+
+    def __init__(self, device_id: str = "", publish: Publish | None = None, *,
+                 color_size: tuple[int, int] = (640, 400), depth_size: tuple[int, int] = (640, 400),
+                 fps: float = 15.0, imu_rate_hz: int = 100, search_timeout_ms: int = DEFAULT_SEARCH_TIMEOUT_MS,
+                 topics: dict[str, str] | None = None, stale_timeout: float = 2.0,
+                 backoff_initial: float = 0.5, backoff_max: float = 5.0) -> None:
+        super().__init__(device_id or "oak://first", publish, stale_timeout=stale_timeout,
+                         backoff_initial=backoff_initial, backoff_max=backoff_max)
+        self.device_id = device_id
+        self.color_size, self.depth_size, self.fps = color_size, depth_size, fps
+        self.imu_rate_hz = imu_rate_hz
+        self.search_timeout_ms = search_timeout_ms
+        names = {"color": "camera/color/image_raw", "depth": "camera/depth/image_raw", "imu": "camera/imu"}
+        names.update(topics or {})
+        self.topics = names
+        self.MESSAGE_TYPES = {names["color"]: Image, names["depth"]: Image, names["imu"]: Imu}
+        self._pipeline: Any = None
+        self._queues: dict[str, Any] = {}
+
+    def find_device(self) -> Any:
+        """The ``dai.DeviceInfo`` to use; raises :class:`OakDNotFound` at once if none."""
+        dai = import_depthai(self.search_timeout_ms)
+        found = dai.Device.getAllAvailableDevices()
+        if not found:
+            raise OakDNotFound(f"no OAK device found (depthai {dai.__version__}: getAllAvailableDevices() "
+                               "returned []); check the USB cable/udev rules, or use the emulated camera")
+        if not self.device_id:
+            return found[0]
+        for info in found:
+            if self.device_id in (info.getDeviceId(), getattr(info, "name", None)):
+                return info
+        raise OakDNotFound(f"OAK device {self.device_id!r} not found; available: "
+                           f"{[i.getDeviceId() for i in found]}")
+
+    def open(self) -> None:
+        """Find the device and start its pipeline (raises fast with no device)."""
+        self._connect()
+
+    def close(self) -> None:
+        self._disconnect()
+
+    def _connect(self) -> None:
+        dai = import_depthai(self.search_timeout_ms)
+        info = self.find_device()
+        device = dai.Device(info)
+        p = dai.Pipeline(device)
+        color = p.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_A)
+        self._queues["color"] = color.requestOutput(self.color_size, dai.ImgFrame.Type.RGB888i,
+                                                    fps=self.fps).createOutputQueue(maxSize=4, blocking=False)
+        left = p.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_B)
+        right = p.create(dai.node.Camera).build(dai.CameraBoardSocket.CAM_C)
+        stereo = p.create(dai.node.StereoDepth)
+        left.requestOutput(self.depth_size, fps=self.fps).link(stereo.left)
+        right.requestOutput(self.depth_size, fps=self.fps).link(stereo.right)
+        self._queues["depth"] = stereo.depth.createOutputQueue(maxSize=4, blocking=False)
+        imu = p.create(dai.node.IMU)
+        imu.enableIMUSensor([dai.IMUSensor.ACCELEROMETER_RAW, dai.IMUSensor.GYROSCOPE_RAW,
+                             dai.IMUSensor.ROTATION_VECTOR], self.imu_rate_hz)
+        imu.setBatchReportThreshold(1)
+        imu.setMaxBatchReports(10)
+        self._queues["imu"] = imu.out.createOutputQueue(maxSize=50, blocking=False)
+        p.start()
+        self._pipeline = p
+        log.info("OAK-D %s: pipeline started", info.getDeviceId())
+
+    def _disconnect(self) -> None:
+        if self._pipeline is not None:
+            try:
+                self._pipeline.stop()
+                self._pipeline.wait()  # join node threads now, not in ~Pipeline (holds the GIL)
+            except Exception:  # noqa: BLE001
+                pass
+        self._pipeline = None
+        self._queues.clear()
+
+    def _poll(self) -> None:
+        got = False
+        for key in ("color", "depth"):
+            q = self._queues.get(key)
+            frame = q.tryGet() if q is not None else None
+            if frame is not None:
+                self._publish(self.topics[key], imgframe_to_image(frame, f"camera_{key}_optical_frame"))
+                got = True
+        q = self._queues.get("imu")
+        data = q.tryGet() if q is not None else None
+        if data is not None:
+            for packet in data.packets:
+                self._publish(self.topics["imu"], imu_packet_to_imu(packet, "camera_imu_frame"))
+            got = True
+        if got:
+            self._mark_valid()
+        else:
+            time.sleep(0.002)

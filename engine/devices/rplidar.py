@@ -1,0 +1,714 @@
+"""Slamtec RPLIDAR (A1/A2) driver over pyserial, publishing ``LaserScan``.
+
+Protocol (Slamtec rplidar_sdk ``sl_lidar_cmd.h`` / ``rplidar_cmd.h``,
+``sl_lidar_protocol.h``; see ``reference/devices.md``):
+
+* request ``A5 cmd`` or ``A5 cmd len payload xor``; response descriptor
+  ``A5 5A`` + u32 LE (30-bit size, 2-bit send mode) + type byte;
+* standard scan (``SCAN 0x20``, answer type 0x81): 5-byte nodes
+  ``[S | !S<<1 | quality<<2] [check=1 | angle_q6<<1 : u16] [distance_q2 : u16]``;
+* legacy express scan (``EXPRESS_SCAN 0x82``, answer type 0x82): 84-byte
+  capsules ``[0xA<<4 | chk&0xF] [0x5<<4 | chk>>4] [start_angle_q6 | S<<15 : u16]``
+  then 16 cabins of 5 bytes ``[dist1_q2 | dtheta1>>4 : u16] [dist2 ... : u16]
+  [dtheta1&0xF | (dtheta2&0xF)<<4]``; ``chk`` is the XOR of bytes 2..83. A
+  capsule's 32 nodes are placed between its start angle and the *next*
+  capsule's; the arithmetic below is the SDK's ``_capsuleToNormal`` in the same
+  fixed point.
+
+Angles. The RPLIDAR reports angles in degrees **clockwise** seen from above
+(0 deg = the device's forward mark). ROS (REP-103) angles are radians
+**counter-clockwise** about +Z. :func:`device_to_ros_angle` maps one to the
+other: ``theta_ros = angle_offset - radians(theta_dev)`` wrapped to [0, 2 pi).
+``angle_offset`` (rad) is where the device's 0 deg points in the laser frame;
+0 here, pi in ``rplidar_ros`` (its laser frame faces the cable side).
+
+Motor. An A1 spins its motor while DTR is *cleared*; an A2/A3 takes
+``SET_MOTOR_PWM 0xF0`` (u16 0..1023). The driver sends both (devices that
+do not support 0xF0 parse and ignore it). Ports are opened with
+``serial.serial_for_url`` so ``pty://`` URLs (emulators, tests) record DTR.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import struct
+import time
+from dataclasses import dataclass
+from typing import Iterator, NamedTuple
+
+import numpy as np
+import serial
+
+import engine.devices.ptyserial  # noqa: F401  (registers the pty:// URL handler)
+from engine.devices.base import DeviceDriver, DeviceError, DeviceTimeout, DriverStats, Publish
+from engine.msgs import Header, LaserScan
+
+log = logging.getLogger(__name__)
+
+SYNC_BYTE = 0xA5
+SYNC_BYTE2 = 0x5A
+CMDFLAG_HAS_PAYLOAD = 0x80
+
+CMD_STOP = 0x25
+CMD_SCAN = 0x20
+CMD_FORCE_SCAN = 0x21
+CMD_RESET = 0x40
+CMD_GET_INFO = 0x50
+CMD_GET_HEALTH = 0x52
+CMD_GET_SAMPLERATE = 0x59
+CMD_EXPRESS_SCAN = 0x82
+CMD_GET_LIDAR_CONF = 0x84
+CMD_SET_MOTOR_PWM = 0xF0
+
+ANS_TYPE_DEVINFO = 0x04
+ANS_TYPE_DEVHEALTH = 0x06
+ANS_TYPE_SAMPLERATE = 0x15
+ANS_TYPE_MEASUREMENT = 0x81
+ANS_TYPE_MEASUREMENT_CAPSULED = 0x82
+
+SEND_MODE_SINGLE = 0
+SEND_MODE_MULTIPLE = 1
+
+NODE_SIZE = 5
+CAPSULE_SIZE = 84
+CABINS_PER_CAPSULE = 16
+NODES_PER_CAPSULE = 32
+EXP_SYNC_1 = 0xA
+EXP_SYNC_2 = 0x5
+
+STATUS_OK, STATUS_WARNING, STATUS_ERROR = 0, 1, 2
+MAX_MOTOR_PWM = 1023
+DEFAULT_MOTOR_PWM = 660
+
+
+# --------------------------------------------------------------------------- framing
+def build_request(cmd: int, payload: bytes | None = None) -> bytes:
+    """``A5 cmd`` or ``A5 cmd len payload xor`` (xor of all preceding bytes)."""
+    if payload is None:
+        return bytes((SYNC_BYTE, cmd))
+    body = bytes((SYNC_BYTE, cmd, len(payload))) + payload
+    chk = 0
+    for b in body:
+        chk ^= b
+    return body + bytes((chk,))
+
+
+def build_descriptor(size: int, send_mode: int, data_type: int) -> bytes:
+    """7-byte response descriptor ``A5 5A`` + u32 (size | mode<<30) + type."""
+    return bytes((SYNC_BYTE, SYNC_BYTE2)) + struct.pack("<IB", (size & 0x3FFFFFFF) | (send_mode << 30), data_type)
+
+
+class Descriptor(NamedTuple):
+    size: int  #: bytes per answer (per node/capsule in multiple mode)
+    send_mode: int  #: 0 single answer, 1 multiple (stream)
+    data_type: int
+
+
+def parse_descriptor(raw: bytes) -> Descriptor:
+    """Decode 7 descriptor bytes (raises ``DeviceError`` naming the bad byte)."""
+    if len(raw) != 7 or raw[0] != SYNC_BYTE or raw[1] != SYNC_BYTE2:
+        raise DeviceError(f"bad response descriptor {raw.hex(' ')} (expected A5 5A ...)")
+    v, t = struct.unpack("<IB", raw[2:7])
+    return Descriptor(v & 0x3FFFFFFF, v >> 30, t)
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """GET_INFO answer: model id (e.g. 0x18 = A1M8), firmware (major, minor),
+    hardware revision, 16-byte serial number."""
+
+    model: int
+    firmware: tuple[int, int]
+    hardware: int
+    serial_number: bytes
+
+    def to_bytes(self) -> bytes:
+        sn = self.serial_number.ljust(16, b"\0")[:16]
+        return bytes((self.model, self.firmware[1], self.firmware[0], self.hardware)) + sn
+
+    @classmethod
+    def from_bytes(cls, raw: bytes) -> "DeviceInfo":
+        if len(raw) != 20:
+            raise DeviceError(f"GET_INFO answer is {len(raw)} bytes, expected 20")
+        return cls(raw[0], (raw[2], raw[1]), raw[3], bytes(raw[4:20]))
+
+    @property
+    def serial_hex(self) -> str:
+        return self.serial_number.hex().upper()
+
+
+@dataclass(frozen=True)
+class DeviceHealth:
+    """GET_HEALTH answer: status 0 good / 1 warning / 2 error, u16 error code."""
+
+    status: int
+    error_code: int
+
+    def to_bytes(self) -> bytes:
+        return struct.pack("<BH", self.status, self.error_code)
+
+    @classmethod
+    def from_bytes(cls, raw: bytes) -> "DeviceHealth":
+        if len(raw) != 3:
+            raise DeviceError(f"GET_HEALTH answer is {len(raw)} bytes, expected 3")
+        s, e = struct.unpack("<BH", raw)
+        return cls(s, e)
+
+
+class ScanNode(NamedTuple):
+    """One measurement: device angle (deg, clockwise), distance (mm, 0 = no
+    return), quality (0..63), start = first node of a new 360 deg scan."""
+
+    angle_deg: float
+    distance_mm: float
+    quality: int
+    start: bool
+
+
+# --------------------------------------------------------------------------- nodes
+def encode_node(angle_deg: float, distance_mm: float, quality: int, start: bool) -> bytes:
+    """5-byte standard scan node (angle q6, distance q2, check bit set)."""
+    q6 = int(round(angle_deg * 64.0)) % (360 * 64)
+    d_q2 = min(int(round(distance_mm * 4.0)), 0xFFFF)
+    b0 = (1 if start else 2) | ((quality & 0x3F) << 2)
+    return struct.pack("<BHH", b0, (q6 << 1) | 1, d_q2)
+
+
+def node_is_valid(raw: bytes | bytearray | memoryview, offset: int = 0) -> bool:
+    """The SDK's checks on a 5-byte node: S != !S, check bit = 1; plus angle < 360 deg."""
+    b0, b1, b2 = raw[offset], raw[offset + 1], raw[offset + 2]
+    if not ((b0 ^ (b0 >> 1)) & 1):
+        return False
+    if not (b1 & 1):
+        return False
+    return ((b1 | (b2 << 8)) >> 1) < 360 * 64
+
+
+def decode_node(raw: bytes | bytearray | memoryview, offset: int = 0) -> ScanNode:
+    """Decode a node already checked with :func:`node_is_valid`."""
+    b0, a, d = struct.unpack_from("<BHH", raw, offset)
+    return ScanNode((a >> 1) / 64.0, d / 4.0, b0 >> 2, bool(b0 & 1))
+
+
+# --------------------------------------------------------------------------- capsules
+def encode_capsule(start_angle_deg: float, distances_mm, new_scan: bool = False,
+                   offsets_q3=None) -> bytes:
+    """84-byte legacy express capsule.
+
+    Args:
+        start_angle_deg: device angle (deg, clockwise) of the capsule's first node.
+        distances_mm: ``[32]`` distances (mm, 0 = no return; 14 bits, 1 mm steps).
+        new_scan: the S bit (set on the first capsule after EXPRESS_SCAN).
+        offsets_q3: ``[32]`` 6-bit angle compensations (1/8 deg), subtracted
+            from the node angle by the decoder; default 0.
+    """
+    d = [min(int(round(x)), 0x3FFF) for x in distances_mm]
+    if len(d) != NODES_PER_CAPSULE:
+        raise ValueError(f"a capsule holds {NODES_PER_CAPSULE} distances, got {len(d)}")
+    off = [0] * NODES_PER_CAPSULE if offsets_q3 is None else [int(o) & 0x3F for o in offsets_q3]
+    q6 = int(round(start_angle_deg * 64.0)) % (360 * 64)
+    body = bytearray(struct.pack("<H", q6 | (0x8000 if new_scan else 0)))
+    for c in range(CABINS_PER_CAPSULE):
+        d1, d2 = d[2 * c], d[2 * c + 1]
+        o1, o2 = off[2 * c], off[2 * c + 1]
+        body += struct.pack("<HHB", (d1 << 2) | (o1 >> 4), (d2 << 2) | (o2 >> 4), (o1 & 0xF) | ((o2 & 0xF) << 4))
+    chk = 0
+    for b in body:
+        chk ^= b
+    return bytes(((EXP_SYNC_1 << 4) | (chk & 0xF), (EXP_SYNC_2 << 4) | (chk >> 4))) + bytes(body)
+
+
+def capsule_checksum_ok(raw: bytes | bytearray | memoryview, offset: int = 0) -> bool:
+    """Sync nibbles 0xA/0x5 and XOR of bytes 2..83 equal to the split checksum."""
+    b0, b1 = raw[offset], raw[offset + 1]
+    if (b0 >> 4) != EXP_SYNC_1 or (b1 >> 4) != EXP_SYNC_2:
+        return False
+    chk = 0
+    for b in raw[offset + 2: offset + CAPSULE_SIZE]:
+        chk ^= b
+    return chk == ((b0 & 0xF) | ((b1 & 0xF) << 4))
+
+
+class CapsuleDecoder:
+    """Turns consecutive capsules into nodes (needs the next capsule's start angle)."""
+
+    def __init__(self) -> None:
+        self._prev: bytes | None = None
+
+    def reset(self) -> None:
+        self._prev = None
+
+    def feed(self, capsule: bytes) -> list[ScanNode]:
+        """Nodes of the *previous* capsule, placed up to this one's start angle."""
+        start_sync = struct.unpack_from("<H", capsule, 2)[0]
+        nodes: list[ScanNode] = []
+        if start_sync & 0x8000:  # S: first capsule of a stream -> nothing to pair with
+            self._prev = None
+        prev = self._prev
+        if prev is not None:
+            cur_q8 = (start_sync & 0x7FFF) << 2
+            prev_q8 = (struct.unpack_from("<H", prev, 2)[0] & 0x7FFF) << 2
+            diff_q8 = cur_q8 - prev_q8
+            if prev_q8 > cur_q8:
+                diff_q8 += 360 << 8
+            inc_q16 = diff_q8 << 3
+            cur_q16 = prev_q8 << 8
+            for c in range(CABINS_PER_CAPSULE):
+                da1, da2, oq = struct.unpack_from("<HHB", prev, 4 + 5 * c)
+                for dist_angle, off_q3 in ((da1, (oq & 0xF) | ((da1 & 0x3) << 4)),
+                                           (da2, (oq >> 4) | ((da2 & 0x3) << 4))):
+                    dist_q2 = dist_angle & 0xFFFC
+                    angle_q6 = (cur_q16 - (off_q3 << 13)) >> 10
+                    sync = ((cur_q16 + inc_q16) % (360 << 16)) < inc_q16
+                    cur_q16 += inc_q16
+                    angle_q6 %= 360 << 6
+                    nodes.append(ScanNode(angle_q6 / 64.0, dist_q2 / 4.0, 0x2F if dist_q2 else 0, sync))
+        self._prev = bytes(capsule)
+        return nodes
+
+
+# --------------------------------------------------------------------------- stream parsing
+class NodeStreamParser:
+    """Byte stream of a running scan -> nodes, resynchronising after garbage.
+
+    ``mode`` is ``"standard"`` (5-byte nodes) or ``"express"`` (84-byte
+    capsules). A frame that fails its check is dropped and counted in
+    ``stats.frames_bad``; every skipped byte in ``stats.bytes_dropped``.
+    """
+
+    def __init__(self, mode: str, stats: DriverStats) -> None:
+        if mode not in ("standard", "express"):
+            raise ValueError(f"scan mode must be 'standard' or 'express', got {mode!r}")
+        self.mode = mode
+        self.stats = stats
+        self._buf = bytearray()
+        self._synced = True
+        self._decoder = CapsuleDecoder()
+
+    def feed(self, data: bytes) -> list[ScanNode]:
+        self._buf += data
+        return self._parse_standard() if self.mode == "standard" else self._parse_express()
+
+    def _drop(self, n: int = 1) -> None:
+        if self._synced:  # count each loss of sync once as a bad frame
+            self.stats.frames_bad += 1
+            self._synced = False
+        del self._buf[:n]
+        self.stats.bytes_dropped += n
+
+    def _parse_standard(self) -> list[ScanNode]:
+        out: list[ScanNode] = []
+        buf = self._buf
+        i = 0
+        n = len(buf)
+        dropped = 0
+        while n - i >= NODE_SIZE:
+            if node_is_valid(buf, i):
+                out.append(decode_node(buf, i))
+                i += NODE_SIZE
+                self._synced = True
+                self.stats.frames_ok += 1
+            else:
+                if self._synced:
+                    self.stats.frames_bad += 1
+                    self._synced = False
+                i += 1
+                dropped += 1
+        self.stats.bytes_dropped += dropped
+        del buf[:i]
+        return out
+
+    def _parse_express(self) -> list[ScanNode]:
+        out: list[ScanNode] = []
+        buf = self._buf
+        while len(buf) >= 2:
+            if (buf[0] >> 4) != EXP_SYNC_1 or (buf[1] >> 4) != EXP_SYNC_2:
+                self._decoder.reset()
+                self._drop(1)
+                continue
+            if len(buf) < CAPSULE_SIZE:
+                break
+            if not capsule_checksum_ok(buf):
+                # a framed capsule that fails its checksum is always a bad frame;
+                # the bytes skipped after it belong to the same loss of sync
+                log.debug("express capsule checksum mismatch: %s...", bytes(buf[:8]).hex(" "))
+                self._decoder.reset()
+                self.stats.frames_bad += 1
+                self._synced = False
+                self._drop(1)
+                continue
+            capsule = bytes(buf[:CAPSULE_SIZE])
+            del buf[:CAPSULE_SIZE]
+            self._synced = True
+            self.stats.frames_ok += 1
+            out.extend(self._decoder.feed(capsule))
+        return out
+
+
+# --------------------------------------------------------------------------- angles / scans
+def device_to_ros_angle(angle_deg, angle_offset: float = 0.0):
+    """Device angle (deg, clockwise) -> ROS angle (rad, counter-clockwise) in [0, 2 pi)."""
+    return np.mod(angle_offset - np.radians(angle_deg), 2 * np.pi)
+
+
+def ros_to_device_angle(angle_rad, angle_offset: float = 0.0):
+    """ROS angle (rad, counter-clockwise) -> device angle (deg, clockwise) in [0, 360)."""
+    return np.mod(np.degrees(angle_offset - np.asarray(angle_rad)), 360.0)
+
+
+class ScanAssembler:
+    """Collects nodes into full 360 deg turns and converts them to ``LaserScan``.
+
+    A turn runs from one start-flagged node to the next; nodes before the
+    first start flag (a partial turn) are discarded. ``ranges[i]`` is at
+    ROS angle ``angle_min + i * angle_increment`` (see :meth:`to_laser_scan`);
+    zero distances and empty bins are ``inf`` (no return).
+    """
+
+    def __init__(self, *, frame_id: str = "base_scan", angle_offset: float = 0.0,
+                 angle_bins: int | None = None, range_min: float = 0.15, range_max: float = 12.0,
+                 max_angle_step_deg: float = 20.0, stats: DriverStats | None = None) -> None:
+        self.frame_id = frame_id
+        self.angle_offset = angle_offset
+        self.angle_bins = angle_bins
+        self.range_min = range_min
+        self.range_max = range_max
+        self.max_angle_step_deg = max_angle_step_deg
+        self.stats = stats if stats is not None else DriverStats()
+        self._nodes: list[ScanNode] = []
+        self._started = False
+        self._t_start: float | None = None
+        self._last_scan_time = 0.0
+        self._last_angle: float | None = None
+        self._rejected = 0
+
+    def reset(self) -> None:
+        self._nodes.clear()
+        self._started = False
+        self._t_start = None
+        self._last_angle = None
+        self._rejected = 0
+
+    def _plausible(self, node: ScanNode) -> bool:
+        """The head turns one way in small steps: a node that jumps ahead by more
+        than ``max_angle_step_deg`` is garbage that passed the 3 check bits
+        (counted in ``stats.frames_bad``), unless 3 in a row agree (re-anchor)."""
+        if self._last_angle is None or self.max_angle_step_deg >= 360:
+            return True
+        if (node.angle_deg - self._last_angle) % 360.0 <= self.max_angle_step_deg:
+            self._rejected = 0
+            return True
+        self._rejected += 1
+        if self._rejected > 3:
+            self._rejected = 0
+            return True
+        self.stats.frames_bad += 1
+        return False
+
+    def add(self, nodes: list[ScanNode], stamp: float) -> list[LaserScan]:
+        """Add nodes received at ``stamp`` (s); returns the turns they completed."""
+        scans: list[LaserScan] = []
+        for node in nodes:
+            if not self._plausible(node):
+                continue
+            self._last_angle = node.angle_deg
+            if node.start:
+                if self._started and len(self._nodes) > 1:
+                    if self._t_start is not None:
+                        self._last_scan_time = max(0.0, stamp - self._t_start)
+                    scans.append(self.to_laser_scan(self._nodes, self._t_start or stamp, self._last_scan_time))
+                self._nodes = []
+                self._started = True
+                self._t_start = stamp
+            if self._started:
+                self._nodes.append(node)
+        return scans
+
+    def to_laser_scan(self, nodes: list[ScanNode], stamp: float, scan_time: float) -> LaserScan:
+        """One turn of nodes -> ``LaserScan`` (ranges m, intensities = quality).
+
+        ``angle_bins = None``: one range per node, sorted counter-clockwise,
+        ``angle_min``/``angle_max`` = first/last node, uniform increment (as
+        ``rplidar_ros`` without angle compensation). ``angle_bins = N``: N
+        fixed bins from 0, nearest return per bin (angle-compensated).
+        """
+        ang = device_to_ros_angle(np.array([nd.angle_deg for nd in nodes]), self.angle_offset)
+        dist = np.array([nd.distance_mm for nd in nodes]) / 1000.0
+        qual = np.array([nd.quality for nd in nodes], dtype=float)
+        valid = dist > 0
+        if self.angle_bins is None:
+            order = np.argsort(ang, kind="stable")
+            ang, dist, qual, valid = ang[order], dist[order], qual[order], valid[order]
+            n = len(nodes)
+            a0, a1 = float(ang[0]), float(ang[-1])
+            inc = (a1 - a0) / (n - 1) if n > 1 else 0.0
+            ranges = np.where(valid, dist, np.inf)
+            inten = np.where(valid, qual, 0.0)
+        else:
+            n = self.angle_bins
+            inc = 2 * math.pi / n
+            a0, a1 = 0.0, (n - 1) * inc
+            idx = np.rint(ang / inc).astype(int) % n
+            ranges = np.full(n, np.inf)
+            inten = np.zeros(n)
+            for k in np.argsort(-np.where(valid, dist, np.inf)):  # nearest return written last
+                if valid[k]:
+                    ranges[idx[k]] = dist[k]
+                    inten[idx[k]] = qual[k]
+        return LaserScan(
+            header=Header(stamp=stamp, frame_id=self.frame_id),
+            angle_min=a0, angle_max=a1, angle_increment=inc,
+            time_increment=scan_time / n if n else 0.0, scan_time=scan_time,
+            range_min=self.range_min, range_max=self.range_max,
+            ranges=ranges, intensities=inten,
+        )
+
+
+# --------------------------------------------------------------------------- driver
+class RPLidar(DeviceDriver):
+    """RPLIDAR driver: a synchronous client plus a read-loop thread publishing scans.
+
+    Synchronous use (no thread)::
+
+        lidar = RPLidar("/dev/ttyUSB0"); lidar.open()
+        lidar.get_info(); lidar.get_health(); lidar.set_motor(True)
+        lidar.start_scan("express"); scans = list(lidar.iter_scans(3, timeout=5))
+        lidar.stop_scan(); lidar.close()
+
+    Threaded use: ``RPLidar(url, publish).start()`` publishes ``LaserScan`` on
+    ``topic`` for every full turn, reconnecting with backoff when the device
+    disappears; :meth:`stop` ends the thread (``stop_scan`` is the protocol's
+    STOP command).
+
+    Args:
+        url: port path or pyserial URL.
+        publish: ``publish(topic, msg)``.
+        baudrate: 115200 (A1, A2M8) or 256000 (A2M7/A3...).
+        scan_mode: ``"standard"`` (SCAN 0x20) or ``"express"`` (EXPRESS_SCAN 0x82, legacy capsules).
+        motor_pwm: PWM sent with SET_MOTOR_PWM (0..1023).
+        topic, frame_id, angle_offset, angle_bins, range_min, range_max: see :class:`ScanAssembler`.
+        timeout: s to wait for a command's answer.
+    """
+
+    MESSAGE_TYPES = {"scan": LaserScan}
+
+    def __init__(self, url: str, publish: Publish | None = None, *, baudrate: int = 115200,
+                 scan_mode: str = "standard", motor_pwm: int = DEFAULT_MOTOR_PWM, topic: str = "scan",
+                 frame_id: str = "base_scan", angle_offset: float = 0.0, angle_bins: int | None = None,
+                 range_min: float = 0.15, range_max: float = 12.0, timeout: float = 1.0,
+                 stale_timeout: float = 1.0, backoff_initial: float = 0.05, backoff_max: float = 2.0) -> None:
+        super().__init__(url, publish, stale_timeout=stale_timeout, backoff_initial=backoff_initial,
+                         backoff_max=backoff_max)
+        if scan_mode not in ("standard", "express"):
+            raise ValueError(f"scan_mode must be 'standard' or 'express', got {scan_mode!r}")
+        self.baudrate = baudrate
+        self.scan_mode = scan_mode
+        self.motor_pwm = motor_pwm
+        self.topic = topic
+        self.timeout = timeout
+        self.MESSAGE_TYPES = {topic: LaserScan}
+        self.assembler = ScanAssembler(frame_id=frame_id, angle_offset=angle_offset, angle_bins=angle_bins,
+                                       range_min=range_min, range_max=range_max, stats=self.stats)
+        self.info: DeviceInfo | None = None
+        self.health: DeviceHealth | None = None
+        self._ser: serial.SerialBase | None = None
+        self._parser: NodeStreamParser | None = None
+        self._rx = bytearray()
+
+    # -- port ------------------------------------------------------------------
+    def open(self) -> None:
+        """Open the port (8N1, ``baudrate``) with ``serial.serial_for_url``."""
+        self.close()
+        self._ser = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0.01, write_timeout=1.0)
+        self._rx.clear()
+
+    def close(self) -> None:
+        if self._ser is not None:
+            try:
+                self._ser.close()
+            except Exception:  # noqa: BLE001
+                pass
+            self._ser = None
+        self._parser = None
+
+    @property
+    def port(self) -> serial.SerialBase:
+        if self._ser is None:
+            raise DeviceError(f"{self.url}: port is not open")
+        return self._ser
+
+    def _send(self, cmd: int, payload: bytes | None = None) -> None:
+        self.port.write(build_request(cmd, payload))
+        self.port.flush()
+
+    def _read_exact(self, n: int, deadline: float) -> bytes:
+        while len(self._rx) < n:
+            if time.monotonic() > deadline:
+                raise DeviceTimeout(f"{self.url}: timed out waiting for {n} bytes (got {len(self._rx)})")
+            chunk = self.port.read(max(1, n - len(self._rx)))
+            self._rx += chunk
+        out = bytes(self._rx[:n])
+        del self._rx[:n]
+        return out
+
+    def _read_descriptor(self, expected_type: int, deadline: float) -> Descriptor:
+        """Find ``A5 5A ... type`` in the input, skipping (and counting) anything else
+        (old scan data, the boot banner after RESET)."""
+        while True:
+            while len(self._rx) < 7:
+                if time.monotonic() > deadline:
+                    raise DeviceTimeout(f"{self.url}: no response descriptor of type 0x{expected_type:02X}")
+                self._rx += self.port.read(64)
+            i = self._rx.find(bytes((SYNC_BYTE, SYNC_BYTE2)))
+            if i < 0:
+                keep = 1 if self._rx[-1] == SYNC_BYTE else 0
+                self.stats.bytes_dropped += len(self._rx) - keep
+                del self._rx[: len(self._rx) - keep]
+                continue
+            if i:
+                self.stats.bytes_dropped += i
+                del self._rx[:i]
+            if len(self._rx) < 7:
+                continue
+            desc = parse_descriptor(bytes(self._rx[:7]))
+            if desc.data_type != expected_type:
+                self.stats.bytes_dropped += 2
+                del self._rx[:2]
+                continue
+            del self._rx[:7]
+            return desc
+
+    def _request(self, cmd: int, answer_type: int, payload: bytes | None = None) -> bytes:
+        self.port.reset_input_buffer()
+        self._rx.clear()
+        self._send(cmd, payload)
+        deadline = time.monotonic() + self.timeout
+        desc = self._read_descriptor(answer_type, deadline)
+        return self._read_exact(desc.size, deadline)
+
+    # -- commands --------------------------------------------------------------
+    def get_info(self) -> DeviceInfo:
+        """GET_INFO 0x50: model, firmware, hardware, serial number."""
+        self.info = DeviceInfo.from_bytes(self._request(CMD_GET_INFO, ANS_TYPE_DEVINFO))
+        return self.info
+
+    def get_health(self) -> DeviceHealth:
+        """GET_HEALTH 0x52: status (0 good, 1 warning, 2 error) and error code."""
+        self.health = DeviceHealth.from_bytes(self._request(CMD_GET_HEALTH, ANS_TYPE_DEVHEALTH))
+        return self.health
+
+    def get_samplerate(self) -> tuple[int, int]:
+        """GET_SAMPLERATE 0x59: (standard, express) µs per sample."""
+        raw = self._request(CMD_GET_SAMPLERATE, ANS_TYPE_SAMPLERATE)
+        return struct.unpack("<HH", raw)
+
+    def stop_scan(self) -> None:
+        """STOP 0x25: leave scanning; the device sends nothing back."""
+        self._send(CMD_STOP)
+        time.sleep(0.005)
+        self.port.reset_input_buffer()
+        self._rx.clear()
+        self._parser = None
+
+    def reset(self) -> None:
+        """RESET 0x40: reboot the core; its boot banner is discarded."""
+        self._send(CMD_RESET)
+        time.sleep(0.05)
+        self.port.reset_input_buffer()
+        self._rx.clear()
+        self._parser = None
+
+    def set_motor_pwm(self, pwm: int) -> None:
+        """SET_MOTOR_PWM 0xF0 with a u16 duty (0..1023); A1s ignore it."""
+        if not 0 <= pwm <= MAX_MOTOR_PWM:
+            raise ValueError(f"motor PWM must be 0..{MAX_MOTOR_PWM}, got {pwm}")
+        self._send(CMD_SET_MOTOR_PWM, struct.pack("<H", pwm))
+
+    def set_motor(self, on: bool) -> None:
+        """Spin (``on``) or stop the motor: DTR cleared/set (A1) and SET_MOTOR_PWM (A2/A3)."""
+        self.port.dtr = not on
+        self.set_motor_pwm(self.motor_pwm if on else 0)
+
+    def start_scan(self, mode: str | None = None) -> None:
+        """Start SCAN (``"standard"``) or EXPRESS_SCAN (``"express"``, legacy capsules)."""
+        mode = mode or self.scan_mode
+        self.port.reset_input_buffer()
+        self._rx.clear()
+        deadline = time.monotonic() + self.timeout
+        if mode == "standard":
+            self._send(CMD_SCAN)
+            desc = self._read_descriptor(ANS_TYPE_MEASUREMENT, deadline)
+            want = NODE_SIZE
+        elif mode == "express":
+            self._send(CMD_EXPRESS_SCAN, bytes(5))  # working mode 0, flags 0, param 0
+            desc = self._read_descriptor(ANS_TYPE_MEASUREMENT_CAPSULED, deadline)
+            want = CAPSULE_SIZE
+        else:
+            raise ValueError(f"scan mode must be 'standard' or 'express', got {mode!r}")
+        if desc.size != want or desc.send_mode != SEND_MODE_MULTIPLE:
+            raise DeviceError(f"{self.url}: scan descriptor says {desc.size}-byte answers, "
+                              f"send mode {desc.send_mode}; expected {want} bytes, mode 1")
+        self._parser = NodeStreamParser(mode, self.stats)
+        self.assembler.reset()
+        leftover = bytes(self._rx)
+        self._rx.clear()
+        if leftover:
+            self._parser.feed(leftover)
+
+    def read_nodes(self, timeout: float = 0.05) -> list[ScanNode]:
+        """Nodes that arrived within ``timeout`` s (empty list if none)."""
+        if self._parser is None:
+            raise DeviceError(f"{self.url}: not scanning (call start_scan first)")
+        deadline = time.monotonic() + timeout
+        nodes: list[ScanNode] = []
+        while True:
+            n = self.port.in_waiting
+            data = self.port.read(n if n else 1)
+            if data:
+                nodes += self._parser.feed(data)
+            if nodes or time.monotonic() > deadline:
+                return nodes
+
+    def iter_scans(self, max_scans: int, timeout: float) -> Iterator[LaserScan]:
+        """Yield up to ``max_scans`` full turns; stops after ``timeout`` s overall."""
+        deadline = time.monotonic() + timeout
+        got = 0
+        while got < max_scans and time.monotonic() < deadline:
+            for scan in self.assembler.add(self.read_nodes(0.05), time.time()):
+                got += 1
+                yield scan
+                if got >= max_scans:
+                    return
+
+    # -- read loop ---------------------------------------------------------------
+    def _connect(self) -> None:
+        self.open()
+        self.stop_scan()
+        health = self.get_health()
+        if health.status == STATUS_ERROR:
+            self.reset()
+            raise DeviceError(f"{self.url}: health status 2 (error code 0x{health.error_code:04X}); reset sent")
+        if health.status == STATUS_WARNING:
+            log.warning("%s: health warning, error code 0x%04X", self.url, health.error_code)
+        info = self.get_info()
+        log.info("%s: RPLIDAR model 0x%02X fw %d.%02d hw %d s/n %s", self.url, info.model, *info.firmware,
+                 info.hardware, info.serial_hex)
+        self.set_motor(True)
+        self.start_scan(self.scan_mode)
+
+    def _disconnect(self) -> None:
+        if self._ser is not None and self._ser.is_open:
+            try:
+                self._send(CMD_STOP)
+                self._ser.dtr = True
+            except Exception:  # noqa: BLE001 - port may already be gone
+                pass
+        self.close()
+
+    def _poll(self) -> None:
+        nodes = self.read_nodes(0.05)
+        if nodes:
+            self._mark_valid()
+            for scan in self.assembler.add(nodes, time.time()):
+                self._publish(self.topic, scan)

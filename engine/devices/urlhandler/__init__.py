@@ -1,0 +1,1 @@
+"""pyserial URL handlers (``serial.serial_for_url``) registered by :mod:`engine.devices.ptyserial`."""

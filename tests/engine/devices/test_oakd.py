@@ -1,0 +1,107 @@
+"""OAK-D: fast clear error without a device; frame conversion through a
+host-only depthai pipeline (real ``dai.ImgFrame`` objects, no device)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from engine.devices import oakd
+from engine.msgs import Image, Imu
+
+from .test_rplidar import run_with_timeout
+
+dai = pytest.importorskip("depthai", reason="depthai (optional extra 'oakd') is not installed")
+
+
+def test_no_device_fails_fast_with_a_clear_error():
+    if dai.Device.getAllAvailableDevices():
+        pytest.skip("an OAK device is attached")
+    cam = oakd.OakD()
+    t0 = time.monotonic()
+    with pytest.raises(oakd.OakDNotFound, match="no OAK device found"):
+        run_with_timeout(cam.open, 10)
+    assert time.monotonic() - t0 < 3.0
+
+
+def test_threaded_driver_keeps_retrying_without_device():
+    cam = oakd.OakD(backoff_initial=0.05, backoff_max=0.1)
+    cam.start()
+    try:
+        deadline = time.monotonic() + 3
+        while "no OAK device" not in cam.stats.last_error and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert "no OAK device found" in cam.stats.last_error and cam.running
+    finally:
+        cam.stop(5)
+    assert not cam.running
+
+
+class _Source(dai.node.ThreadedHostNode):
+    """Host node emitting colour and depth frames like the device would."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.color = self.createOutput()
+        self.depth = self.createOutput()
+
+    def run(self) -> None:
+        i = 0
+        while self.isRunning():
+            c = dai.ImgFrame()
+            c.setType(dai.ImgFrame.Type.RGB888i)
+            c.setWidth(8)
+            c.setHeight(4)
+            rgb = np.zeros((4, 8, 3), np.uint8)
+            rgb[..., 0] = 200  # red
+            rgb[0, 0] = (1, 2, 3)
+            c.setData(rgb.reshape(-1))
+            c.setSequenceNum(i)
+            c.setTimestamp(dai.Clock.now())
+            self.color.send(c)
+            d = dai.ImgFrame()
+            d.setType(dai.ImgFrame.Type.RAW16)
+            d.setWidth(8)
+            d.setHeight(4)
+            d.setData(np.full((4, 8), 1234, np.uint16).view(np.uint8).reshape(-1))
+            d.setTimestamp(dai.Clock.now())
+            self.depth.send(d)
+            i += 1
+            time.sleep(0.005)
+
+
+def test_host_only_pipeline_frames_convert_to_images():
+    def run():
+        p = dai.Pipeline(createImplicitDevice=False)
+        src = p.create(_Source)
+        qc = src.color.createOutputQueue(maxSize=4, blocking=False)
+        qd = src.depth.createOutputQueue(maxSize=4, blocking=False)
+        p.start()
+        try:
+            return qc.get(), qd.get()
+        finally:
+            p.stop()
+            p.wait()  # join the host node's thread before the pipeline is destroyed:
+            # ~Pipeline joins it while holding the GIL and would deadlock
+
+    c, d = run_with_timeout(run, 10)
+    img = oakd.imgframe_to_image(c, "camera_color_optical_frame")
+    assert isinstance(img, Image) and img.encoding == "rgb8" and img.data.shape == (4, 8, 3)
+    assert tuple(img.data[0, 0]) == (1, 2, 3) and img.data[1, 1, 0] == 200
+    assert abs(img.header.stamp - time.time()) < 5
+    dep = oakd.imgframe_to_image(d, "camera_depth_optical_frame")
+    assert dep.encoding == "16UC1" and dep.data.dtype == np.uint16 and np.all(dep.data == 1234)
+
+
+def test_imu_packet_conversion():
+    pk = dai.IMUPacket()
+    pk.acceleroMeter.x, pk.acceleroMeter.z = 0.1, 9.8
+    pk.gyroscope.z = 0.5
+    pk.rotationVector.real = 1.0
+    m = oakd.imu_packet_to_imu(pk, "camera_imu_frame", stamp=1.0)
+    assert isinstance(m, Imu)
+    np.testing.assert_allclose(m.linear_acceleration, [0.1, 0, 9.8], rtol=1e-6)
+    np.testing.assert_allclose(m.orientation, [0, 0, 0, 1])
+    assert m.angular_velocity[2] == pytest.approx(0.5)

@@ -1,0 +1,198 @@
+"""OpenCR: the emulator against the official ``dynamixel_sdk`` (independent
+client), and our driver against the emulator, over ptys."""
+
+from __future__ import annotations
+
+import math
+import struct
+import time
+
+import numpy as np
+import pytest
+
+from engine.devices import opencr as oc
+from engine.devices.emulated_opencr import (DiffDriveRobot, EmulatedOpenCR, build_packet, crc16, stuff,
+                                            unstuff)
+from engine.msgs import BatteryState, Imu, Odometry, Twist, quaternion_to_yaw
+
+from .test_rplidar import run_with_timeout
+
+dxl = pytest.importorskip("dynamixel_sdk")
+
+
+@pytest.fixture
+def emu():
+    e = EmulatedOpenCR().start()
+    yield e
+    e.stop()
+
+
+@pytest.fixture
+def sdk(emu):
+    """dynamixel_sdk's own PortHandler on the pty slave path (no URL handler involved)."""
+    port = dxl.PortHandler(emu.path)
+    assert port.openPort() and port.setBaudRate(1_000_000)
+    yield port, dxl.PacketHandler(2.0)
+    port.closePort()
+
+
+def test_framing_agrees_with_the_sdk():
+    pk = dxl.PacketHandler(2.0)
+    for data in (b"\x01\x02\x03", b"\xff\xff\xfd\x00", bytes(range(256))):
+        assert crc16(data) == pk.updateCRC(0, list(data), len(data))
+    body = bytes((0x55, 0x00, 0xFF, 0xFF, 0xFD, 0x07))
+    assert stuff(b"\x00\x00", body) == bytes((0x55, 0x00, 0xFF, 0xFF, 0xFD, 0xFD, 0x07))
+    assert unstuff(b"\x00\x00", stuff(b"\x00\x00", body)) == body
+    pkt = build_packet(200, 0x55, bytes((0, 0xFF, 0xFF, 0xFD, 1)))
+    ours = list(pkt)
+    assert pk.removeStuffing(list(pkt))[:12] == list(pkt[:5]) + [8, 0] + [0x55, 0, 0xFF, 0xFF, 0xFD]
+    assert crc16(pkt[:-2]) == struct.unpack("<H", pkt[-2:])[0] == pk.updateCRC(0, ours, len(ours) - 2)
+
+
+def test_sdk_ping_read_block_and_errors(sdk, emu):
+    port, pk = sdk
+
+    def client():
+        model, res, err = pk.ping(port, 200)
+        block, res2, err2 = pk.readTxRx(port, 200, oc.BLOCK_ADDR, oc.BLOCK_LEN)
+        wrong_id = pk.ping(port, 7)[1]
+        ro = pk.write1ByteTxRx(port, 200, oc.Addr.MILLIS, 1)
+        bad_inst = pk.reboot(port, 200)
+        return model, res, err, block, res2, err2, wrong_id, ro, bad_inst
+
+    model, res, err, block, res2, err2, wrong_id, ro, bad_inst = run_with_timeout(client, 5)
+    assert (model, res, err) == (0x5000, dxl.COMM_SUCCESS, 0)
+    assert res2 == dxl.COMM_SUCCESS and err2 == 0 and len(block) == 172
+    st = oc.OpenCRState.from_block(bytes(block))
+    assert st.device_status == 0 and st.torque_enabled and st.battery_voltage == pytest.approx(12.1)
+    assert st.linear_acceleration[2] == pytest.approx(9.80665, rel=1e-6)
+    assert wrong_id == dxl.COMM_RX_TIMEOUT  # nobody answers ID 7
+    assert ro == (dxl.COMM_SUCCESS, 7)  # millis is read-only: data-access error
+    assert bad_inst == (dxl.COMM_SUCCESS, 2)  # instruction error
+
+
+def test_sdk_sync_and_bulk_read(sdk):
+    port, pk = sdk
+
+    def client():
+        sync = dxl.GroupSyncRead(port, pk, oc.Addr.MODEL_NUMBER, 2)
+        sync.addParam(200)
+        r1 = sync.txRxPacket()
+        m1 = sync.getData(200, oc.Addr.MODEL_NUMBER, 2)
+        bulk = dxl.GroupBulkRead(port, pk)
+        bulk.addParam(200, oc.Addr.BATTERY_VOLTAGE, 4)
+        r2 = bulk.txRxPacket()
+        v = bulk.getData(200, oc.Addr.BATTERY_VOLTAGE, 4)
+        return r1, m1, r2, v
+
+    r1, m1, r2, v = run_with_timeout(client, 5)
+    assert (r1, m1) == (dxl.COMM_SUCCESS, 0x5000)
+    assert (r2, v) == (dxl.COMM_SUCCESS, 1210)
+
+
+def test_sdk_cmd_vel_moves_the_robot_and_watchdog_stops_it(sdk, emu):
+    port, pk = sdk
+
+    def client():
+        pos0 = [pk.read4ByteTxRx(port, 200, a)[0] for a in (oc.Addr.PRESENT_POSITION, oc.Addr.PRESENT_POSITION + 4)]
+        res = pk.writeTxRx(port, 200, oc.Addr.CMD_VELOCITY, 24, list(struct.pack("<6i", 10, 0, 0, 0, 0, 50)))
+        hb = 0
+        t_end = time.monotonic() + 0.4
+        while time.monotonic() < t_end:  # heartbeat keeps the command alive
+            hb += 1
+            pk.write1ByteTxRx(port, 200, oc.Addr.HEARTBEAT, hb & 0xFF)
+            time.sleep(0.1)
+        raw = pk.readTxRx(port, 200, oc.Addr.PRESENT_VELOCITY, 16)[0]
+        x_moving = emu.robot.x
+        time.sleep(0.7)  # no heartbeat: firmware watchdog zeroes cmd_vel after 0.5 s
+        cmd_after = pk.readTxRx(port, 200, oc.Addr.CMD_VELOCITY, 24)[0]
+        return pos0, res, raw, x_moving, cmd_after
+
+    pos0, res, raw, x_moving, cmd_after = run_with_timeout(client, 5)
+    assert res == (dxl.COMM_SUCCESS, 0)
+    vel_l, vel_r, pos_l, pos_r = struct.unpack("<4i", bytes(raw))
+    r, sep = oc.WHEEL_RADIUS, oc.WHEEL_SEPARATION["burger"]
+    wl, wr = oc.velocity_units_to_rad_s([vel_l, vel_r])
+    assert wl == pytest.approx((0.1 - 0.5 * sep / 2) / r, rel=0.02)
+    assert wr == pytest.approx((0.1 + 0.5 * sep / 2) / r, rel=0.02)
+    assert pos_r - pos0[1] > pos_l - pos0[0] > 0  # turning left: right wheel ran further
+    assert x_moving > 0.03
+    assert struct.unpack("<6i", bytes(cmd_after)) == (0,) * 6 and emu.watchdog_trips == 1
+
+
+def test_driver_odometry_imu_battery(emu):
+    got: dict[str, list] = {}
+    drv = oc.OpenCR(emu.url, lambda t, m: got.setdefault(t, []).append(m))
+    drv.start()
+    try:
+        assert drv.wait_published("odom", 2, 3)
+        drv.on_cmd_vel(Twist(linear=np.array([0.15, 0, 0]), angular=np.array([0, 0, 0.6])))
+        time.sleep(1.2)  # heartbeat keeps the command alive past the 0.5 s watchdog
+        assert emu.cmd_vel == (0.15, 0.6) and emu.watchdog_trips == 0
+        drv.set_cmd_vel(0.0, 0.0)
+        time.sleep(0.15)
+        n = drv.stats.published["odom"]
+        assert drv.wait_published("odom", n + 2, 1)
+    finally:
+        drv.stop()
+    assert not drv.running
+    assert drv.model_number == 0x5000
+    odom, imu, bat = got["odom"][-1], got["imu"][-1], got["battery_state"][-1]
+    assert isinstance(odom, Odometry) and isinstance(imu, Imu) and isinstance(bat, BatteryState)
+    robot = emu.robot
+    # odometry integrated from tick deltas tracks the emulated robot (1 tick = 0.05 mm of travel)
+    assert odom.pose.position[0] == pytest.approx(robot.x, abs=0.01)
+    assert odom.pose.position[1] == pytest.approx(robot.y, abs=0.01)
+    assert quaternion_to_yaw(odom.pose.orientation) == pytest.approx(robot.yaw, abs=0.02)
+    assert quaternion_to_yaw(imu.orientation) == pytest.approx(robot.yaw, abs=1e-3)
+    assert robot.x > 0.1 and robot.yaw > 0.4
+    moving = [m for m in got["odom"] if m.twist.linear[0] > 0.1]
+    assert moving and moving[-1].twist.angular[2] == pytest.approx(0.6, rel=0.05)
+    assert bat.voltage == pytest.approx(12.1)
+    rate = len(got["odom"]) / 1.5
+    assert 12 < rate < 25  # ~20 Hz like the ROS node
+
+
+def test_cmd_vel_scaling_truncates_like_the_ros_node():
+    assert struct.unpack("<6i", oc.encode_cmd_vel(0.129, -1.239)) == (12, 0, 0, 0, 0, -123)
+
+
+def test_odometry_integration_and_wraparound():
+    odo = oc.DiffDriveOdometry(0.033, 0.160)
+    odo.update(np.array([2**31 - 10, 5]))
+    ticks_per_m = 1 / (oc.TICK_TO_RAD * 0.033)
+    odo.update(np.array([2**31 - 10 + int(ticks_per_m), 5 + int(ticks_per_m)]) % 2**32)
+    assert odo.x == pytest.approx(1.0, abs=1e-3) and odo.y == pytest.approx(0.0, abs=1e-9)
+    quarter = 0.160 * math.pi / 2 / 2  # each wheel's arc for a 90 deg spin in place
+    t = int(quarter * ticks_per_m)
+    last = odo._last_ticks
+    odo.update(last + np.array([-t, t]))
+    assert odo.yaw == pytest.approx(math.pi / 2, abs=1e-3)
+
+
+def test_custom_step_callback_plugs_in():
+    calls = []
+
+    def step(v, w, dt):
+        calls.append((v, w, dt))
+        return (1.0, 2.0, 0.5, 0.6, np.array([0, 0, 0.1]), np.array([0, 0, 9.8]), np.array([0, 0, 0, 1.0]))
+
+    with EmulatedOpenCR(step) as emu:
+        port = dxl.PortHandler(emu.path)
+        port.openPort()
+        try:
+            pk = dxl.PacketHandler(2.0)
+            time.sleep(0.05)
+            raw = run_with_timeout(lambda: pk.readTxRx(port, 200, oc.BLOCK_ADDR, oc.BLOCK_LEN), 3)[0]
+        finally:
+            port.closePort()
+    st = oc.OpenCRState.from_block(bytes(raw))
+    assert calls and all(dt <= 0.01 + 1e-9 for _, _, dt in calls)
+    assert st.angular_velocity[2] == pytest.approx(0.1, rel=1e-6)
+    assert tuple(st.wheel_ticks) == (0, 0)  # encoders count from power-on
+
+
+def test_default_robot_limits():
+    r = DiffDriveRobot("waffle")
+    lp, rp_, wl, wr, gyro, acc, quat = r(1.0, 5.0, 0.1)
+    assert gyro[2] == pytest.approx(1.85) and (wl + wr) / 2 * 0.033 == pytest.approx(0.266)

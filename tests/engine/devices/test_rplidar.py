@@ -1,0 +1,348 @@
+"""RPLIDAR: protocol pieces, the emulator against the independent ``pyrplidar``
+client, and our driver against the emulator (real framing over ptys)."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from engine.devices import rplidar as rp
+from engine.devices.base import DriverStats
+from engine.devices.emulated_rplidar import EmulatedRPLidar, laser_scan_source, room_scan_source
+
+pyrplidar = pytest.importorskip("pyrplidar")
+import pyrplidar_serial  # noqa: E402  (pyrplidar's own serial module)
+
+
+def run_with_timeout(fn, timeout: float):
+    """Run ``fn()`` in a thread; fail (not hang) if it takes longer than ``timeout`` s."""
+    box: dict = {}
+
+    def target():
+        try:
+            box["value"] = fn()
+        except BaseException as exc:  # noqa: BLE001
+            box["error"] = exc
+
+    t = threading.Thread(target=target, daemon=True)
+    t.start()
+    t.join(timeout)
+    if t.is_alive():
+        pytest.fail(f"timed out after {timeout} s")
+    if "error" in box:
+        raise box["error"]
+    return box.get("value")
+
+
+def left_wall_source(angles: np.ndarray) -> np.ndarray:
+    """1 m at ROS angles within 10 deg of +90 deg (left), 3 m elsewhere."""
+    d = np.abs((angles - math.pi / 2 + math.pi) % (2 * math.pi) - math.pi)
+    return np.where(d < math.radians(10), 1.0, 3.0)
+
+
+@pytest.fixture
+def emu():
+    e = EmulatedRPLidar(left_wall_source, health=(rp.STATUS_WARNING, 0x0101)).start()
+    yield e
+    e.stop()
+
+
+# ----------------------------------------------------------------------------- pure protocol
+def test_request_checksum_matches_protocol():
+    assert rp.build_request(rp.CMD_SCAN) == b"\xa5\x20"
+    # the classic express-scan request bytes (A5 82 05 00 00 00 00 00 22)
+    assert rp.build_request(rp.CMD_EXPRESS_SCAN, bytes(5)) == bytes.fromhex("a58205000000000022")
+    assert rp.build_descriptor(5, 1, 0x81) == bytes.fromhex("a55a0500004081")
+
+
+def test_node_roundtrip_and_checks():
+    raw = rp.encode_node(123.456, 1500.25, 47, True)
+    assert rp.node_is_valid(raw)
+    n = rp.decode_node(raw)
+    assert n.start and n.quality == 47
+    assert n.angle_deg == pytest.approx(123.456, abs=1 / 64)
+    assert n.distance_mm == pytest.approx(1500.25)
+    assert not rp.node_is_valid(bytes((raw[0] | 3,)) + raw[1:])  # S == !S
+    assert not rp.node_is_valid(raw[:1] + bytes((raw[1] & 0xFE,)) + raw[2:])  # check bit
+
+
+def test_capsule_decoding_matches_sdk_arithmetic():
+    dec = rp.CapsuleDecoder()
+    c1 = rp.encode_capsule(10.0, np.arange(32) * 10 + 100, new_scan=True)
+    c2 = rp.encode_capsule(26.0, np.full(32, 500))
+    assert len(c1) == rp.CAPSULE_SIZE and rp.capsule_checksum_ok(c1)
+    assert dec.feed(c1) == []
+    nodes = dec.feed(c2)
+    assert len(nodes) == 32
+    np.testing.assert_allclose([n.angle_deg for n in nodes], 10.0 + np.arange(32) * 0.5, atol=1 / 64)
+    np.testing.assert_allclose([n.distance_mm for n in nodes], np.arange(32) * 10 + 100)
+    # independent decoder: pyrplidar's port of the same SDK routine
+    prev, cur = pyrplidar.PyRPlidarScanCapsule(c1), pyrplidar.PyRPlidarScanCapsule(c2)
+    theirs = pyrplidar.PyRPlidarScanCapsule._parse_capsule(prev, cur)
+    np.testing.assert_allclose([t.get_angle() for t in theirs], [n.angle_deg for n in nodes], atol=0.01)
+
+    # angle compensation (6-bit q3 offsets split across the cabin bytes), across the 360 wrap
+    rng = np.random.default_rng(0)
+    offs = rng.integers(0, 64, 32)
+    c3 = rp.encode_capsule(355.0, rng.integers(0, 16000, 32), offsets_q3=offs)
+    c4 = rp.encode_capsule(5.0, np.zeros(32))
+    dec.reset()
+    dec.feed(c3)
+    ours = dec.feed(c4)
+    theirs = pyrplidar.PyRPlidarScanCapsule._parse_capsule(pyrplidar.PyRPlidarScanCapsule(c3),
+                                                          pyrplidar.PyRPlidarScanCapsule(c4))
+    np.testing.assert_allclose([t.get_angle() for t in theirs], [n.angle_deg for n in ours], atol=0.01)
+    np.testing.assert_allclose([t.get_distance() for t in theirs], [n.distance_mm for n in ours])
+    assert [bool(t.start_flag & 1) for t in theirs] == [n.start for n in ours] and sum(n.start for n in ours) == 1
+
+
+def test_parser_resyncs_after_garbage_and_counts_bad_frames():
+    stats = DriverStats()
+    p = rp.NodeStreamParser("standard", stats)
+    good = b"".join(rp.encode_node(a, 1000, 10, a == 0) for a in range(0, 20))
+    bad = rp.encode_node(50, 1000, 10, False)
+    bad = bytes((bad[0] | 3,)) + bad[1:]
+    nodes = p.feed(good[:50] + b"\x00\xff\x13" + bad + good[50:])
+    assert len(nodes) == 20
+    assert stats.frames_bad >= 1 and stats.bytes_dropped >= 8
+
+    stats = DriverStats()
+    p = rp.NodeStreamParser("express", stats)
+    caps = [rp.encode_capsule(16.0 * k, np.full(32, 800), new_scan=(k == 0)) for k in range(6)]
+    corrupt = caps[3][:20] + bytes((caps[3][20] ^ 1,)) + caps[3][21:]
+    nodes = p.feed(caps[0] + caps[1] + b"garbage\xa5" + caps[2] + corrupt + caps[4] + caps[5])
+    assert stats.frames_bad >= 2 and stats.frames_ok == 5
+    assert all(n.distance_mm == 800 for n in nodes) and len(nodes) == 32 * 2  # pairs (0,1), (4,5)
+
+
+def test_assembler_ignores_garbage_that_passes_the_check_bits():
+    """A garbage node can pass S/!S and the check bit (1 in 8); a false start flag
+    must not split the turn."""
+    stats = DriverStats()
+    asm = rp.ScanAssembler(stats=stats)
+    turn = [rp.ScanNode(a, 1000.0, 47, a == 0) for a in np.arange(0, 360, 1.0)]
+    fake = rp.ScanNode(200.0, 5.0, 3, True)
+    stream = turn[:100] + [fake] + turn[100:] + turn[:1]
+    scans = asm.add(stream, 0.0)
+    assert len(scans) == 1 and len(scans[0].ranges) == 360
+    assert np.all(scans[0].ranges == 1.0) and stats.frames_bad == 1
+
+
+def test_angle_conventions():
+    assert rp.device_to_ros_angle(90.0) == pytest.approx(3 * math.pi / 2)  # 90 deg CW = -90 deg CCW
+    assert rp.device_to_ros_angle(0.0, math.pi) == pytest.approx(math.pi)
+    assert rp.ros_to_device_angle(rp.device_to_ros_angle(33.0)) == pytest.approx(33.0)
+
+
+# ----------------------------------------------------------------------------- independent client
+def test_pyrplidar_gets_info_health_and_scans(emu):
+    """pyrplidar opens the pty slave path with plain ``serial.Serial`` (its open
+    tolerates ENOTTY); info, health, samplerate, standard and express scans."""
+
+    def client():
+        lidar = pyrplidar.PyRPlidar()
+        lidar.connect(port=emu.path, baudrate=115200, timeout=1)
+        try:
+            info = lidar.get_info()
+            health = lidar.get_health()
+            rate = lidar.get_samplerate()
+            scans = []
+            for mode in ("standard", "express"):
+                gen = lidar.start_scan() if mode == "standard" else lidar.start_scan_express(0)
+                nodes, starts = [], 0
+                for m in gen():
+                    starts += m.start_flag
+                    if starts == 2:
+                        break
+                    if starts == 1:
+                        nodes.append(m)
+                scans.append(nodes)
+                lidar.stop()
+                time.sleep(0.02)
+                lidar.lidar_serial._serial.reset_input_buffer()  # pyrplidar never flushes after STOP
+            return info, health, rate, scans
+        finally:
+            lidar.disconnect()
+
+    info, health, rate, (std, exp) = run_with_timeout(client, 10)
+    assert (info.model, info.firmware_major, info.firmware_minor, info.hardware) == (0x18, 1, 29, 7)
+    assert info.serialnumber == emu.info.serial_hex
+    assert health.status == rp.STATUS_WARNING
+    assert health.error_code == 0x0101  # (pyrplidar decodes it big-endian; symmetric value)
+    assert (rate.t_standard, rate.t_express) == (500, 250)
+    for nodes, per_turn in ((std, 2000 / 5.5), (exp, 4000 / 5.5)):
+        assert len(nodes) == pytest.approx(per_turn, abs=3)
+        ang = np.array([n.angle for n in nodes])
+        dist = np.array([n.distance for n in nodes])
+        # the wall at ROS +90 deg (left, CCW) is at device 270 deg (CW)
+        near = np.abs(ang - 270.0) < 5
+        assert near.any() and np.allclose(dist[near], 1000.0, atol=1.0)
+        far = np.abs(ang - 90.0) < 5
+        assert np.allclose(dist[far], 3000.0, atol=1.0)
+
+
+def test_pyrplidar_motor_pwm_and_dtr_at_the_pty_edge(monkeypatch):
+    """pyrplidar's set_motor_pwm clears DTR first: on a bare pty that raises ENOTTY.
+    Only the pty edge is patched: pyrplidar's ``serial.Serial`` becomes the
+    ``pty://`` port class, which records DTR and tells the emulator."""
+    from engine.devices.urlhandler import protocol_pty
+
+    class PtySerial(protocol_pty.Serial):
+        def __init__(self, port=None, *args, **kwargs):
+            super().__init__("pty://" + port if port else None, *args, **kwargs)
+
+    monkeypatch.setattr(pyrplidar_serial.serial, "Serial", PtySerial)
+    for motor_control in ("dtr", "pwm"):
+        with EmulatedRPLidar(motor_control=motor_control, require_motor=True) as emu:
+            def client():
+                lidar = pyrplidar.PyRPlidar()
+                lidar.connect(port=emu.path, baudrate=115200, timeout=1)
+                try:
+                    off = emu.motor_on
+                    lidar.set_motor_pwm(660)
+                    time.sleep(0.05)
+                    return off, emu.motor_on, emu.motor_pwm, lidar.lidar_serial._serial.modem_log
+                finally:
+                    lidar.disconnect()
+
+            off, on, pwm, modem_log = run_with_timeout(client, 5)
+            assert not off and on
+            assert ("DTR", False) in [(line, st) for _, line, st in modem_log]
+            assert pwm == (660 if motor_control == "pwm" else 0)  # an A1 parses and ignores 0xF0
+            if motor_control == "dtr":
+                assert rp.CMD_SET_MOTOR_PWM in emu.ignored_commands
+
+
+# ----------------------------------------------------------------------------- our driver
+@pytest.mark.parametrize("mode", ["standard", "express"])
+def test_driver_scans_ccw_laserscan(emu, mode):
+    def client():
+        lidar = rp.RPLidar(emu.url, scan_mode=mode)
+        lidar.open()
+        try:
+            info, health = lidar.get_info(), lidar.get_health()
+            lidar.set_motor(True)
+            lidar.start_scan()
+            scans = list(lidar.iter_scans(2, timeout=3))
+            lidar.stop_scan()
+            return info, health, scans, lidar.stats
+        finally:
+            lidar.close()
+
+    info, health, scans, stats = run_with_timeout(client, 8)
+    assert info == emu.info and health == emu.health
+    assert emu.motor_on  # DTR cleared through the pty:// handler
+    assert len(scans) == 2 and stats.frames_bad == 0
+    s = scans[1]
+    per_turn = (2000 if mode == "standard" else 4000) / 5.5
+    assert len(s.ranges) == pytest.approx(per_turn, abs=3)
+    assert s.scan_time == pytest.approx(1 / 5.5, rel=0.25)
+    assert s.header.frame_id == "base_scan"
+    angles = s.angle_min + np.arange(len(s.ranges)) * s.angle_increment
+    assert np.all(np.diff(angles) > 0) and 0 <= s.angle_min < s.angle_max < 2 * math.pi
+    left = np.abs(angles - math.pi / 2) < math.radians(8)
+    right = np.abs(angles - 3 * math.pi / 2) < math.radians(8)
+    np.testing.assert_allclose(s.ranges[left], 1.0, atol=2e-3)
+    np.testing.assert_allclose(s.ranges[right], 3.0, atol=2e-3)
+
+
+def test_driver_fixed_bins_match_scan_source():
+    src = room_scan_source(4.0, 3.0)
+    with EmulatedRPLidar(src, scan_rate_hz=10, express_sample_rate_hz=4000) as emu:
+        def client():
+            lidar = rp.RPLidar(emu.url, scan_mode="express", angle_bins=360)
+            lidar.open()
+            try:
+                lidar.start_scan()
+                return list(lidar.iter_scans(2, timeout=3))
+            finally:
+                lidar.close()
+
+        scans = run_with_timeout(client, 6)
+    s = scans[-1]
+    assert len(s.ranges) == 360 and s.angle_min == 0.0
+    angles = np.arange(360) * s.angle_increment
+    ok = np.isfinite(s.ranges)
+    assert ok.mean() > 0.95
+    # each bin holds a node within half a bin of its centre: error <= slope * 0.5 deg
+    np.testing.assert_allclose(s.ranges[ok], src(angles[ok]), rtol=0.03)
+
+
+def test_reset_banner_is_skipped():
+    with EmulatedRPLidar() as emu:
+        def client():
+            lidar = rp.RPLidar(emu.url)
+            lidar.open()
+            try:
+                lidar._send(rp.CMD_RESET)  # banner arrives while we ask for info
+                time.sleep(0.03)
+                return lidar.get_info(), lidar.stats.bytes_dropped
+            finally:
+                lidar.close()
+
+        info, _ = run_with_timeout(client, 5)
+    assert info.model == 0x18
+
+
+def test_reset_command_and_unknown_payload_commands_are_ignored():
+    with EmulatedRPLidar() as emu:
+        port = serial.serial_for_url(emu.url, timeout=0.5)
+        try:
+            port.write(rp.build_request(rp.CMD_GET_LIDAR_CONF, bytes(4)))
+            port.write(rp.build_request(0x99, b"\x01\x02\x03"))
+            port.write(bytes.fromhex("a5f0029402ff"))  # SET_MOTOR_PWM with a bad checksum
+            port.write(rp.build_request(rp.CMD_GET_HEALTH))
+            desc = rp.parse_descriptor(port.read(7))
+            assert desc.data_type == rp.ANS_TYPE_DEVHEALTH and port.read(3) == emu.health.to_bytes()
+        finally:
+            port.close()
+    assert rp.CMD_GET_LIDAR_CONF in emu.ignored_commands and 0x99 in emu.ignored_commands
+    assert emu.stats.bad_requests >= 1
+
+
+def test_threaded_driver_publishes_and_survives_faults(emu):
+    got: list = []
+    lidar = rp.RPLidar(emu.url, lambda t, m: got.append((t, m)), scan_mode="express")
+    lidar.start()
+    try:
+        assert lidar.wait_published("scan", 1, 3)
+        for kind in ("garbage", "corrupt", "truncate"):
+            bad = lidar.stats.frames_bad
+            emu.inject_fault(kind)
+            n = lidar.stats.published["scan"]
+            assert lidar.wait_published("scan", n + 2, 3), kind
+            assert lidar.stats.frames_bad > bad, kind
+        assert lidar.running and lidar.stats.disconnects == 0
+    finally:
+        lidar.stop()
+    assert not lidar.running
+    assert all(t == "scan" and isinstance(m, rp.LaserScan) for t, m in got)
+
+
+def test_laser_scan_source_feeds_the_emulator_from_a_simulated_scan():
+    """A simulated LaserScan (as the twin's ray-cast LiDAR makes) goes in, the
+    driver's LaserScan comes out of the real protocol with the same geometry."""
+    sim = rp.LaserScan(angle_min=-math.pi, angle_max=math.pi - 2 * math.pi / 720,
+                       angle_increment=2 * math.pi / 720,
+                       ranges=np.where(np.arange(720) < 360, 1.5, 2.5))  # right half 1.5 m, left 2.5 m
+    src = laser_scan_source(lambda: sim)
+    np.testing.assert_allclose(src(np.array([-math.pi / 2, math.pi / 2, 3 * math.pi / 2])), [1.5, 2.5, 1.5])
+    with EmulatedRPLidar(src, scan_rate_hz=10) as emu:
+        def client():
+            lidar = rp.RPLidar(emu.url, scan_mode="express")
+            lidar.open()
+            try:
+                lidar.start_scan()
+                return list(lidar.iter_scans(2, timeout=3))[-1]
+            finally:
+                lidar.close()
+
+        s = run_with_timeout(client, 6)
+    angles = s.angle_min + np.arange(len(s.ranges)) * s.angle_increment
+    assert np.allclose(s.ranges[np.abs(angles - math.pi / 2) < 1.0], 2.5, atol=1e-3)
+    assert np.allclose(s.ranges[np.abs(angles - 3 * math.pi / 2) < 1.0], 1.5, atol=1e-3)
