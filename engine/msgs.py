@@ -140,3 +140,18 @@ def quaternion_to_yaw(q) -> float:
     """Yaw (rad) of a quaternion ``[x, y, z, w]``."""
     x, y, z, w = q
     return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+
+@dataclass
+class JointState:
+    """Joint positions (rad), velocities (rad/s), efforts; e.g. the two wheels."""
+
+    ROS_TYPE = "sensor_msgs/msg/JointState"
+    header: Header = field(default_factory=Header)
+    name: list = field(default_factory=list)
+    position: np.ndarray = _zeros(0)
+    velocity: np.ndarray = _zeros(0)
+    effort: np.ndarray = _zeros(0)
+
+
+MESSAGE_TYPES[JointState.ROS_TYPE] = JointState

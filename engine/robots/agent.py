@@ -1,0 +1,224 @@
+"""A robot on the bus: motion model + sensors + topics, one per ``robot`` device.
+
+:class:`RobotAgent` is what the twin loop holds per robot. Each step::
+
+    agent.step(t, dt)        # 1. s_t = f(s_{t-1}, u_{t-1}); 4. sensors -> topics
+
+The command ``u_{t-1}`` is the last :class:`~engine.msgs.Twist` received on
+``/<name>/cmd_vel`` (from a controller, a teleop node or a real robot's
+bridge); :meth:`RobotAgent.drive` attaches a controller that publishes there
+from the agent's own controller node each step (step 6 of Algorithm 1).
+
+Topics of robot ``<name>`` (frames in brackets):
+
+=========================  ==============================  ======================
+topic                      type                            publisher
+=========================  ==============================  ======================
+/<name>/cmd_vel            geometry_msgs/msg/Twist         controller (subscribed)
+/<name>/ground_truth       geometry_msgs/msg/PoseStamped   robot [map]
+/<name>/joint_states       sensor_msgs/msg/JointState      robot [base_link]
+/<name>/odom               nav_msgs/msg/Odometry           robot [odom]
+/<name>/imu                sensor_msgs/msg/Imu             robot [imu_link]
+/<name>/scan               sensor_msgs/msg/LaserScan       robot [base_scan]
+/<name>/camera/depth       sensor_msgs/msg/Image           robot, when enabled
+=========================  ==============================  ======================
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from engine.bus import Bus
+from engine.msgs import Header, Pose, PoseStamped, Twist
+from engine.robots.kinematics import DiffDriveRobot, ProcessNoise, robot_spec
+from engine.robots.sensors import (DepthCamera, ImuNoise, ImuSensor, Lidar2D, WheelEncoders,
+                                   WheelOdometry)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SensorOptions:
+    """Which sensors a robot carries and whether they are noisy.
+
+    Attributes:
+        lidar, imu, odometry: enable each.
+        camera: the depth camera (off by default: it costs a ray cast per pixel).
+        noise: ``False`` makes every sensor exact (and the process noise zero).
+        process_noise: the motion model's noise when ``noise`` is on.
+    """
+
+    lidar: bool = True
+    imu: bool = True
+    odometry: bool = True
+    camera: bool = False
+    noise: bool = True
+    process_noise: ProcessNoise = ProcessNoise(xy_std=0.002, yaw_std=0.005)
+
+
+class RobotAgent:
+    """One robot: :class:`DiffDriveRobot`, its sensors, and its bus node.
+
+    Args:
+        name: device name (also the topic namespace).
+        model: ``"burger"`` or ``"waffle"``.
+        pose: initial ``[x, y, z, roll, pitch, yaw]`` (m, rad).
+        bus: the :class:`~engine.bus.Bus` to publish on.
+        scene: the :class:`~engine.scene.TwinScene` (LiDAR/camera ray casting);
+            ``None`` disables them.
+        seed: one seed; the robot and each sensor derive their own streams from it.
+        options: :class:`SensorOptions`.
+    """
+
+    def __init__(self, name: str, model: str, pose, bus: Bus, scene=None, *, seed: int = 0,
+                 options: SensorOptions | None = None):
+        self.name = name
+        self.spec = robot_spec(model)
+        opt = options or SensorOptions()
+        self.options = opt
+        seeds = np.random.SeedSequence([seed, _name_key(name)]).spawn(6)
+        rng = [np.random.default_rng(s) for s in seeds]
+        noisy = opt.noise
+        self.robot = DiffDriveRobot(self.spec, pose, name=name, rng=rng[0],
+                                    noise=opt.process_noise if noisy else ProcessNoise())
+        st = self.robot.state
+        self.encoders = WheelEncoders(rng=rng[1], **({} if noisy else
+                                                     {"slip_std": 0.0, "tick_jitter": 0.0}))
+        self.odometry = WheelOdometry(self.spec, initial_pose=(st.x, st.y, st.yaw), rng=rng[2],
+                                      **({} if noisy else {"radius_scale": (1.0, 1.0),
+                                                           "separation_scale": 1.0}))
+        self.imu = ImuSensor(self.spec, rng=rng[3], noise=None if noisy else ImuNoise.off()) \
+            if opt.imu else None
+        self.lidar = None
+        if opt.lidar and scene is not None:
+            kw = {} if noisy else {"range_noise_rel": 0.0, "range_noise_abs": 0.0}
+            self.lidar = Lidar2D(scene, self.spec, rng=rng[4], **kw)
+        self.camera = None
+        if opt.camera and scene is not None:
+            self.camera = DepthCamera(scene, self.spec, enabled=True, rng=rng[5],
+                                      **({} if noisy else {"depth_noise_rel": 0.0}))
+
+        self.bus = bus
+        self.node = bus.node(name)
+        ns = f"/{name}"
+        self.topics = {"cmd_vel": f"{ns}/cmd_vel", "ground_truth": f"{ns}/ground_truth",
+                       "joint_states": f"{ns}/joint_states"}
+        self.node.advertise(self.topics["ground_truth"], PoseStamped)
+        self.node.advertise(self.topics["joint_states"], self.encoders.msg_type)
+        for key, sensor in (("odom", self.odometry if opt.odometry else None),
+                            ("imu", self.imu), ("scan", self.lidar),
+                            ("camera/depth", self.camera)):
+            if sensor is not None:
+                self.topics[key] = f"{ns}/{sensor.topic}"
+                self.node.advertise(self.topics[key], sensor.msg_type)
+        self._cmd = self.node.subscribe(self.topics["cmd_vel"], Twist, queue_size=None)
+        self.command = Twist()
+        self.controller: Callable | None = None
+        self._ctl_node = None
+        self.last: dict[str, object] = {}  #: last message per topic key
+
+    def drive(self, controller: Callable) -> None:
+        """Attach ``controller(state) -> Twist``; it publishes on ``cmd_vel`` each step
+        from node ``<name>/controller``."""
+        if self._ctl_node is None:
+            self._ctl_node = self.bus.node(f"{self.name}/controller")
+            self._ctl_node.advertise(self.topics["cmd_vel"], Twist)
+        self.controller = controller
+
+    @property
+    def state(self):
+        return self.robot.state
+
+    def step(self, t: float, dt: float) -> dict[str, object]:
+        """Advance to time ``t`` (s) by ``dt`` (s) and publish what is due.
+
+        Order: take the newest ``cmd_vel`` (``u_{t-1}``), apply ``f``, sample the
+        due sensors and publish them, then let the controller (if any) publish
+        the next command from the new state.
+
+        Returns:
+            ``topic key -> message`` of what was published this step.
+        """
+        for msg in self._cmd.drain():
+            self.command = msg
+        self.robot.step(self.command, dt)
+        st = self.robot.state
+        out: dict[str, object] = {}
+        out["ground_truth"] = PoseStamped(header=Header(stamp=t, frame_id="map"),
+                                          pose=Pose(position=st.position,
+                                                    orientation=st.quaternion()))
+        js = self.encoders.poll(t, st)
+        if js is not None:
+            out["joint_states"] = js
+            if "odom" in self.topics:
+                out["odom"] = self.odometry.update(js)
+        for key, sensor in (("imu", self.imu), ("scan", self.lidar),
+                            ("camera/depth", self.camera)):
+            if sensor is not None:
+                m = sensor.poll(t, st)
+                if m is not None:
+                    out[key] = m
+        for key, msg in out.items():
+            self.node.publish(self.topics[key], msg)
+        self.last.update(out)
+        if self.controller is not None:
+            self._ctl_node.publish(self.topics["cmd_vel"], self.controller(st))
+        return out
+
+
+class OpenCRStep:
+    """The twin's robot as the ``step(v, w, dt)`` an emulated OpenCR board drives.
+
+    :class:`engine.devices.emulated_opencr.EmulatedOpenCR` takes a callable
+    ``step(v, w, dt) -> (left_pos, right_pos, left_vel, right_vel, gyro[3],
+    accel[3], quat[4])`` (rad, rad/s, rad/s, m/s^2 with gravity, ``[x, y, z, w]``);
+    this adapter runs :meth:`DiffDriveRobot.step` (same firmware clamping,
+    acceleration limits and process noise as the twin) and reads the IMU
+    through an :class:`~engine.robots.sensors.ImuSensor` (noise-free if none given)::
+
+        board = EmulatedOpenCR(step=OpenCRStep(DiffDriveRobot("burger")), model="burger")
+
+    Args:
+        robot: the robot to move.
+        imu: the IMU model (default: exact, ``ImuNoise.off()``).
+    """
+
+    def __init__(self, robot: DiffDriveRobot, imu: ImuSensor | None = None):
+        self.robot = robot
+        self.imu = imu or ImuSensor(robot.spec, noise=ImuNoise.off())
+
+    def __call__(self, v: float, w: float, dt: float) -> tuple:
+        st = self.robot.step((v, w), dt) if dt > 0 else self.robot.state
+        m = self.imu.measure(st.t, st)
+        return (float(st.wheel_pos[0]), float(st.wheel_pos[1]), float(st.wheel_vel[0]),
+                float(st.wheel_vel[1]), m.angular_velocity, m.linear_acceleration,
+                st.quaternion())
+
+
+def _name_key(name: str) -> int:
+    # stable across runs (unlike hash()): robots with one seed get distinct streams
+    return int.from_bytes(name.encode()[:8].ljust(8, b"\0"), "little")
+
+
+def build_robots(config, bus: Bus, scene=None, *, seed: int = 0,
+                 options: SensorOptions | None = None) -> dict[str, RobotAgent]:
+    """A :class:`RobotAgent` for each ``robot`` device of a twin config.
+
+    Args:
+        config: :class:`~engine.config.TwinConfig`.
+        bus: where the agents' nodes register.
+        scene: :class:`~engine.scene.TwinScene` for LiDAR/camera, or ``None``.
+    """
+    agents = {}
+    for d in config.devices:
+        if d.kind != "robot":
+            continue
+        pose = (*d.position, *d.orientation)
+        agents[d.name] = RobotAgent(d.name, d.model or "burger", pose, bus, scene, seed=seed,
+                                    options=options)
+        log.info("robot %s (%s) at %s", d.name, d.model, d.position)
+    return agents
