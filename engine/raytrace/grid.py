@@ -1,0 +1,468 @@
+"""Floor grids of traced paths: ``trace_grid`` writes them, ``load_grid`` reads them.
+
+The paper (sec. III-A, last paragraph): with static transmitters and receivers
+that move on the floor, the paths can be traced once for every grid position
+and stored in a database. :func:`trace_grid` traces a regular grid of receiver
+positions at one height against the static transmitters, in chunks of
+receivers (bounded memory), with a progress bar, and never drops paths
+silently: a chunk whose solver buffer reached ``max_num_paths_per_src`` is
+split in halves (down to one receiver) and then retried with a doubled cap;
+if that is still not enough, :class:`~engine.raytrace.base.TruncationError`.
+
+Receivers per solver call. Besides the cap, Sionna's shoot-and-bounce
+generator de-duplicates specular chains through a hash table shared by all
+receivers of a call (``sb_candidate_generator.py``: "this can cause loss of
+candidates due to hash collisions"). Measured in the bundled lab: up to 2
+receivers per call give exactly the paths of one-receiver calls; 16 lose
+~1.3 % of the paths (weak second-order reflections, 20-40 dB below the
+strongest path), 64 lose ~3.5 %, ~900 lose ~19 %. This loss is invisible in
+the returned paths, so :func:`trace_grid` (a) uses small chunks
+(:data:`DEFAULT_CHUNK_SIZE`) and (b) *verifies*: it re-traces ``verify``
+random free points one per solver call and stores the path-count deficit in
+``meta["verification"]`` (and logs a warning when paths are missing).
+
+Grid points that are not in free space (inside furniture or walls, or
+outside the room) are found before tracing by casting one ray straight up and
+one straight down from each point with Mitsuba: a point is *free* when both
+rays hit a surface and both hit it from the front (the first surface met is
+not the inside of a closed object, i.e. ``dot(ray_dir, normal) < 0``). Points
+that are not free are not traced: ``free`` is False and ``num_paths`` is 0.
+
+The file format (NPZ, every array documented with its shape) is described in
+``docs/tracers.md``. :data:`GRID_FORMAT_VERSION` is bumped on any change;
+:func:`load_grid` refuses files with an unknown version.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from engine.config import TracerConfig
+from engine.raytrace.base import (DevicePose, TruncationError, device_poses,
+                                  sionna_orientation, validate_poses)
+
+log = logging.getLogger(__name__)
+
+GRID_FORMAT = "isac-twin-path-grid"
+GRID_FORMAT_VERSION = 1
+
+#: Arrays of a grid file besides ``meta``: name -> (dtype, axes).
+GRID_ARRAYS = {
+    "points": ("float64", "[N, 3]"),
+    "free": ("bool", "[N]"),
+    "tx_positions": ("float64", "[S, 3]"),
+    "tx_orientations": ("float64", "[S, 3]"),
+    "num_paths": ("int32", "[N, S]"),
+    "valid": ("bool", "[N, S, P]"),
+    "a": ("complex64", "[N, S, P]"),
+    "tau": ("float64", "[N, S, P]"),
+    "theta_t": ("float32", "[N, S, P]"),
+    "phi_t": ("float32", "[N, S, P]"),
+    "theta_r": ("float32", "[N, S, P]"),
+    "phi_r": ("float32", "[N, S, P]"),
+    "interactions": ("uint8", "[N, S, P, D]"),
+    "vertices": ("float32", "[N, S, P, D, 3]"),
+}
+
+_PATH_KEYS = ("valid", "a", "tau", "theta_t", "phi_t", "theta_r", "phi_r", "interactions",
+              "vertices")
+
+#: Receivers per solver call (see the module doc for the accuracy trade-off).
+DEFAULT_CHUNK_SIZE = 16
+
+#: Deterministic mode: the candidate generator materializes
+#: ``num_sources * max_depth * samples_per_src * num_targets`` entries; chunks are
+#: sized to keep that below this many.
+DETERMINISTIC_BUDGET = 200_000_000
+
+
+@dataclass(frozen=True, eq=False)
+class PathGrid:
+    """A traced floor grid (``N = nx * ny`` points, ``S`` transmitters,
+    ``P`` path slots, ``D`` interaction slots). Point ``i = ix * ny + iy`` sits at
+    ``origin + (ix, iy) * spacing`` and ``z = height``.
+
+    Attributes:
+        meta: the metadata dictionary (see ``docs/tracers.md``).
+        arrays: name -> numpy array, as listed in :data:`GRID_ARRAYS`.
+        path: the file it was loaded from (None when fresh).
+    """
+
+    meta: dict
+    arrays: dict
+    path: Path | None = None
+
+    def __getattr__(self, name):
+        arrays = self.__dict__.get("arrays", {})
+        if name in arrays:
+            return arrays[name]
+        raise AttributeError(name)
+
+    @property
+    def tx_names(self) -> list[str]:
+        return list(self.meta["tx_names"])
+
+    @property
+    def origin(self) -> np.ndarray:
+        """``[2]`` m, x/y of point ``(0, 0)``."""
+        return np.asarray(self.meta["origin"], float)
+
+    @property
+    def spacing(self) -> float:
+        return float(self.meta["spacing"])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.meta["shape"])
+
+    @property
+    def height(self) -> float:
+        return float(self.meta["height"])
+
+    def nearest(self, xy) -> tuple[int, float]:
+        """Index of the grid point nearest to ``xy`` ``[2]`` m and its distance, m.
+
+        Raises:
+            ValueError: ``xy`` is more than half a spacing outside the grid.
+        """
+        xy = np.asarray(xy, float)[:2]
+        nx, ny = self.shape
+        f = (xy - self.origin) / self.spacing
+        idx = np.rint(f).astype(int)
+        if np.any(f < -0.5 - 1e-9) or f[0] > nx - 0.5 + 1e-9 or f[1] > ny - 0.5 + 1e-9:
+            lo = self.origin
+            hi = self.origin + (np.array([nx, ny]) - 1) * self.spacing
+            raise ValueError(f"position ({xy[0]:.3f}, {xy[1]:.3f}) m is outside the stored grid "
+                             f"(x {lo[0]:.3f}..{hi[0]:.3f}, y {lo[1]:.3f}..{hi[1]:.3f} m)")
+        idx = np.clip(idx, 0, [nx - 1, ny - 1])
+        i = int(idx[0] * ny + idx[1])
+        return i, float(np.linalg.norm(self.points[i, :2] - xy))
+
+    def paths(self, i: int, s: int) -> dict[str, np.ndarray]:
+        """The valid paths of point ``i`` and transmitter ``s`` (sorted by delay)."""
+        n = int(self.num_paths[i, s])
+        return {k: self.arrays[k][i, s, :n] for k in _PATH_KEYS if k != "valid"}
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def grid_points(lo, hi, spacing: float, margin: float = 0.0) -> tuple[np.ndarray, tuple[int, int]]:
+    """Cell-centred points of ``[lo, hi]`` (x, y ``[2]`` m) shrunk by ``margin``.
+
+    Returns:
+        ``origin [2]`` m and ``(nx, ny)``.
+    """
+    lo = np.asarray(lo, float)[:2] + margin
+    hi = np.asarray(hi, float)[:2] - margin
+    size = hi - lo
+    if np.any(size < spacing):
+        raise ValueError(f"grid area {size.tolist()} m is smaller than the spacing {spacing} m")
+    n = np.floor(size / spacing + 1e-6).astype(int)
+    origin = lo + (size - (n - 1) * spacing) / 2
+    return origin, (int(n[0]), int(n[1]))
+
+
+def free_points(sionna_scene, points: np.ndarray) -> np.ndarray:
+    """Which points ``[N, 3]`` lie in free space (see module doc) -> ``[N]`` bool."""
+    import drjit as dr
+    import mitsuba as mi
+
+    pts = np.asarray(points, np.float32)
+    free = np.ones(len(pts), bool)
+    o = mi.Point3f(*(mi.Float(pts[:, i]) for i in range(3)))
+    for dz in (1.0, -1.0):
+        ray = mi.Ray3f(o, mi.Vector3f(0.0, 0.0, dz))
+        si = sionna_scene.mi_scene.ray_intersect(ray)
+        hit = si.is_valid()
+        front = dr.dot(si.n, ray.d) < 0
+        free &= np.asarray(hit.numpy(), bool) & np.asarray(front.numpy(), bool)
+    return free
+
+
+# --------------------------------------------------------------------------- tracing
+
+
+def _sorted_chunk(raw) -> dict[str, np.ndarray]:
+    """RawPaths ``[R, T, P]`` -> dict of ``[R, T, P']`` sorted by delay, valid first."""
+    key = np.where(raw.valid, raw.tau, np.inf)
+    order = np.argsort(key, axis=-1, kind="stable")
+    out = {}
+    for k in _PATH_KEYS:
+        v = getattr(raw, k)
+        idx = order.reshape(order.shape + (1,) * (v.ndim - 3))
+        out[k] = np.take_along_axis(v, idx, axis=2)
+    n = out["valid"].sum(-1)
+    p = int(n.max()) if n.size else 0
+    out = {k: v[:, :, :p] for k, v in out.items()}
+    out["num_paths"] = n.astype(np.int32)
+    return out
+
+
+def _pad(v: np.ndarray, p: int) -> np.ndarray:
+    pad = [(0, 0)] * v.ndim
+    pad[2] = (0, p - v.shape[2])
+    return np.pad(v, pad)
+
+
+class _ChunkTracer:
+    """Traces receiver chunks; splits / grows the cap on truncation."""
+
+    def __init__(self, core, sc, src, src_orient, cap: int, max_cap: int):
+        self.core, self.sc, self.src, self.src_orient = core, sc, src, src_orient
+        self.cap, self.max_cap = cap, max_cap
+        self.retries = 0
+
+    def __call__(self, pts: np.ndarray) -> list[dict]:
+        raw = self.core.solve_endpoints(self.sc, self.src, pts, self.cap, self.src_orient)
+        if not raw.truncated:
+            return [_sorted_chunk(raw)]
+        self.retries += 1
+        if len(pts) > 1:
+            log.info("chunk of %d receivers reached max_num_paths_per_src=%d "
+                     "(candidates per source %s): splitting", len(pts), self.cap,
+                     raw.candidates_per_source.tolist())
+            h = len(pts) // 2
+            return self(pts[:h]) + self(pts[h:])
+        if self.cap * 2 > self.max_cap:
+            raise TruncationError(
+                f"a single receiver at {pts[0].tolist()} needs more than "
+                f"max_num_paths_per_src={self.cap} candidates per source "
+                f"(limit {self.max_cap}); raise tracer.max_num_paths_per_src")
+        log.warning("one receiver reached max_num_paths_per_src=%d: doubling it", self.cap)
+        self.cap *= 2
+        return self(pts)
+
+
+def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.05,
+               height: float | None = None, margin: float = 0.0, *,
+               config: TracerConfig | None = None, chunk_size: int | None = None,
+               deterministic: bool | None = None, max_cap: int | None = None,
+               tx_poses: dict[str, DevicePose] | None = None, progress: bool = True,
+               verify: int = 8, out: str | Path | None = None) -> PathGrid:
+    """Trace a floor grid of receiver positions against static transmitters.
+
+    Args:
+        scene: the :class:`~engine.scene.TwinScene`.
+        tx_names: transmitters (default: every device that is the ``tx`` of a link).
+        spacing: grid spacing, m.
+        height: receiver height z, m (default: the first robot's antenna height).
+        margin: distance kept from the room's bounding box, m.
+        config: tracer settings (default ``scene.config.tracer``).
+        chunk_size: receivers per solver call (default :data:`DEFAULT_CHUNK_SIZE`;
+            in deterministic mode at most what :data:`DETERMINISTIC_BUDGET` allows).
+        deterministic: override ``config.deterministic`` (default for grids:
+            False, because Sionna's deterministic generator needs memory
+            proportional to samples x receivers; see ``docs/tracers.md``).
+        max_cap: largest ``max_num_paths_per_src`` tried on truncation
+            (default 16 x the configured cap).
+        tx_poses: transmitter poses (default: from the config).
+        progress: show a tqdm progress bar.
+        verify: re-trace this many random free points one per solver call and
+            record the path-count deficit in ``meta["verification"]``.
+        out: write the NPZ there as well.
+
+    Returns:
+        The :class:`PathGrid`.
+
+    Raises:
+        TruncationError: a single receiver overflows the largest cap.
+        ValueError: bad arguments or transmitter poses.
+    """
+    from tqdm import tqdm
+
+    from engine.raytrace.sionna import SolverCore
+
+    cfg = scene.config
+    config = config or cfg.tracer
+    if not (spacing > 0 and np.isfinite(spacing)):
+        raise ValueError(f"spacing: expected a positive number of metres, got {spacing!r}")
+    if tx_names is None:
+        tx_names = list(dict.fromkeys(lk.tx for lk in cfg.links))
+    tx_names = list(tx_names)
+    if not tx_names:
+        raise ValueError("trace_grid: no transmitters (give tx_names or add [[links]])")
+    poses = dict(device_poses(cfg))
+    poses.update(tx_poses or {})
+    validate_poses(scene, poses, tx_names)
+    if height is None:
+        robots = [d for d in cfg.devices if d.kind == "robot"]
+        height = poses[robots[0].name].position[2] if robots else 1.0
+    height = float(height)
+    det = False if deterministic is None else bool(deterministic)
+    core = SolverCore(config, deterministic=det)
+    sc = scene.sionna
+    src = np.array([poses[n].position for n in tx_names], float)
+    src_orient_cfg = np.array([poses[n].orientation for n in tx_names], float)
+    src_orient = np.array([sionna_orientation(o) for o in src_orient_cfg])
+
+    origin, (nx, ny) = grid_points(scene.bounds_min, scene.bounds_max, spacing, margin)
+    ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    points = np.stack([origin[0] + ix.ravel() * spacing, origin[1] + iy.ravel() * spacing,
+                       np.full(nx * ny, height)], axis=1)
+    free = free_points(sc, points)
+    todo = np.flatnonzero(free)
+    if chunk_size is None:
+        chunk_size = DEFAULT_CHUNK_SIZE
+        if det:
+            per_target = len(tx_names) * max(1, config.max_depth) * config.samples_per_src
+            chunk_size = max(1, min(chunk_size, DETERMINISTIC_BUDGET // per_target))
+    chunk_size = int(chunk_size)
+    if chunk_size < 1:
+        raise ValueError(f"chunk_size: expected >= 1, got {chunk_size}")
+    cap = config.max_num_paths_per_src
+    tracer = _ChunkTracer(core, sc, src, src_orient, cap, max_cap or 16 * cap)
+    log.info("tracing %d x %d grid (%d free points) at z=%.3f m against %s",
+             nx, ny, len(todo), height, ", ".join(tx_names))
+    pieces: list[tuple[np.ndarray, dict]] = []
+    with tqdm(total=len(todo), unit="pt", desc="grid", disable=not progress) as bar:
+        for start in range(0, len(todo), chunk_size):
+            idx = todo[start:start + chunk_size]
+            offs = 0
+            for part in tracer(points[idx]):
+                n = part["num_paths"].shape[0]
+                pieces.append((idx[offs:offs + n], part))
+                offs += n
+            bar.update(len(idx))
+
+    s = len(tx_names)
+    p = max([part["valid"].shape[2] for _, part in pieces], default=0)
+    d = max(1, config.max_depth)
+    n_all = len(points)
+    arrays = {
+        "points": points, "free": free, "tx_positions": src,
+        "tx_orientations": src_orient_cfg,
+        "num_paths": np.zeros((n_all, s), np.int32),
+        "valid": np.zeros((n_all, s, p), bool),
+        "a": np.zeros((n_all, s, p), np.complex64),
+        "tau": np.zeros((n_all, s, p), np.float64),
+        **{k: np.zeros((n_all, s, p), np.float32) for k in ("theta_t", "phi_t", "theta_r",
+                                                            "phi_r")},
+        "interactions": np.zeros((n_all, s, p, d), np.uint8),
+        "vertices": np.zeros((n_all, s, p, d, 3), np.float32),
+    }
+    for idx, part in pieces:
+        arrays["num_paths"][idx] = part["num_paths"]
+        for k in _PATH_KEYS:
+            arrays[k][idx] = _pad(part[k], p).astype(arrays[k].dtype)
+
+    verification = _verify(core, sc, src, src_orient, points, arrays["num_paths"], todo,
+                           int(verify), config.seed, cap)
+
+    import mitsuba as mi
+    import sionna.rt
+
+    meta = {
+        "format": GRID_FORMAT, "version": GRID_FORMAT_VERSION,
+        "scene_name": cfg.scene.name, "scene_hash": scene.content_hash(),
+        "frequency_hz": cfg.scene.frequency_hz,
+        "origin": origin.tolist(), "spacing": float(spacing), "shape": [nx, ny],
+        "height": height, "margin": float(margin),
+        "tx_names": tx_names, "num_free": int(free.sum()),
+        "tracer": {**dataclasses.asdict(config), "deterministic": det,
+                   "max_num_paths_per_src_used": tracer.cap, "chunk_size": chunk_size,
+                   "truncation_retries": tracer.retries},
+        "verification": verification,
+        "sionna_version": sionna.rt.__version__ if hasattr(sionna.rt, "__version__")
+        else _pkg_version("sionna-rt"),
+        "mitsuba_variant": mi.variant(),
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+    grid = PathGrid(meta=meta, arrays=arrays)
+    if out is not None:
+        save_grid(grid, out)
+    return grid
+
+
+def _verify(core, sc, src, src_orient, points, num_paths, todo, n: int, seed: int,
+            cap: int) -> dict:
+    """Re-trace ``n`` random free points one per call; compare path counts."""
+    if n <= 0 or len(todo) == 0:
+        return {"points": 0}
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(todo, size=min(n, len(todo)), replace=False)
+    single = np.array([core.solve_endpoints(sc, src, points[i:i + 1], cap,
+                                            src_orient).valid.sum(-1)[0] for i in pick])
+    grid = num_paths[pick]
+    missing = int(np.clip(single - grid, 0, None).sum())
+    out = {"points": int(len(pick)), "indices": pick.tolist(),
+           "paths_grid": int(grid.sum()), "paths_single_calls": int(single.sum()),
+           "paths_missing": missing,
+           "links_differing": int((single != grid).sum()), "links": int(single.size)}
+    if missing:
+        log.warning("grid verification: %d of %d paths at %d re-traced points are missing "
+                    "in the chunked trace (Sionna de-duplicates candidates per call; use "
+                    "a smaller chunk_size for an exact grid)", missing, int(single.sum()),
+                    len(pick))
+    return out
+
+
+def _pkg_version(name: str) -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return "unknown"
+
+
+# --------------------------------------------------------------------------- files
+
+
+def save_grid(grid: PathGrid, path: str | Path, *, compress: bool = False) -> Path:
+    """Write ``grid`` as NPZ (``meta`` is a JSON string, see ``docs/tracers.md``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save = np.savez_compressed if compress else np.savez
+    with open(path, "wb") as f:
+        save(f, meta=np.array(json.dumps(grid.meta)), **grid.arrays)
+    log.info("wrote %s (%d points, %d transmitters)", path, len(grid.arrays["points"]),
+             len(grid.meta["tx_names"]))
+    return path
+
+
+def load_grid(path: str | Path) -> PathGrid:
+    """Read a grid NPZ written by :func:`trace_grid` / :func:`save_grid`.
+
+    Raises:
+        ValueError: not a grid file, unknown format version, or a missing array.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such grid file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as exc:  # noqa: BLE001 - zip/format errors of all kinds
+        raise ValueError(f"{path}: not a readable NPZ file: {exc}") from exc
+    if "meta" not in data:
+        raise ValueError(f"{path}: not an isac-twin path grid (no 'meta' entry)")
+    meta = json.loads(str(data.pop("meta")))
+    if meta.get("format") != GRID_FORMAT:
+        raise ValueError(f"{path}: format {meta.get('format')!r} is not {GRID_FORMAT!r}")
+    if meta.get("version") != GRID_FORMAT_VERSION:
+        raise ValueError(f"{path}: grid format version {meta.get('version')!r} is unknown "
+                         f"(this engine reads version {GRID_FORMAT_VERSION})")
+    missing = [k for k in GRID_ARRAYS if k not in data]
+    if missing:
+        raise ValueError(f"{path}: missing arrays {', '.join(missing)}")
+    return PathGrid(meta=meta, arrays=data, path=path)
+
+
+def grid_summary(grid: PathGrid) -> dict:
+    """Counts for printing: points, free points, mean/max valid paths per link."""
+    n = grid.arrays["num_paths"][grid.arrays["free"]]
+    return {"points": int(len(grid.arrays["points"])), "free": int(grid.arrays["free"].sum()),
+            "shape": grid.shape, "spacing": grid.spacing, "height": grid.height,
+            "mean_paths_per_link": float(n.mean()) if n.size else 0.0,
+            "max_paths_per_link": int(n.max()) if n.size else 0,
+            "truncation_retries": grid.meta["tracer"]["truncation_retries"],
+            "verification": grid.meta.get("verification", {})}
