@@ -78,6 +78,8 @@ class TracerConfig:
     refraction: bool = True
     diffraction: bool = False
     seed: int = 42
+    deterministic: bool = True
+    grid_file: str = ""  #: backend "grid": the grid NPZ, relative to twin.toml
 
 
 @dataclass(frozen=True)
@@ -109,6 +111,7 @@ class DeviceConfig:
     symbols: tuple[int, int]
     model: str | None = None  #: robots only
     antenna_offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    path: dict | None = None  #: robots only: what the robot follows (see docs/config.md)
 
     @property
     def is_tx(self) -> bool:
@@ -244,7 +247,14 @@ class _Reader:
 
 _TOP_KEYS = ("schema", "scene", "ofdm", "noise", "tracer", "devices", "links")
 _DEVICE_KEYS = ("name", "kind", "role", "position", "orientation", "power_dbm", "array",
-                "subcarriers", "symbols", "model", "antenna_offset")
+                "subcarriers", "symbols", "model", "antenna_offset", "path")
+PATH_KINDS = ("circle", "polyline", "figure_eight", "goal")
+_PATH_KEYS = {
+    "circle": ("centre", "radius", "direction"),
+    "polyline": ("waypoints", "closed"),
+    "figure_eight": ("centre", "size"),
+    "goal": ("goal",),
+}
 _ARRAY_KEYS = ("rows", "cols", "vertical_spacing", "horizontal_spacing", "pattern",
                "polarization")
 
@@ -261,6 +271,31 @@ def _parse_array(r: _Reader, data: dict, prefix: str) -> ArrayConfig:
     )
 
 
+def _parse_path(r: _Reader, data: dict, prefix: str) -> dict:
+    kind = r.string(data, "kind", prefix, choices=PATH_KINDS)
+    r.check_keys(data, ("kind", "speed") + _PATH_KEYS[kind], prefix)
+    out: dict[str, Any] = {"kind": kind}
+    if "speed" in data:
+        out["speed"] = r.number(data, "speed", prefix, positive=True)
+    if kind in ("circle", "figure_eight"):
+        out["centre"] = list(r.vector(data, "centre", prefix, 2))
+    if kind == "circle":
+        out["radius"] = r.number(data, "radius", prefix, positive=True)
+        out["direction"] = r.string(data, "direction", prefix, "ccw", choices=("ccw", "cw"))
+    elif kind == "figure_eight":
+        out["size"] = r.number(data, "size", prefix, positive=True)
+    elif kind == "goal":
+        out["goal"] = list(r.vector(data, "goal", prefix, 2))
+    elif kind == "polyline":
+        wps = r.get(data, "waypoints", prefix)
+        if not isinstance(wps, list) or len(wps) < 2:
+            raise r.fail(f"{prefix}waypoints", f"expected at least 2 [x, y] points, got {wps!r}")
+        out["waypoints"] = [list(r.vector({"p": w}, "p", f"{prefix}waypoints[{j}].", 2))
+                            for j, w in enumerate(wps)]
+        out["closed"] = r.boolean(data, "closed", prefix, False)
+    return out
+
+
 def _parse_device(r: _Reader, data: Any, i: int, ofdm: OFDMConfig) -> DeviceConfig:
     prefix = f"devices[{i}]."
     if not isinstance(data, dict):
@@ -270,12 +305,15 @@ def _parse_device(r: _Reader, data: Any, i: int, ofdm: OFDMConfig) -> DeviceConf
     prefix = f"devices[{i}] ({name})."
     kind = r.string(data, "kind", prefix, choices=DEVICE_KINDS)
     model = None
+    path = None
     offset = (0.0, 0.0, 0.0)
     if kind == "robot":
         model = r.string(data, "model", prefix, "burger", choices=ROBOT_MODELS)
         offset = r.vector(data, "antenna_offset", prefix, 3, [0.0, 0.0, 0.25])
+        if "path" in data:
+            path = _parse_path(r, r.table(data, "path", prefix), f"{prefix}path.")
     else:
-        for k in ("model", "antenna_offset"):
+        for k in ("model", "antenna_offset", "path"):
             if k in data:
                 raise r.fail(f"{prefix}{k}", "only robots have this key")
     return DeviceConfig(
@@ -291,6 +329,7 @@ def _parse_device(r: _Reader, data: Any, i: int, ofdm: OFDMConfig) -> DeviceConf
         symbols=r.range_(data, "symbols", prefix, [0, ofdm.num_symbols], ofdm.num_symbols),
         model=model,
         antenna_offset=offset,
+        path=path,
     )
 
 
@@ -353,7 +392,14 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
         refraction=r.boolean(t, "refraction", "tracer.", d.refraction),
         diffraction=r.boolean(t, "diffraction", "tracer.", d.diffraction),
         seed=r.integer(t, "seed", "tracer.", d.seed, minimum=0),
+        deterministic=r.boolean(t, "deterministic", "tracer.", d.deterministic),
+        grid_file=r.get(t, "grid_file", "tracer.", d.grid_file),
     )
+    if not isinstance(tracer.grid_file, str):
+        raise r.fail("tracer.grid_file", f"expected a file name, got {tracer.grid_file!r}")
+    if tracer.backend == "grid" and not tracer.grid_file:
+        raise r.fail("tracer.grid_file", 'required when backend = "grid" (the NPZ '
+                     "written by `isac-twin grid`)")
 
     devs = r.get(data, "devices", "")
     if not isinstance(devs, list) or not devs:

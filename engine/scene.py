@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -82,6 +82,10 @@ class TwinScene:
     bounds_min: np.ndarray
     bounds_max: np.ndarray
     _sionna: object = field(default=None, repr=False)
+    #: name -> ``[x, y, z, roll, pitch, yaw]`` of objects moved since load
+    object_poses: dict[str, np.ndarray] = field(default_factory=dict)
+    #: incremented by every edit; consumers re-derive cached geometry when it changes
+    revision: int = 0
 
     @property
     def sionna(self):
@@ -95,17 +99,130 @@ class TwinScene:
         return self._sionna
 
     def content_hash(self) -> str:
-        """SHA-256 over what shapes the radio channel: geometry, materials, frequency-free.
+        """SHA-256 over what shapes the radio channel: geometry, poses and materials.
 
-        Two folders with the same meshes and materials hash the same; any moved
-        vertex or changed material changes it. The carrier frequency is kept
-        separately in databases' metadata.
+        Two folders with the same meshes and materials hash the same; a moved,
+        rotated, added or removed object, or a changed material, changes it.
+        The carrier frequency is kept separately in databases' metadata.
         """
         h = hashlib.sha256()
         for name in sorted(self.objects):
             o = self.objects[name]
             h.update(f"{name}\0{o.material}\0{o.thickness!r}\0{o.mesh_sha256}\n".encode())
+            pose = self.object_poses.get(name)
+            if pose is not None:
+                h.update(np.asarray(pose, np.float64).round(9).tobytes())
         return h.hexdigest()
+
+    # ------------------------------------------------------------------ edits
+
+    def _object(self, name: str, what: str):
+        if name not in self.objects:
+            raise KeyError(f"{what}: no object named {name!r} in scene "
+                           f"{self.config.scene.name!r} (objects: {', '.join(self.objects)})")
+        return self.sionna.objects[name]
+
+    def move_object(self, name: str, position=None, orientation=None) -> None:
+        """Move and/or rotate an object.
+
+        Args:
+            name: object name.
+            position: new centre ``[3]`` (m) in Sionna's sense: the centre of the
+                object's bounding box as loaded, translated.
+            orientation: ``[roll, pitch, yaw]`` (rad) relative to the mesh as exported.
+
+        Raises:
+            KeyError: unknown object. ValueError: non-finite values.
+        """
+        obj = self._object(name, "move_object")
+        cur = self.object_poses.get(name)
+        if cur is None:
+            cur = np.concatenate([np.asarray(obj.position.numpy()).reshape(3), np.zeros(3)])
+        new = np.array(cur, dtype=np.float64)
+        for sl, val, label in ((slice(0, 3), position, "position"),
+                               (slice(3, 6), orientation, "orientation")):
+            if val is None:
+                continue
+            v = np.asarray(val, dtype=np.float64).reshape(-1)
+            if v.shape != (3,) or not np.isfinite(v).all():
+                raise ValueError(f"move_object({name!r}): {label} must be 3 finite numbers, "
+                                 f"got {val!r}")
+            new[sl] = v
+        import mitsuba as mi
+
+        if orientation is not None:
+            r, p, y = new[3:]
+            obj.orientation = mi.Point3f(float(y), float(p), float(r))  # Sionna: yaw, pitch, roll
+        if position is not None:
+            obj.position = mi.Point3f(*map(float, new[:3]))
+        self.object_poses[name] = new
+        self.revision += 1
+
+    def set_material(self, name: str, material: str, thickness: float | None = None) -> None:
+        """Give an object another ITU material (and thickness, m).
+
+        Raises:
+            KeyError: unknown object. ValueError: unknown material, undefined at the
+                carrier frequency, or non-positive thickness.
+        """
+        obj = self._object(name, "set_material")
+        info = self.objects[name]
+        thickness = info.thickness if thickness is None else float(thickness)
+        f = self.config.scene.frequency_hz
+        if material not in itu_materials():
+            raise ValueError(f"set_material({name!r}): unknown ITU material {material!r}")
+        if not itu_defined_at(material, f):
+            raise ValueError(f"set_material({name!r}): material {material!r} is not defined "
+                             f"at {f / 1e9:g} GHz")
+        if not thickness > 0:
+            raise ValueError(f"set_material({name!r}): thickness must be > 0 m, got {thickness}")
+        import sionna.rt as rt
+
+        mat_name = f"{material}-{thickness:g}"
+        existing = self.sionna.get(mat_name)
+        obj.radio_material = existing if existing is not None else rt.ITURadioMaterial(
+            mat_name, material, thickness)
+        self.objects[name] = replace(info, material=material, thickness=thickness)
+        self.revision += 1
+
+    def remove_object(self, name: str) -> None:
+        """Remove an object from the scene (the next trace no longer sees it)."""
+        self._object(name, "remove_object")
+        self.sionna.edit(remove=[name])
+        del self.objects[name]
+        self.object_poses.pop(name, None)
+        self.revision += 1
+
+    def add_object(self, name: str, mesh_file: str | Path, material: str,
+                   thickness: float = 0.1) -> None:
+        """Add an object from a PLY file in world coordinates.
+
+        Raises:
+            ValueError: the name exists, the mesh is unreadable, or the material invalid.
+        """
+        if name in self.objects:
+            raise ValueError(f"add_object: an object named {name!r} already exists")
+        if material not in itu_materials() or not itu_defined_at(
+                material, self.config.scene.frequency_hz):
+            raise ValueError(f"add_object({name!r}): material {material!r} is unknown or "
+                             "not defined at the carrier frequency")
+        mesh_file = Path(mesh_file).resolve()
+        try:
+            mesh = read_ply(mesh_file)
+        except MeshError as exc:
+            raise ValueError(f"add_object({name!r}): {exc}") from exc
+        import sionna.rt as rt
+
+        mat_name = f"{material}-{thickness:g}"
+        mat = self.sionna.get(mat_name) or rt.ITURadioMaterial(mat_name, material, thickness)
+        self.sionna.edit(add=[rt.SceneObject(fname=str(mesh_file), name=name,
+                                             radio_material=mat)])
+        lo, hi = mesh.bounds
+        self.objects[name] = ObjectInfo(
+            name=name, material=material, thickness=float(thickness), mesh_file=mesh_file,
+            bounds_min=tuple(lo.tolist()), bounds_max=tuple(hi.tolist()),
+            mesh_sha256=hashlib.sha256(mesh_file.read_bytes()).hexdigest())
+        self.revision += 1
 
     def contains(self, point, tol: float = BOUNDS_TOLERANCE_M) -> bool:
         """Whether ``point`` ``[3]`` (m) lies inside the room's bounding box."""

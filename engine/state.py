@@ -63,6 +63,8 @@ class StepResult:
         links: ``(tx, rx) -> LinkState``.
         timings_s: wall time per stage of Algorithm 1, s.
         scene_hash: content hash of the scene the step was traced in.
+        signals: ``(tx, rx) -> engine.phy.network.LinkSignal``, the full PHY state
+            (channels, precoders, powers) when the PHY ran.
     """
 
     step: int
@@ -71,6 +73,7 @@ class StepResult:
     links: dict[tuple[str, str], LinkState] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
     scene_hash: str = ""
+    signals: dict = field(default_factory=dict, repr=False)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,344 @@
+"""The twin: Algorithm 1 of the paper, the only place that wires the layers together.
+
+Each :meth:`Twin.step`:
+
+1. agent states ``s_t = f(s_{t-1}, u_{t-1}) + noise``      (robots/)
+2. re-trace all Tx/Rx pairs -> path parameters            (raytrace/)
+3. MIMO-OFDM channels, precoding, power, rates (eqs. 1-4) (phy/)
+4. measurements and observations ``o_t = g(s_t, m_t)``     (robots/sensors, phy/)
+5. state estimates (pluggable estimators, e.g. fingerprint localization)
+6. next controls ``u_t``                                   (robots/control)
+
+Sensors (stage 4) are sampled inside each robot agent right after its
+motion update; the agent's controller publishes ``u_t`` on ``cmd_vel`` after
+the estimators have run (stage 6). Edits and commands received between steps
+are applied before the next step starts.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from engine.bus import Bus
+from engine.phy.network import NetworkPHY
+from engine.raytrace import DevicePose, make_tracer
+from engine.robots import SensorOptions, build_robots
+from engine.robots.control import CirclePath, FigureEightPath, GoalReacher, PolylinePath, PurePursuit
+from engine.scene import TwinScene, load_scene
+from engine.state import Command, Edit, LinkState, RobotState, StepResult
+
+log = logging.getLogger(__name__)
+
+STAGES = ("agents", "trace", "phy", "estimate", "control")
+
+#: ``estimator(twin, result) -> None``: fills ``result.robots[name].estimate``.
+Estimator = Callable[["Twin", StepResult], None]
+
+
+@dataclass
+class RunStats:
+    """What a paced run measured.
+
+    Attributes:
+        steps: steps run.
+        wall_s: wall time, s.
+        overruns: steps that took longer than the period (paced runs only).
+        stage_s: total wall time per stage, s.
+    """
+
+    steps: int = 0
+    wall_s: float = 0.0
+    overruns: int = 0
+    stage_s: dict[str, float] = field(default_factory=lambda: {s: 0.0 for s in STAGES})
+
+    def table(self) -> str:
+        """A per-stage timing breakdown (mean ms per step and share)."""
+        n = max(self.steps, 1)
+        total = sum(self.stage_s.values()) or 1e-12
+        lines = [f"{self.steps} steps in {self.wall_s:.2f} s "
+                 f"({self.steps / max(self.wall_s, 1e-12):.1f} steps/s), {self.overruns} overruns",
+                 f"  {'stage':<10} {'ms/step':>9} {'share':>6}"]
+        for s in STAGES:
+            lines.append(f"  {s:<10} {1e3 * self.stage_s[s] / n:9.2f} "
+                         f"{100 * self.stage_s[s] / total:5.1f}%")
+        return "\n".join(lines)
+
+
+def path_from_spec(spec: dict, model: str, bounds=None):
+    """A controller from a path spec ``{"kind": "circle", ...}`` (see :class:`Command`)."""
+    kind = spec.get("kind")
+    speed = spec.get("speed")
+    if kind == "goal":
+        return GoalReacher(spec["goal"], model, bounds=bounds)
+    if kind == "circle":
+        path = CirclePath(spec["centre"], spec["radius"], spec.get("direction", "ccw"))
+    elif kind == "polyline":
+        path = PolylinePath(spec["waypoints"], closed=spec.get("closed", False))
+    elif kind == "figure_eight":
+        path = FigureEightPath(spec["centre"], spec["size"])
+    else:
+        raise ValueError(f"path spec: unknown kind {kind!r} "
+                         "(expected circle, polyline, figure_eight or goal)")
+    return PurePursuit(path, model, speed=speed, bounds=bounds)
+
+
+class Twin:
+    """A digital twin of one scene folder, stepped by Algorithm 1.
+
+    Args:
+        scene: the loaded :class:`~engine.scene.TwinScene`.
+        seed: one seed for every random stream (robots, sensors, noise).
+        dt: simulated time per step, s.
+        sensors: which simulated sensors the robots carry.
+        tracer: a ray-tracing backend (default: the config's ``[tracer]``).
+        phy: compute channels and rates each step (stage 3).
+        estimators: stage-5 callables, run in order.
+    """
+
+    def __init__(self, scene: TwinScene, *, seed: int = 0, dt: float = 0.05,
+                 sensors: SensorOptions | None = None, tracer=None, phy: bool = True,
+                 estimators: list[Estimator] | None = None) -> None:
+        if not dt > 0:
+            raise ValueError(f"dt: expected a positive step in s, got {dt}")
+        self.scene = scene
+        self.config = scene.config
+        self.seed, self.dt = int(seed), float(dt)
+        self.sensor_options = sensors
+        self.tracer = tracer if tracer is not None else make_tracer(self.config)
+        self.phy = NetworkPHY(self.config) if phy else None
+        self.estimators: list[Estimator] = list(estimators or [])
+        self.running = True
+        self._pending_edits: list[Edit] = []
+        #: name -> scene content hash a database (grid, fingerprints) was built for
+        self.databases: dict[str, str] = {}
+        grid = getattr(self.tracer, "grid", None)
+        if grid is not None:
+            self.register_database(str(grid.path or "grid tracer"), grid.meta["scene_hash"])
+        self._controllers: dict[str, object] = {}
+        self._build_agents()
+        for d in self.config.devices:
+            if d.kind == "robot" and d.path is not None:
+                self.set_path(d.name, d.path)
+
+    @classmethod
+    def from_scene(cls, path: str | Path, **kw) -> Twin:
+        """Load a scene folder (or ``twin.toml``) and build its twin."""
+        return cls(load_scene(path), **kw)
+
+    # ------------------------------------------------------------------ setup
+
+    def _build_agents(self) -> None:
+        self.bus = Bus()
+        self.agents = build_robots(self.config, self.bus, self.scene, seed=self.seed,
+                                   options=self.sensor_options)
+        for name, ctl in self._controllers.items():
+            if hasattr(ctl, "reset"):
+                ctl.reset()
+            self.agents[name].drive(ctl)
+        self.step_index = 0
+        self.time_s = 0.0
+        self.stats = RunStats()
+        self.last: StepResult | None = None
+
+    def reset(self) -> None:
+        """Back to the initial state (same seed: the same run again). Edits stay."""
+        self._build_agents()
+
+    def set_controller(self, robot: str, controller) -> None:
+        """Drive ``robot`` with ``controller(state) -> Twist`` from the next step on."""
+        if robot not in self.agents:
+            raise KeyError(f"no robot named {robot!r} (robots: {', '.join(self.agents)})")
+        self._controllers[robot] = controller
+        self.agents[robot].drive(controller)
+
+    def set_path(self, robot: str, spec: dict) -> None:
+        """Follow a path given as a spec dict, e.g. ``{"kind": "circle", "centre": [4, 3],
+        "radius": 1.5}``; the path must lie inside the room."""
+        agent = self.agents.get(robot)
+        if agent is None:
+            raise KeyError(f"no robot named {robot!r} (robots: {', '.join(self.agents)})")
+        bounds = (self.scene.bounds_min[:2], self.scene.bounds_max[:2])
+        self.set_controller(robot, path_from_spec(spec, agent.spec, bounds=bounds))
+
+    # ------------------------------------------------------------------ edits
+
+    def apply_edit(self, edit: Edit) -> None:
+        """Queue an edit; it is applied before the next step (the next trace sees it)."""
+        if edit.op not in ("move", "material", "remove", "add"):
+            raise ValueError(f"edit: unknown op {edit.op!r} (move, material, remove, add)")
+        self._pending_edits.append(edit)
+
+    def _apply_pending(self) -> None:
+        edits, self._pending_edits = self._pending_edits, []
+        for e in edits:
+            if e.op == "move":
+                self.scene.move_object(e.target, e.position, e.orientation)
+            elif e.op == "material":
+                self.scene.set_material(e.target, e.material, e.thickness)
+            elif e.op == "remove":
+                self.scene.remove_object(e.target)
+            elif e.op == "add":
+                self.scene.add_object(e.target, e.mesh_file, e.material, e.thickness or 0.1)
+            log.info("applied edit %s %s; scene hash now %s", e.op, e.target,
+                     self.scene.content_hash()[:12])
+        if edits:
+            for name in self.stale_databases():
+                log.warning("database %s was built before this edit of the room and is "
+                            "stale: rebuild it (e.g. `isac-twin grid`)", name)
+
+    def register_database(self, name: str, scene_hash: str) -> None:
+        """Track a database built for a scene state, so edits can flag it stale."""
+        self.databases[name] = scene_hash
+
+    def stale_databases(self) -> list[str]:
+        """Databases whose scene hash no longer matches the (edited) scene."""
+        now = self.scene.content_hash()
+        return [n for n, h in self.databases.items() if h != now]
+
+    def command(self, cmd: Command) -> StepResult | None:
+        """Apply a command: run, pause, step (returns the step), reset, set_path,
+        set_goal, teleop."""
+        a = cmd.args
+        if cmd.op == "run":
+            self.running = True
+        elif cmd.op == "pause":
+            self.running = False
+        elif cmd.op == "step":
+            return self.step()
+        elif cmd.op == "reset":
+            self.reset()
+        elif cmd.op == "set_path":
+            self.set_path(a["robot"], a["path"])
+        elif cmd.op == "set_goal":
+            self.set_path(a["robot"], {"kind": "goal", "goal": a["goal"]})
+        elif cmd.op == "teleop":
+            from engine.msgs import Twist
+
+            tw = Twist(linear=np.array([float(a["linear"]), 0, 0]),
+                       angular=np.array([0, 0, float(a["angular"])]))
+            self.set_controller(a["robot"], lambda _state, tw=tw: tw)
+        else:
+            raise ValueError(f"command: unknown op {cmd.op!r}")
+        return None
+
+    # ------------------------------------------------------------------ step
+
+    def device_poses(self) -> dict[str, DevicePose]:
+        """Array-centre poses of every device now: APs from the config, robots from
+        their state (antenna offset in base_link, velocity of the antenna)."""
+        poses = {}
+        for d in self.config.devices:
+            agent = self.agents.get(d.name)
+            if agent is None:
+                poses[d.name] = DevicePose(d.position, d.orientation)
+                continue
+            st = agent.state
+            pos = st.to_world(d.antenna_offset)
+            yaw = st.yaw
+            lever = pos - st.position
+            vel = (st.v * np.array([np.cos(yaw), np.sin(yaw), 0.0])
+                   + np.cross([0.0, 0.0, st.w], lever))
+            poses[d.name] = DevicePose(tuple(pos), (0.0, 0.0, yaw), tuple(vel))
+        return poses
+
+    def step(self) -> StepResult:
+        """Run one step of Algorithm 1 and return what it produced."""
+        self._apply_pending()
+        clock = time.perf_counter
+        timings = {}
+        t0 = clock()
+        t_next = self.time_s + self.dt
+        for agent in self.agents.values():
+            _step_without_control(agent, t_next, self.dt)
+        t1 = clock()
+        timings["agents"] = t1 - t0
+        paths = self.tracer(self.scene, self.device_poses())
+        t2 = clock()
+        timings["trace"] = t2 - t1
+        signals = self.phy(paths) if self.phy is not None else {}
+        t3 = clock()
+        timings["phy"] = t3 - t2
+
+        result = StepResult(step=self.step_index, time_s=t_next,
+                            scene_hash=self.scene.content_hash())
+        for name, agent in self.agents.items():
+            st = agent.state
+            odo = agent.last.get("odom")
+            odom = None
+            if odo is not None:
+                from engine.msgs import quaternion_to_yaw
+
+                odom = np.array([odo.pose.position[0], odo.pose.position[1],
+                                 quaternion_to_yaw(odo.pose.orientation)])
+            result.robots[name] = RobotState(name=name, pose=st.pose.copy(),
+                                             velocity=np.array([st.v, st.w]), odometry=odom)
+        for lk, lp in paths.items():
+            sig = signals.get(lk)
+            result.links[lk] = LinkState(tx=lk[0], rx=lk[1], paths=lp,
+                                         snr_db=sig.snr_db if sig else float("nan"),
+                                         rate_bps=sig.rate_bps if sig else float("nan"))
+        result.signals = signals
+        for est in self.estimators:
+            est(self, result)
+        t4 = clock()
+        timings["estimate"] = t4 - t3
+        for agent in self.agents.values():
+            if agent.controller is not None:
+                agent._ctl_node.publish(agent.topics["cmd_vel"], agent.controller(agent.state))
+        timings["control"] = clock() - t4
+        result.timings_s = timings
+        for k, v in timings.items():
+            self.stats.stage_s[k] += v
+        self.stats.steps += 1
+        self.step_index += 1
+        self.time_s = t_next
+        self.last = result
+        return result
+
+    def run(self, steps: int, *, rate_hz: float | None = None,
+            on_step: Callable[[StepResult], None] | None = None) -> Iterator[StepResult]:
+        """Run ``steps`` steps, as fast as possible or paced at ``rate_hz`` in real time.
+
+        A paced step that takes longer than its period is an *overrun*: it is
+        counted in :attr:`stats` and logged, and the schedule restarts from now
+        (no burst of catch-up steps).
+        """
+        if steps < 0:
+            raise ValueError(f"steps: expected >= 0, got {steps}")
+        if rate_hz is not None and not rate_hz > 0:
+            raise ValueError(f"rate_hz: expected a positive rate, got {rate_hz}")
+        period = 1.0 / rate_hz if rate_hz else 0.0
+        start = time.perf_counter()
+        deadline = start + period
+        for _ in range(steps):
+            res = self.step()
+            if on_step is not None:
+                on_step(res)
+            yield res
+            if period:
+                now = time.perf_counter()
+                if now > deadline:
+                    self.stats.overruns += 1
+                    log.warning("step %d overran its %.1f ms period by %.1f ms", res.step,
+                                1e3 * period, 1e3 * (now - deadline))
+                    deadline = now + period
+                else:
+                    time.sleep(deadline - now)
+                    deadline += period
+        self.stats.wall_s += time.perf_counter() - start
+
+
+def _step_without_control(agent, t: float, dt: float) -> None:
+    """Stages 1 and 4 for one agent; its controller runs later, after estimation."""
+    ctl = agent.controller
+    agent.controller = None
+    try:
+        agent.step(t, dt)
+    finally:
+        agent.controller = ctl

@@ -1,0 +1,133 @@
+"""engine/twin.py: Algorithm 1 end to end on a small real scene (Sionna tracing, PHY, robots)."""
+
+import logging
+
+import numpy as np
+import pytest
+
+from engine.state import Command, Edit
+from engine.synthetic import SyntheticDevice, SyntheticObject, box_mesh, write_scene_folder
+from engine.twin import Twin
+
+pytestmark = pytest.mark.slow
+
+
+def _lab(folder):
+    """A 6 x 4 x 3 m room with a metal cabinet, AP1 (2x2) and AP2 (1x1) on disjoint symbols."""
+    sx, sy, sz = 6.0, 4.0, 3.0
+    w = 0.1
+    slabs = {
+        "floor": ((0, 0, -w), (sx, sy, 0)), "ceiling": ((0, 0, sz), (sx, sy, sz + w)),
+        "wall_xmin": ((-w, 0, 0), (0, sy, sz)), "wall_xmax": ((sx, 0, 0), (sx + w, sy, sz)),
+        "wall_ymin": ((0, -w, 0), (sx, 0, sz)), "wall_ymax": ((0, sy, 0), (sx, sy + w, sz)),
+    }
+    objs = [SyntheticObject(n, *box_mesh(lo, hi)) for n, (lo, hi) in slabs.items()]
+    objs.append(SyntheticObject("cabinet", *box_mesh((4.5, 0.2, 0), (5.1, 0.8, 1.8)),
+                                material="metal", thickness=0.01))
+    devs = [SyntheticDevice("AP1", "access_point", "tx", (0.1, 2.0, 2.0), rows=2, cols=2,
+                            extra={"symbols": [0, 7]}),
+            SyntheticDevice("AP2", "access_point", "tx", (3.0, 0.1, 2.0),
+                            orientation=(0.0, 0.0, 1.5708), extra={"symbols": [7, 14]}),
+            SyntheticDevice("robot1", "robot", "rx", (4.0, 2.0, 0.0), cols=2,
+                            orientation=(0.0, 0.0, 1.5708),
+                            extra={"model": "burger", "antenna_offset": [0.0, 0.0, 0.25]})]
+    return write_scene_folder(folder, objs, devs, [("AP1", "robot1"), ("AP2", "robot1")],
+                              tracer={"samples_per_src": 20000, "max_depth": 2})
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    return _lab(tmp_path_factory.mktemp("lab") / "lab")
+
+
+def _run(folder, steps, seed=3):
+    tw = Twin.from_scene(folder, seed=seed)
+    tw.set_path("robot1", {"kind": "circle", "centre": [3.0, 2.0], "radius": 1.0})
+    return tw, list(tw.run(steps))
+
+
+def test_step_produces_paths_rates_and_motion(lab):
+    tw, res = _run(lab, 4)
+    last = res[-1]
+    assert last.step == 3 and last.time_s == pytest.approx(4 * tw.dt)
+    rb = last.robots["robot1"]
+    assert np.linalg.norm(rb.pose[:2] - [4.0, 2.0]) > 0.01  # it moved
+    for lk in (("AP1", "robot1"), ("AP2", "robot1")):
+        ls = last.links[lk]
+        assert ls.paths.num_paths > 3 and ls.paths.los_delay is not None
+        # LOS delay is the antenna distance over c.
+        ant = rb.pose[:3] + [0, 0, 0.25]
+        tx = np.array(tw.config.device(lk[0]).position)
+        assert ls.paths.los_delay == pytest.approx(np.linalg.norm(ant - tx) / 299792458.0,
+                                                   rel=1e-5)
+        assert ls.rate_bps > 0 and np.isfinite(ls.snr_db)
+    # Disjoint symbol sets: no interference, so the 2x2 AP (2 streams) beats the 1x1 AP.
+    assert last.links[("AP1", "robot1")].rate_bps > last.links[("AP2", "robot1")].rate_bps
+    sig = last.signals[("AP1", "robot1")]
+    assert sig.h.shape == (14, 1024, 2, 4)
+    assert set(last.timings_s) == {"agents", "trace", "phy", "estimate", "control"}
+    assert "steps/s" in tw.stats.table()
+
+
+def test_same_seed_same_run_other_seed_differs(lab):
+    _, a = _run(lab, 3, seed=5)
+    _, b = _run(lab, 3, seed=5)
+    _, c = _run(lab, 3, seed=6)
+    for ra, rb in zip(a, b):
+        np.testing.assert_array_equal(ra.robots["robot1"].pose, rb.robots["robot1"].pose)
+        for lk in ra.links:
+            np.testing.assert_array_equal(ra.links[lk].paths.tau, rb.links[lk].paths.tau)
+            np.testing.assert_array_equal(ra.links[lk].paths.a, rb.links[lk].paths.a)
+            assert ra.links[lk].rate_bps == rb.links[lk].rate_bps
+    assert not np.array_equal(a[-1].robots["robot1"].pose, c[-1].robots["robot1"].pose)
+
+
+def _same(p, q):
+    return p.num_paths == q.num_paths and np.allclose(p.tau, q.tau, rtol=1e-9, atol=0) \
+        and np.allclose(p.a, q.a, rtol=1e-6, atol=0)
+
+
+def test_edits_change_the_next_trace_and_flag_stale_databases(lab, caplog):
+    tw = Twin.from_scene(lab, seed=1)
+    tw.register_database("fingerprints.npz", tw.scene.content_hash())
+    before = tw.step().links[("AP2", "robot1")].paths
+    tw.apply_edit(Edit(op="move", target="cabinet", position=(4.0, 1.0, 0.9)))
+    with caplog.at_level(logging.WARNING, logger="engine.twin"):
+        moved = tw.step()
+    assert "fingerprints.npz" in caplog.text and "stale" in caplog.text
+    assert tw.stale_databases() == ["fingerprints.npz"]
+    assert moved.scene_hash != tw.databases["fingerprints.npz"]
+    p = moved.links[("AP2", "robot1")].paths
+    # The robot barely moved (it has no controller): path changes are the edit's.
+    assert not _same(p, before)
+    tw.apply_edit(Edit(op="material", target="cabinet", material="wood", thickness=0.05))
+    wood = tw.step().links[("AP2", "robot1")].paths
+    tw.apply_edit(Edit(op="remove", target="cabinet"))
+    gone = tw.step().links[("AP2", "robot1")].paths
+    assert "cabinet" not in tw.scene.objects
+    assert not _same(wood, p) and not _same(gone, wood)
+    # Metal reflects more than wood: the strongest cabinet bounce loses power.
+    assert np.abs(wood.a).sum() < np.abs(p.a).sum()
+
+
+def test_commands_and_bad_input(lab):
+    tw = Twin.from_scene(lab, seed=1, phy=False)
+    res = tw.command(Command("step"))
+    assert res.step == 0
+    tw.command(Command("teleop", {"robot": "robot1", "linear": 0.1, "angular": 0.0}))
+    tw.step()
+    r = tw.step()
+    assert r.robots["robot1"].velocity[0] == pytest.approx(0.1, abs=0.02)
+    tw.command(Command("reset"))
+    assert tw.step_index == 0
+    with pytest.raises(ValueError, match="unknown op 'fly'"):
+        tw.command(Command("fly"))
+    with pytest.raises(KeyError, match="no robot named 'r2'"):
+        tw.set_path("r2", {"kind": "circle", "centre": [3, 2], "radius": 1})
+    with pytest.raises(ValueError, match="outside|leaves|room"):
+        tw.set_path("robot1", {"kind": "circle", "centre": [3, 2], "radius": 5})
+    with pytest.raises(ValueError, match="unknown op 'explode'"):
+        tw.apply_edit(Edit(op="explode", target="cabinet"))
+    tw.apply_edit(Edit(op="material", target="cabinet", material="floorboard"))
+    with pytest.raises(ValueError, match="floorboard.*not defined at 2.4 GHz"):
+        tw.step()
