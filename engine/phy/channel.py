@@ -1,0 +1,190 @@
+r"""MIMO-OFDM channel synthesis from path parameters (paper, eq. 4).
+
+.. math::
+
+    H[k, n] = \sum_l b_l \, e^{j 2\pi (k \nu_l T_s - f_n \tau_l)}
+              \, a_{rx}(\theta_l) \, a_{tx}(\psi_l)^T
+
+with ``f_n = n * delta_f`` the centred subcarrier offset (the paper's
+``n * delta_f`` with n counted from the band centre).
+
+Sionna correspondence (``Paths.cfr`` with ``synthetic_array=True``,
+``frequencies = subcarrier_frequencies(N, delta_f)``,
+``sampling_frequency = 1/T_s``, ``num_time_steps = K``,
+``normalize_delays=False``)::
+
+    H_sionna[rx, :, tx, :, k, n]  ==  H[k, n, :, :]      (transpose (2, 3, 0, 1))
+
+provided that
+
+* ``b_l = a_l * exp(-j 2 pi f_c tau_l)`` where ``a_l`` is Sionna's passband
+  path coefficient ``Paths.a`` (already including antenna patterns at the
+  array centres) -- see :func:`baseband_gains`;
+* ``tau_l`` is the absolute delay ``Paths.tau`` [s] (no normalisation),
+  ``nu_l`` is ``Paths.doppler`` [Hz];
+* ``(theta_l, phi_l)`` arrival = ``(theta_r, phi_r)``, departure =
+  ``(theta_t, phi_t)``, arrays built with the same rows/cols/spacings and the
+  devices' ``orientation`` (``[yaw, pitch, roll]``), pattern ``"iso"``;
+* phases: frequency term ``exp(-j 2 pi f_n tau)``, Doppler term
+  ``exp(+j 2 pi nu t_k)`` with ``t_k = k / sampling_frequency = k T_s``,
+  array term ``exp(+j 2 pi p . r_hat / lambda)`` for both ends -- the
+  same signs Sionna uses in ``cir``/``cfr``/``_apply_synthetic_array``.
+
+Precision: phases are computed in float64 and the result is complex64 by
+default (Sionna itself works in float32); pass ``dtype=np.complex128`` for
+reference computations.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from engine.phy._checks import complex_array, real_array, same_length
+from engine.phy.arrays import PlanarArray
+from engine.phy.ofdm import ResourceGrid
+
+__all__ = ["OFDMChannel", "baseband_gains", "cfr_from_antenna_gains"]
+
+
+def baseband_gains(a, tau, carrier_frequency_hz: float) -> np.ndarray:
+    """Baseband-equivalent path gains ``b = a * exp(-j 2 pi f_c tau)``.
+
+    Args:
+        a: Passband path coefficients ``[L]`` or ``[L, ...]`` (Sionna ``Paths.a``).
+        tau: Path delays ``[L]`` [s] (broadcast against ``a`` along axis 0).
+        carrier_frequency_hz: Carrier frequency f_c [Hz].
+
+    Returns:
+        complex128 array with the shape of ``a``.
+    """
+    a = complex_array("a", a)
+    tau = real_array("tau", tau, ndim=1)
+    if a.shape[:1] != tau.shape:
+        raise ValueError(f"a has {a.shape[0] if a.ndim else 0} paths on axis 0 "
+                         f"but tau has {tau.shape[0]}")
+    # Reduce f_c * tau modulo 1 in float64 before the exponential for accuracy.
+    cycles = np.mod(float(carrier_frequency_hz) * tau, 1.0)
+    ph = np.exp(-2j * np.pi * cycles)
+    return a * ph.reshape((-1,) + (1,) * (a.ndim - 1))
+
+
+def _synthesize(gains: np.ndarray, tau: np.ndarray, doppler: np.ndarray,
+                grid: ResourceGrid, dtype) -> np.ndarray:
+    """Core of eq. 4: ``[L, M]`` antenna-pair gains -> ``[K, N, M]``.
+
+    The time-frequency kernel ``exp(j2pi(nu t_k - f_n tau))`` is separable:
+    two small exponentials ``[K, L]`` and ``[N, L]`` are multiplied into
+    ``[K, N, L]`` and contracted with the gains by one BLAS matmul.
+    """
+    num_paths, m = gains.shape
+    k_, n_ = grid.shape
+    if num_paths == 0:
+        return np.zeros((k_, n_, m), dtype=dtype)
+    t = grid.symbol_times  # [K]
+    f = grid.subcarrier_frequencies  # [N]
+    doppler_phase = np.exp(2j * np.pi * np.mod(np.outer(t, doppler), 1.0)).astype(dtype)
+    delay_phase = np.exp(-2j * np.pi * np.mod(np.outer(f, tau), 1.0)).astype(dtype)
+    kernel = doppler_phase[:, None, :] * delay_phase[None, :, :]  # [K, N, L]
+    out = kernel.reshape(k_ * n_, num_paths) @ gains.astype(dtype, copy=False)
+    return out.reshape(k_, n_, m)
+
+
+def cfr_from_antenna_gains(gains, tau, doppler, grid: ResourceGrid,
+                           dtype=np.complex64) -> np.ndarray:
+    """Eq. 4 with per-path, per-antenna-pair gains that already contain the
+    array phases (validation variant).
+
+    Use it with Sionna paths traced with ``synthetic_array=True`` (gains
+    ``a * exp(-j 2 pi f_c tau)`` per antenna pair, delays ``[L]``) or
+    ``synthetic_array=False`` (every antenna pair has its own delays and
+    Doppler shifts: pass them as ``[L, Nr, Nt]``; invalid paths must have
+    zero gain, their delay is then irrelevant).
+
+    Args:
+        gains: Baseband gains ``[L, Nr, Nt]`` (complex).
+        tau: Delays ``[L]`` or ``[L, Nr, Nt]`` [s].
+        doppler: Doppler shifts, same shape as ``tau`` [Hz].
+        grid: OFDM grid (K, N, delta_f, T_s).
+        dtype: Output dtype (complex64 or complex128).
+
+    Returns:
+        Channel ``[K, N, Nr, Nt]``.
+    """
+    gains = complex_array("gains", gains, ndim=3)
+    num_paths, nr, nt = gains.shape
+    tau = real_array("tau", tau)
+    doppler = real_array("doppler", doppler)
+    if tau.shape not in ((num_paths,), gains.shape):
+        raise ValueError(f"tau must have shape [L] or [L, Nr, Nt] = {list(gains.shape)}, "
+                         f"got {list(tau.shape)}")
+    if doppler.shape != tau.shape:
+        raise ValueError(f"doppler must have the shape of tau {list(tau.shape)}, "
+                         f"got {list(doppler.shape)}")
+    k_, n_ = grid.shape
+    if tau.ndim == 1:
+        h = _synthesize(gains.reshape(num_paths, nr * nt), tau, doppler, grid, dtype)
+        return h.reshape(k_, n_, nr, nt)
+    # Per-pair delays: one small matmul per antenna pair (not per path).
+    out = np.empty((k_, n_, nr * nt), dtype=dtype)
+    g2, t2, d2 = (x.reshape(num_paths, nr * nt) for x in (gains, tau, doppler))
+    for pair in range(nr * nt):
+        out[:, :, pair] = _synthesize(g2[:, pair:pair + 1], t2[:, pair], d2[:, pair],
+                                      grid, dtype)[:, :, 0]
+    return out.reshape(k_, n_, nr, nt)
+
+
+class OFDMChannel:
+    """Eq.-4 channel synthesiser for one link (callable).
+
+    Args:
+        grid: OFDM grid.
+        rx_array: Receive array (Nr elements).
+        tx_array: Transmit array (Nt elements).
+        dtype: Output dtype, complex64 (default) or complex128.
+
+    Call args:
+        b: Baseband complex path gains ``[L]`` (see :func:`baseband_gains`).
+        tau: Delays ``[L]`` [s].
+        doppler: Doppler shifts ``[L]`` [Hz].
+        theta_r, phi_r: Arrival zenith/azimuth ``[L]`` [rad].
+        theta_t, phi_t: Departure zenith/azimuth ``[L]`` [rad].
+        rx_orientation, tx_orientation: ``[yaw, pitch, roll]`` [rad].
+
+    Returns:
+        ``H [K, N, Nr, Nt]``; ``y[k, n] = H[k, n] @ x[k, n]``.
+    """
+
+    def __init__(self, grid: ResourceGrid, rx_array: PlanarArray,
+                 tx_array: PlanarArray, dtype=np.complex64) -> None:
+        if not isinstance(grid, ResourceGrid):
+            raise ValueError("grid must be a ResourceGrid")
+        if not isinstance(rx_array, PlanarArray) or not isinstance(tx_array, PlanarArray):
+            raise ValueError("rx_array and tx_array must be PlanarArray instances")
+        if np.dtype(dtype) not in (np.dtype(np.complex64), np.dtype(np.complex128)):
+            raise ValueError(f"dtype must be complex64 or complex128, got {dtype}")
+        self.grid = grid
+        self.rx_array = rx_array
+        self.tx_array = tx_array
+        self.dtype = np.dtype(dtype)
+
+    def __call__(self, b, tau, doppler, theta_r, phi_r, theta_t, phi_t,
+                 rx_orientation=(0.0, 0.0, 0.0),
+                 tx_orientation=(0.0, 0.0, 0.0)) -> np.ndarray:
+        b = complex_array("b", b, ndim=1)
+        tau = real_array("tau", tau, ndim=1)
+        doppler = real_array("doppler", doppler, ndim=1)
+        angles = {n: real_array(n, v, ndim=1) for n, v in
+                  (("theta_r", theta_r), ("phi_r", phi_r),
+                   ("theta_t", theta_t), ("phi_t", phi_t))}
+        same_length(b=b, tau=tau, doppler=doppler, **angles)
+        a_rx = self.rx_array.steering_vectors(angles["theta_r"], angles["phi_r"],
+                                              rx_orientation)  # [L, Nr]
+        a_tx = self.tx_array.steering_vectors(angles["theta_t"], angles["phi_t"],
+                                              tx_orientation)  # [L, Nt]
+        # Outer product per path: [L, Nr * Nt] (row-major matches [Nr, Nt]).
+        pair = (b[:, None, None] * a_rx[:, :, None] * a_tx[:, None, :])
+        num_paths = b.shape[0]
+        nr, nt = a_rx.shape[1], a_tx.shape[1]
+        h = _synthesize(pair.reshape(num_paths, nr * nt), tau, doppler,
+                        self.grid, self.dtype)
+        return h.reshape(self.grid.num_symbols, self.grid.num_subcarriers, nr, nt)

@@ -1,0 +1,386 @@
+r"""Pilots, least-squares channel estimation and multipath delay profiles.
+
+* :class:`PilotPattern`: comb (pilot subcarriers on every allocated symbol)
+  or block (all/strided subcarriers on strided symbols) pilots inside a
+  resource set, with ``P`` antenna ports kept orthogonal by frequency
+  division (port ``p`` uses allocated subcarriers ``j`` with
+  ``j % stride == p``).
+* :class:`LSChannelEstimator`: ``H_hat = y / x`` on pilot REs, then linear
+  interpolation over subcarriers and symbols (edges held constant) to every RE
+  of the resource set. Error at pilots is ``sigma^2 / |x|^2``.
+* Multipath delay profile (MDP, fingerprint of MCA localization): path
+  lengths ``d = c tau`` [m] with powers, sorted by decreasing power.
+  :func:`ideal_mdp` takes the tracer's delays; :class:`MdpEstimator`
+  estimates them from CSI with TLS-ESPRIT over subcarriers (frequency
+  smoothing + forward-backward averaging, model order by MDL/AIC with a cap),
+  because one IFFT bin is ``c / (N delta_f)`` = 3.75 m at 80 MHz.
+
+Frequency model used by the estimator (same as :mod:`engine.phy.channel`):
+``h[n] = sum_l c_l exp(-j 2 pi f_n tau_l)``, ``f_n`` centred subcarrier
+offsets, so adjacent subcarriers rotate by ``z_l = exp(-j 2 pi delta_f tau_l)``;
+delays are unambiguous in ``[0, 1/delta_f)`` (3837 m at 78.125 kHz).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+
+from engine.phy._checks import complex_array, positive_float, positive_int, real_array
+from engine.phy.ofdm import ResourceSet
+from engine.phy.units import SPEED_OF_LIGHT
+
+__all__ = ["PilotPattern", "LSChannelEstimator", "MultipathDelayProfile",
+           "ideal_mdp", "MdpEstimator"]
+
+
+@dataclass(frozen=True, eq=False)
+class PilotPattern:
+    """Pilot positions and values inside one transmitter's resource set.
+
+    Args:
+        resource_set: Where the transmitter may place pilots.
+        kind: ``"comb"`` (pilot subcarriers every ``subcarrier_stride`` on all
+            allocated symbols) or ``"block"`` (pilot symbols every
+            ``symbol_stride`` allocated symbols, all subcarriers of the set
+            shared by the ports).
+        num_ports: P orthogonal pilot ports (transmit antennas or streams).
+        subcarrier_stride: Comb spacing in allocated subcarriers; must be
+            >= num_ports. Ignored for ``"block"`` (stride = num_ports there).
+        symbol_stride: Block spacing in allocated symbols (``"block"`` only).
+        pilot_power: |x|^2 of every pilot RE [W].
+        seed: Seed of the unit-modulus QPSK pilot sequence.
+    """
+
+    resource_set: ResourceSet
+    kind: str = "comb"
+    num_ports: int = 1
+    subcarrier_stride: int = 4
+    symbol_stride: int = 7
+    pilot_power: float = 1.0
+    seed: int = 0
+    _pos: list = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("comb", "block"):
+            raise ValueError(f"pilot kind must be 'comb' or 'block', got {self.kind!r}")
+        positive_int("num_ports", self.num_ports)
+        positive_int("subcarrier_stride", self.subcarrier_stride)
+        positive_int("symbol_stride", self.symbol_stride)
+        positive_float("pilot_power", self.pilot_power)
+        sc = self.resource_set.subcarrier_indices
+        sy = self.resource_set.symbol_indices
+        stride = self.subcarrier_stride if self.kind == "comb" else self.num_ports
+        if self.kind == "comb" and self.subcarrier_stride < self.num_ports:
+            raise ValueError(f"subcarrier_stride ({self.subcarrier_stride}) must be "
+                             f">= num_ports ({self.num_ports}) for orthogonal ports")
+        pos = []
+        for port in range(self.num_ports):
+            scp = sc[port::stride]
+            syp = sy if self.kind == "comb" else sy[::self.symbol_stride]
+            if scp.size == 0:
+                raise ValueError(f"resource set {self.resource_set.name!r} is too "
+                                 f"narrow for pilot port {port}")
+            pos.append((syp, scp))
+        object.__setattr__(self, "_pos", pos)
+
+    def positions(self, port: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pilot ``(symbol_indices, subcarrier_indices)`` of ``port``; the
+        port's pilot REs are their Cartesian product."""
+        return self._pos[port]
+
+    @property
+    def mask(self) -> np.ndarray:
+        """Pilot masks ``[P, K, N]`` (bool)."""
+        k, n = self.resource_set.grid.shape
+        m = np.zeros((self.num_ports, k, n), dtype=bool)
+        for p, (sy, sc) in enumerate(self._pos):
+            m[p][np.ix_(sy, sc)] = True
+        return m
+
+    @property
+    def symbols(self) -> np.ndarray:
+        """Pilot values ``[P, K, N]`` complex128: QPSK with ``|x|^2 =
+        pilot_power`` on the port's pilot REs, zero elsewhere."""
+        rng = np.random.default_rng(self.seed)
+        k, n = self.resource_set.grid.shape
+        qpsk = np.exp(1j * (np.pi / 4 + np.pi / 2 * rng.integers(0, 4, (self.num_ports, k, n))))
+        return qpsk * np.sqrt(self.pilot_power) * self.mask
+
+
+def _interp_axis(values: np.ndarray, known: np.ndarray, target: np.ndarray,
+                 axis: int) -> np.ndarray:
+    """Linear interpolation of ``values`` (sampled at sorted ``known``) onto
+    ``target`` along ``axis``; constant outside ``[known[0], known[-1]]``."""
+    if known.size == 1:
+        return np.repeat(np.take(values, [0], axis=axis), target.size, axis=axis)
+    idx = np.clip(np.searchsorted(known, target, side="right") - 1, 0, known.size - 2)
+    x0, x1 = known[idx], known[idx + 1]
+    wgt = np.clip((target - x0) / (x1 - x0), 0.0, 1.0)
+    shape = [1] * values.ndim
+    shape[axis] = target.size
+    wgt = wgt.reshape(shape)
+    return np.take(values, idx, axis=axis) * (1 - wgt) + np.take(values, idx + 1, axis=axis) * wgt
+
+
+class LSChannelEstimator:
+    """Least-squares channel estimator with linear interpolation.
+
+    Args:
+        pattern: The transmitter's pilot pattern.
+
+    Call: ``y [K, N, Nr]`` (received grid containing the pilots) ->
+    ``H_hat [K, N, Nr, P]``: estimate of the channel seen by each pilot port
+    on every RE of the resource set (zero outside it).
+    """
+
+    def __init__(self, pattern: PilotPattern) -> None:
+        if not isinstance(pattern, PilotPattern):
+            raise ValueError("pattern must be a PilotPattern")
+        self.pattern = pattern
+        self._x = pattern.symbols
+
+    def __call__(self, y) -> np.ndarray:
+        y = complex_array("y", y, ndim=3)
+        rs = self.pattern.resource_set
+        k, n = rs.grid.shape
+        if y.shape[:2] != (k, n):
+            raise ValueError(f"y must have shape [K, N, Nr] = [{k}, {n}, *], got {list(y.shape)}")
+        nr = y.shape[2]
+        out = np.zeros((k, n, nr, self.pattern.num_ports), dtype=np.complex128)
+        sy_all, sc_all = rs.symbol_indices, rs.subcarrier_indices
+        for port in range(self.pattern.num_ports):  # few ports; all else vectorised
+            sy, sc = self.pattern.positions(port)
+            ls = y[np.ix_(sy, sc)] / self._x[port][np.ix_(sy, sc)][..., None]  # [Ks, Ns, Nr]
+            full = _interp_axis(ls, sc, sc_all, axis=1)
+            full = _interp_axis(full, sy, sy_all, axis=0)
+            out[np.ix_(sy_all, sc_all, np.arange(nr), [port])] = full[..., None]
+        return out
+
+
+@dataclass(frozen=True)
+class MultipathDelayProfile:
+    """MDP of a link: path lengths and powers, strongest first.
+
+    Attributes:
+        distances_m: Path lengths ``d = c tau`` ``[L]`` [m].
+        powers: Path powers ``[L]`` (|gain|^2, linear; units of the input).
+    """
+
+    distances_m: np.ndarray
+    powers: np.ndarray
+
+    @property
+    def delays_s(self) -> np.ndarray:
+        """Delays ``[L]`` [s]."""
+        return self.distances_m / SPEED_OF_LIGHT
+
+    def __len__(self) -> int:
+        return int(self.distances_m.size)
+
+
+def _sorted_mdp(dist: np.ndarray, power: np.ndarray, max_paths: int | None,
+                min_relative_power_db: float | None) -> MultipathDelayProfile:
+    order = np.argsort(-power, kind="stable")
+    dist, power = dist[order], power[order]
+    if min_relative_power_db is not None and power.size:
+        keep = power >= power[0] * 10 ** (-abs(min_relative_power_db) / 10)
+        dist, power = dist[keep], power[keep]
+    if max_paths is not None:
+        dist, power = dist[:max_paths], power[:max_paths]
+    return MultipathDelayProfile(dist, power)
+
+
+def ideal_mdp(tau, b, max_paths: int | None = None,
+              min_relative_power_db: float | None = None) -> MultipathDelayProfile:
+    """MDP straight from the tracer.
+
+    Args:
+        tau: Path delays ``[L]`` [s].
+        b: Path gains ``[L]`` (complex or real amplitude), or ``[L, ...]``
+            per antenna pair (powers are averaged over the trailing axes).
+        max_paths: Keep at most this many strongest paths.
+        min_relative_power_db: Drop paths weaker than the strongest by more
+            than this many dB.
+    """
+    tau = real_array("tau", tau, ndim=1, nonnegative=True)
+    b = complex_array("b", b)
+    if b.shape[:1] != tau.shape:
+        raise ValueError(f"b must have L={tau.size} entries on axis 0, got {list(b.shape)}")
+    power = np.mean(np.abs(b.reshape(tau.size, -1)) ** 2, axis=1) if tau.size else np.zeros(0)
+    return _sorted_mdp(SPEED_OF_LIGHT * tau, power, max_paths, min_relative_power_db)
+
+
+class MdpEstimator:
+    """Super-resolution MDP estimator: TLS-ESPRIT over subcarriers, refined
+    by non-linear least squares, model order by an information criterion.
+
+    Steps: (1) frequency-smoothed, forward-backward averaged covariance of
+    length-``subband`` windows of the CSI (decorrelates coherent paths);
+    (2) its ``max_paths`` leading eigenvectors; (3) for every order
+    ``k = 1..max_paths``: TLS-ESPRIT delays, then a Levenberg-Marquardt fit
+    of the delays (amplitudes projected out) to all N subcarriers (approaches the
+    Cramer-Rao bound that ESPRIT alone misses for close paths); (4) the order
+    minimising the data-domain criterion ``2 N S ln(RSS_k / (N S)) +
+    penalty(k)`` (``"mdl"``: ``k (1 + 2S) ln(2 N S)``; ``"aic"``:
+    ``2 k (1 + 2S)``), or a fixed ``int`` order.
+
+    Args:
+        subcarrier_spacing_hz: delta_f [Hz] of the CSI samples.
+        max_paths: Cap on the model order (paths returned), e.g. 9.
+        order: ``"mdl"``, ``"aic"`` or a fixed ``int`` order.
+        subband: Smoothing window length M [subcarriers]; default ``N // 2``
+            (largest aperture). Smaller is faster and less accurate.
+        forward_backward: Forward-backward averaging of the covariance.
+        refine: Run the least-squares refinement (step 3).
+        max_distance_m: Drop estimates beyond this path length (aliases).
+
+    Call: ``csi [N]`` or ``[N, S]`` (S snapshots: antennas and/or symbols
+    flattened on axis 1; paths share delays, not amplitudes), optional
+    ``frequencies_hz [N]`` (uniform spacing delta_f; default centred
+    ``(n - N//2) delta_f``) -> :class:`MultipathDelayProfile`, strongest
+    first. Powers are the fitted ``|c_l|^2`` averaged over snapshots, in the
+    units of ``|csi|^2``.
+    """
+
+    def __init__(self, subcarrier_spacing_hz: float, max_paths: int = 9,
+                 order: str | int = "mdl", subband: int | None = None,
+                 forward_backward: bool = True, refine: bool = True,
+                 max_distance_m: float | None = None) -> None:
+        self.df = positive_float("subcarrier_spacing_hz", subcarrier_spacing_hz)
+        self.max_paths = positive_int("max_paths", max_paths)
+        if not (order in ("mdl", "aic") or (isinstance(order, (int, np.integer))
+                                              and not isinstance(order, bool) and order >= 1)):
+            raise ValueError(f"order must be 'mdl', 'aic' or an int >= 1, got {order!r}")
+        self.order = order
+        self.subband = None if subband is None else positive_int("subband", subband)
+        self.forward_backward = bool(forward_backward)
+        self.refine = bool(refine)
+        self.max_distance_m = (None if max_distance_m is None
+                               else positive_float("max_distance_m", max_distance_m))
+
+    def _signal_subspace(self, h: np.ndarray, kmax: int) -> np.ndarray:
+        """Leading ``kmax`` eigenvectors ``[M, kmax]`` (strongest first) of
+        the smoothed covariance of ``h [N, S]``."""
+        n = h.shape[0]
+        msub = self.subband or n // 2
+        msub = max(min(msub, n - 1), kmax + 1)
+        win = np.lib.stride_tricks.sliding_window_view(h, msub, axis=0)  # [J, S, M]
+        # Many snapshots (e.g. 2 x 32 antennas) already decorrelate the paths:
+        # thin the windows so the covariance costs O(M^2 * 2048), not O(M^2 J S).
+        step = int(np.ceil(win.shape[0] * win.shape[1] / 2048))
+        win = win[::step]
+        # Contiguous copy: BLAS on the strided view is ~10x slower.
+        x = np.ascontiguousarray(win.reshape(-1, msub).T)  # [M, J*S]
+        cov = x @ np.conj(x.T) / x.shape[1]
+        if self.forward_backward:
+            cov = 0.5 * (cov + np.conj(cov[::-1, ::-1]))
+        # Randomised subspace iteration for the few leading eigenvectors:
+        # LAPACK's subset drivers and ARPACK are slow on the clustered noise
+        # eigenvalues of this matrix; the signal/noise gap makes this converge
+        # in a few iterations. Fixed seed -> deterministic.
+        p = min(kmax + 10, msub)
+        q = np.random.default_rng(0).standard_normal((msub, p)).astype(cov.dtype)
+        for _ in range(8):
+            q, _ = np.linalg.qr(cov @ q)
+        val, small = np.linalg.eigh(np.conj(q.T) @ cov @ q)
+        vec = q @ small
+        return vec[:, np.argsort(-val)[:kmax]]
+
+    def _esprit(self, es: np.ndarray) -> np.ndarray:
+        """TLS-ESPRIT delays ``[k]`` [s] from a signal subspace ``[M, k]``."""
+        k = es.shape[1]
+        e12 = np.concatenate([es[:-1], es[1:]], axis=1)
+        _, _, vh = np.linalg.svd(e12, full_matrices=False)
+        v = np.conj(vh.T)
+        psi = -v[:k, k:] @ np.linalg.inv(v[k:, k:])
+        z = np.linalg.eigvals(psi)
+        # Adjacent subcarriers rotate by exp(-j 2 pi delta_f tau).
+        return np.mod(-np.angle(z) / (2 * np.pi * self.df), 1.0 / self.df)
+
+    @staticmethod
+    def _fit_amplitudes(h, f, tau):
+        steer = np.exp(-2j * np.pi * np.outer(f, tau))  # [N, k]
+        amp, *_ = np.linalg.lstsq(steer, h, rcond=None)  # [k, S]
+        rss = float(np.sum(np.abs(h - steer @ amp) ** 2))
+        return amp, rss
+
+    def _refine(self, h, f, tau, h_fit):
+        """Levenberg-Marquardt on the path lengths [m] by variable projection:
+        amplitudes are eliminated by least squares at every evaluation, so the
+        problem has k unknowns whatever the number of snapshots S. The fit
+        runs on ``h_fit`` (``h`` compressed to its dominant column space);
+        the returned amplitudes and RSS are for the full ``h``."""
+        fc = f / SPEED_OF_LIGHT  # cycles per metre of path length
+
+        def resid(d):
+            e = np.exp(-2j * np.pi * np.outer(fc, d))
+            c, *_ = np.linalg.lstsq(e, h_fit, rcond=None)
+            r = (h_fit - e @ c).ravel()
+            return np.concatenate([r.real, r.imag])
+
+        sol = scipy.optimize.least_squares(resid, SPEED_OF_LIGHT * tau, method="lm",
+                                           max_nfev=30 * (tau.size + 1))
+        tau = np.mod(sol.x / SPEED_OF_LIGHT, 1.0 / self.df)
+        amp, rss = self._fit_amplitudes(h, f, tau)
+        return tau, amp, rss
+
+    def __call__(self, csi, frequencies_hz=None) -> MultipathDelayProfile:
+        h = complex_array("csi", csi)
+        if h.ndim == 1:
+            h = h[:, None]
+        if h.ndim != 2:
+            raise ValueError(f"csi must have shape [N] or [N, S], got {list(np.shape(csi))}")
+        n, s = h.shape
+        if n < 4:
+            raise ValueError(f"csi needs at least 4 subcarriers, got {n}")
+        if frequencies_hz is None:
+            f = (np.arange(n) - n // 2) * self.df
+        else:
+            f = real_array("frequencies_hz", frequencies_hz, shape=(n,))
+            if not np.allclose(np.diff(f), self.df, rtol=1e-6, atol=0):
+                raise ValueError("frequencies_hz must be uniformly spaced by "
+                                 f"subcarrier_spacing_hz={self.df}")
+        if not np.any(h):
+            return MultipathDelayProfile(np.zeros(0), np.zeros(0))
+        # Work at unit RMS: physical CSI (~1e-5) would mis-scale the LM steps.
+        scale = float(np.sqrt(np.mean(np.abs(h) ** 2)))
+        h = h / scale
+        kmax = min(self.max_paths, n // 2 - 1)
+        orders = [min(int(self.order), kmax)] if not isinstance(self.order, str) \
+            else range(1, kmax + 1)
+        es = self._signal_subspace(h, max(orders))
+        # Snapshot compression for the refinement: the dominant column space
+        # of h keeps every path's contribution; RSS is re-evaluated on all of h.
+        h_fit = h
+        if s > kmax + 1:
+            u, sv, _ = np.linalg.svd(h, full_matrices=False)
+            h_fit = u[:, :kmax + 1] * sv[:kmax + 1]
+        best = None
+        worse = 0
+        for k in orders:  # <= max_paths small fits; stop after 2 non-improving orders
+            if worse >= 2:
+                break
+            tau = self._esprit(es[:, :k])
+            amp, rss = self._fit_amplitudes(h, f, tau)
+            if self.refine:
+                tau, amp, rss = self._refine(h, f, tau, h_fit)
+            rss = max(rss, 1e-300)
+            free = k * (1 + 2 * s)
+            pen = free * np.log(2 * n * s) if self.order != "aic" else 2.0 * free
+            crit = 2 * n * s * np.log(rss / (n * s)) + pen
+            if best is None or crit < best[0]:
+                best = (crit, tau, amp)
+                worse = 0
+            else:
+                worse += 1
+        _, tau, amp = best
+        power = np.mean(np.abs(amp) ** 2, axis=1) * scale ** 2
+        dist = SPEED_OF_LIGHT * tau
+        if self.max_distance_m is not None:
+            keep = dist <= self.max_distance_m
+            dist, power = dist[keep], power[keep]
+        return _sorted_mdp(dist, power, self.max_paths, None)
