@@ -7,9 +7,9 @@ import math
 import bpy
 from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, StringProperty
 
-from . import devices, materials, modelling
+from . import devices, live, live_view, materials, modelling
 from .exporter import ExportError, export_scene
-from .properties import PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES
+from .properties import PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES, addon_preferences
 
 _OPTS = {"REGISTER", "UNDO"}
 _FURNITURE_ITEMS = [(k, k.replace("_", " ").title(), "") for k in modelling.FURNITURE_PRESETS]
@@ -208,16 +208,97 @@ class ISAC_OT_export_scene(_Reporting, bpy.types.Operator):
                               f"{len(report.devices)} devices to {report.folder}")
 
 
+# --------------------------------------------------------------------------- live link
+
+
+class ISAC_OT_live_connect(_Reporting, bpy.types.Operator):
+    """Connect to a running engine (isac-twin serve) at the Live panel's host and port"""
+
+    bl_idname = "isac.live_connect"
+    bl_label = "Connect"
+
+    def run(self, context):
+        p = context.scene.isac_live
+        live.open_session(context.scene, p.host, p.port, p.token or None)
+
+
+class ISAC_OT_live_disconnect(_Reporting, bpy.types.Operator):
+    """Disconnect from the engine (stops a local engine started from this panel)"""
+
+    bl_idname = "isac.live_disconnect"
+    bl_label = "Disconnect"
+
+    def run(self, context):
+        live.close_session()
+        context.scene.isac_live.connection = "idle"
+
+
+class ISAC_OT_live_start_engine(_Reporting, bpy.types.Operator):
+    """Start a local engine (isac-twin serve) with the interpreter set in the preferences, then
+    connect to it"""
+
+    bl_idname = "isac.live_start_engine"
+    bl_label = "Start Local Engine"
+
+    def run(self, context):
+        prefs = addon_preferences(context)
+        python = bpy.path.abspath(prefs.engine_python) if prefs else ""
+        scene_dir = bpy.path.abspath(prefs.engine_scene) if prefs and prefs.engine_scene else ""
+        extra = tuple(prefs.engine_args.split()) if prefs else ()
+        if context.scene.isac_live.token:
+            extra += ("--token", context.scene.isac_live.token)
+        try:
+            proc = live.EngineProcess(python, scene_dir, extra)
+        except OSError as exc:
+            raise ValueError(f"cannot start the engine with {python or 'this interpreter'}: "
+                             f"{exc}") from exc
+        live.open_session(context.scene, "127.0.0.1", 0, context.scene.isac_live.token or None,
+                          engine=proc)
+        self.report({"INFO"}, f"Engine starting: {' '.join(proc.cmd)}")
+
+
+class ISAC_OT_live_command(_Reporting, bpy.types.Operator):
+    """Send a command to the engine: run, pause, single step or reset"""
+
+    bl_idname = "isac.live_command"
+    bl_label = "Engine Command"
+
+    op: EnumProperty(name="Command", items=[("run", "Run", ""), ("pause", "Pause", ""),
+                                            ("step", "Step", ""), ("reset", "Reset", "")])
+
+    @classmethod
+    def poll(cls, context):
+        s = live.session()
+        return s is not None and s.client.connected
+
+    def run(self, context):
+        live.session().send_command(self.op)
+
+
+class ISAC_OT_live_clear(_Reporting, bpy.types.Operator):
+    """Remove the live view's robots, trails and rays from the scene"""
+
+    bl_idname = "isac.live_clear"
+    bl_label = "Clear Live View"
+
+    def run(self, context):
+        live_view.clear(context.scene)
+
+
 CLASSES = (ISAC_OT_add_room, ISAC_OT_add_room_polygon, ISAC_OT_add_furniture,
            ISAC_OT_add_access_point, ISAC_OT_add_robot, ISAC_OT_tag_material,
            ISAC_OT_add_link, ISAC_OT_remove_link, ISAC_OT_export_scene)
+#: Live-link operators: not undoable (they talk to a process, not to the scene's data).
+LIVE_CLASSES = (ISAC_OT_live_connect, ISAC_OT_live_disconnect, ISAC_OT_live_start_engine,
+                ISAC_OT_live_command, ISAC_OT_live_clear)
 
 
 def register() -> None:
-    for cls in CLASSES:
+    for cls in CLASSES + LIVE_CLASSES:
         bpy.utils.register_class(cls)
 
 
 def unregister() -> None:
-    for cls in reversed(CLASSES):
+    live.close_session()
+    for cls in reversed(CLASSES + LIVE_CLASSES):
         bpy.utils.unregister_class(cls)

@@ -118,7 +118,48 @@ class ISAC_PT_links(_Base, bpy.types.Panel):
         row.operator("isac.remove_link", icon="REMOVE")
 
 
-CLASSES = (ISAC_UL_links, ISAC_PT_scene, ISAC_PT_modelling, ISAC_PT_object, ISAC_PT_links)
+class ISAC_PT_live(_Base, bpy.types.Panel):
+    """Live link: connect to the engine, control the loop, see link metrics."""
+
+    bl_label = "Live"
+    bl_idname = "ISAC_PT_live"
+
+    def draw(self, context):
+        layout = self.layout
+        p = context.scene.isac_live
+        row = layout.row(align=True)
+        row.prop(p, "host")
+        row.prop(p, "port")
+        layout.prop(p, "token")
+        row = layout.row(align=True)
+        row.operator("isac.live_connect", icon="LINKED")
+        row.operator("isac.live_disconnect", icon="UNLINKED")
+        layout.operator("isac.live_start_engine", icon="PLAY")
+        layout.label(text=f"{p.connection}: {p.engine_name or '-'} {p.scene_name}",
+                     icon="CHECKMARK" if p.connection == "connected" else "ERROR")
+        if p.last_error:
+            layout.label(text=p.last_error, icon="ERROR")
+        row = layout.row(align=True)
+        for op, icon in (("run", "PLAY"), ("pause", "PAUSE"), ("step", "FRAME_NEXT"),
+                         ("reset", "FILE_REFRESH")):
+            row.operator("isac.live_command", text=op.title(), icon=icon).op = op
+        layout.label(text=f"step {p.step}  t = {p.time_s:.2f} s  "
+                          f"{'running' if p.running else 'paused'}  rays {p.num_rays}")
+        box = layout.box()
+        box.label(text="Links")
+        for lk in p.links:
+            box.label(text=f"{lk.tx} -> {lk.rx}: SNR {lk.snr_db:.1f} dB, "
+                           f"{lk.rate_bps / 1e6:.1f} Mbit/s, {lk.num_paths} paths"
+                           f"{' (LOS)' if lk.los else ''}")
+        col = layout.column(align=True)
+        col.prop(p, "show_rays")
+        col.prop(p, "ray_color_mode")
+        col.prop(p, "max_paths_per_link")
+        layout.operator("isac.live_clear", icon="TRASH")
+
+
+CLASSES = (ISAC_UL_links, ISAC_PT_scene, ISAC_PT_modelling, ISAC_PT_object, ISAC_PT_links,
+           ISAC_PT_live)
 
 
 def register() -> None:

@@ -88,7 +88,80 @@ class ISAC_SceneProps(bpy.types.PropertyGroup):
                                      description="Folder the exporter writes")
 
 
-CLASSES = (ISAC_ObjectProps, ISAC_LinkItem, ISAC_SceneProps)
+class ISAC_LiveLinkMetric(bpy.types.PropertyGroup):
+    """One link's latest metrics from the live engine (read-only for the user)."""
+
+    tx: StringProperty(name="Tx")
+    rx: StringProperty(name="Rx")
+    snr_db: FloatProperty(name="SNR (dB)", description="Mean received SNR, dB")
+    rate_bps: FloatProperty(name="Rate (bit/s)", description="Achievable rate, bit/s")
+    num_paths: IntProperty(name="Paths")
+    los: BoolProperty(name="LOS")
+
+
+RAY_COLOR_MODES = [("POWER", "Power", "Colour rays by path power (strongest yellow)"),
+                   ("TYPE", "Interaction", "Colour ray points by interaction type")]
+
+
+class ISAC_LiveProps(bpy.types.PropertyGroup):
+    """Live link settings and the latest engine state shown in the Live panel."""
+
+    host: StringProperty(name="Host", default="127.0.0.1", description="Engine address")
+    port: IntProperty(name="Port", default=8765, min=0, max=65535, description="Engine TCP port")
+    token: StringProperty(name="Token", default="", subtype="PASSWORD",
+                          description="Auth token the engine expects (empty = none)")
+    ray_color_mode: EnumProperty(name="Ray colour", items=RAY_COLOR_MODES, default="POWER")
+    show_rays: BoolProperty(name="Show rays", default=True)
+    max_paths_per_link: IntProperty(name="Rays per link", default=0, min=0,
+                                    description="Draw at most this many rays per link "
+                                                "(strongest first; 0 = all sent)")
+    # state written by the live view (addon/live_view.py)
+    connection: StringProperty(name="Connection", default="idle")
+    last_error: StringProperty(name="Last error", default="")
+    engine_name: StringProperty(name="Engine")
+    scene_name: StringProperty(name="Engine scene")
+    scene_hash: StringProperty(name="Scene hash")
+    running: BoolProperty(name="Running")
+    step: IntProperty(name="Step")
+    engine_step: IntProperty(name="Engine step")
+    paths_step: IntProperty(name="Paths step", default=-1)
+    metrics_step: IntProperty(name="Metrics step", default=-1)
+    time_s: FloatProperty(name="Time (s)", unit="TIME_ABSOLUTE")
+    num_rays: IntProperty(name="Rays drawn")
+    edits_applied: IntProperty(name="Edits applied")
+    rejected: IntProperty(name="Rejected frames")
+    links: CollectionProperty(type=ISAC_LiveLinkMetric)
+
+
+class ISAC_AddonPreferences(bpy.types.AddonPreferences):
+    """Where the engine lives, for starting a local ``isac-twin serve`` from the Live panel."""
+
+    bl_idname = __package__
+
+    engine_python: StringProperty(
+        name="Engine interpreter", subtype="FILE_PATH", default="",
+        description="Python interpreter with the isac-twin engine installed "
+                    "(e.g. <repo>/.venv/bin/python); empty = the interpreter running Blender")
+    engine_scene: StringProperty(
+        name="Engine scene", subtype="DIR_PATH", default="",
+        description="Scene folder the local engine serves; empty = the engine's bundled lab")
+    engine_args: StringProperty(name="Extra arguments", default="--rate 10",
+                                description="More 'isac-twin serve' arguments")
+
+    def draw(self, context):
+        for key in ("engine_python", "engine_scene", "engine_args"):
+            self.layout.prop(self, key)
+
+
+def addon_preferences(context=None):
+    """The add-on's preferences, or None when it is registered without being enabled."""
+    context = context or bpy.context
+    entry = context.preferences.addons.get(__package__)
+    return entry.preferences if entry is not None else None
+
+
+CLASSES = (ISAC_ObjectProps, ISAC_LinkItem, ISAC_SceneProps, ISAC_LiveLinkMetric, ISAC_LiveProps,
+           ISAC_AddonPreferences)
 
 
 def register() -> None:
@@ -96,9 +169,11 @@ def register() -> None:
         bpy.utils.register_class(cls)
     bpy.types.Object.isac = PointerProperty(type=ISAC_ObjectProps)
     bpy.types.Scene.isac = PointerProperty(type=ISAC_SceneProps)
+    bpy.types.Scene.isac_live = PointerProperty(type=ISAC_LiveProps)
 
 
 def unregister() -> None:
+    del bpy.types.Scene.isac_live
     del bpy.types.Scene.isac
     del bpy.types.Object.isac
     for cls in reversed(CLASSES):

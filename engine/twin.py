@@ -115,12 +115,15 @@ class Twin:
         self.estimators: list[Estimator] = list(estimators or [])
         self.running = True
         self._pending_edits: list[Edit] = []
-        #: name -> scene content hash a database (grid, fingerprints) was built for
-        self.databases: dict[str, str] = {}
+        #: name -> (scene content hash, access-point poses) a database was built for
+        self.databases: dict[str, tuple[str, dict]] = {}
         grid = getattr(self.tracer, "grid", None)
         if grid is not None:
             self.register_database(str(grid.path or "grid tracer"), grid.meta["scene_hash"])
         self._controllers: dict[str, object] = {}
+        #: access points' array poses ``(position, orientation)``, movable by edits
+        self.ap_poses = {d.name: (tuple(d.position), tuple(d.orientation))
+                         for d in self.config.devices if d.kind != "robot"}
         self._build_agents()
         for d in self.config.devices:
             if d.kind == "robot" and d.path is not None:
@@ -147,7 +150,8 @@ class Twin:
         self.last: StepResult | None = None
 
     def reset(self) -> None:
-        """Back to the initial state (same seed: the same run again). Edits stay."""
+        """Back to the initial state (same seed: the same run again). Room edits and
+        moved access points stay; robots return to their start."""
         self._build_agents()
 
     def set_controller(self, robot: str, controller) -> None:
@@ -177,7 +181,11 @@ class Twin:
     def _apply_pending(self) -> None:
         edits, self._pending_edits = self._pending_edits, []
         for e in edits:
-            if e.op == "move":
+            if e.op == "move" and e.target in self.ap_poses:
+                self._move_access_point(e)
+            elif e.op == "move" and e.target in self.agents:
+                self._teleport_robot(e)
+            elif e.op == "move":
                 self.scene.move_object(e.target, e.position, e.orientation)
             elif e.op == "material":
                 self.scene.set_material(e.target, e.material, e.thickness)
@@ -192,14 +200,37 @@ class Twin:
                 log.warning("database %s was built before this edit of the room and is "
                             "stale: rebuild it (e.g. `isac-twin grid`)", name)
 
+    def _move_access_point(self, e: Edit) -> None:
+        pos, ori = self.ap_poses[e.target]
+        new_pos = tuple(map(float, e.position)) if e.position is not None else pos
+        new_ori = tuple(map(float, e.orientation)) if e.orientation is not None else ori
+        if not (np.isfinite(new_pos).all() and np.isfinite(new_ori).all()):
+            raise ValueError(f"move {e.target!r}: position/orientation must be finite")
+        if not self.scene.contains(new_pos):
+            raise ValueError(f"move {e.target!r}: {list(new_pos)} lies outside the room")
+        self.ap_poses[e.target] = (new_pos, new_ori)
+
+    def _teleport_robot(self, e: Edit) -> None:
+        robot = self.agents[e.target].robot
+        pose = robot.state.pose.copy()
+        if e.position is not None:
+            pose[:3] = e.position
+        if e.orientation is not None:
+            pose[3:6] = e.orientation
+        if not np.isfinite(pose).all() or not self.scene.contains(pose[:3]):
+            raise ValueError(f"move {e.target!r}: pose {pose.tolist()} is not finite or "
+                             "lies outside the room")
+        robot.reset(pose, t=robot.state.t)
+
     def register_database(self, name: str, scene_hash: str) -> None:
-        """Track a database built for a scene state, so edits can flag it stale."""
-        self.databases[name] = scene_hash
+        """Track a database (grid, fingerprints) built for a scene state and the
+        current access-point poses, so edits can flag it stale."""
+        self.databases[name] = (scene_hash, dict(self.ap_poses))
 
     def stale_databases(self) -> list[str]:
-        """Databases whose scene hash no longer matches the (edited) scene."""
+        """Databases built for another room (content hash) or other AP poses."""
         now = self.scene.content_hash()
-        return [n for n, h in self.databases.items() if h != now]
+        return [n for n, (h, aps) in self.databases.items() if h != now or aps != self.ap_poses]
 
     def command(self, cmd: Command) -> StepResult | None:
         """Apply a command: run, pause, step (returns the step), reset, set_path,
@@ -236,7 +267,7 @@ class Twin:
         for d in self.config.devices:
             agent = self.agents.get(d.name)
             if agent is None:
-                poses[d.name] = DevicePose(d.position, d.orientation)
+                poses[d.name] = DevicePose(*self.ap_poses[d.name])
                 continue
             st = agent.state
             pos = st.to_world(d.antenna_offset)

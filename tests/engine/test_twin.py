@@ -96,7 +96,7 @@ def test_edits_change_the_next_trace_and_flag_stale_databases(lab, caplog):
         moved = tw.step()
     assert "fingerprints.npz" in caplog.text and "stale" in caplog.text
     assert tw.stale_databases() == ["fingerprints.npz"]
-    assert moved.scene_hash != tw.databases["fingerprints.npz"]
+    assert moved.scene_hash != tw.databases["fingerprints.npz"][0]
     p = moved.links[("AP2", "robot1")].paths
     # The robot barely moved (it has no controller): path changes are the edit's.
     assert not _same(p, before)
@@ -130,4 +130,21 @@ def test_commands_and_bad_input(lab):
         tw.apply_edit(Edit(op="explode", target="cabinet"))
     tw.apply_edit(Edit(op="material", target="cabinet", material="floorboard"))
     with pytest.raises(ValueError, match="floorboard.*not defined at 2.4 GHz"):
+        tw.step()
+
+
+def test_moving_devices_by_edit(lab):
+    tw = Twin.from_scene(lab, seed=1, phy=False)
+    tw.register_database("grid.npz", tw.scene.content_hash())
+    d0 = tw.step().links[("AP1", "robot1")].paths.los_delay
+    tw.apply_edit(Edit(op="move", target="AP1", position=(1.0, 2.0, 2.0)))
+    tw.apply_edit(Edit(op="move", target="robot1", position=(4.0, 3.0, 0.0)))
+    r = tw.step()
+    assert tw.stale_databases() == ["grid.npz"]  # traced from AP1's old position
+    assert r.robots["robot1"].pose[:2] == pytest.approx([4.0, 3.0], abs=0.02)
+    d1 = r.links[("AP1", "robot1")].paths.los_delay
+    expect = np.linalg.norm(np.array([4.0, 3.0, 0.25]) - [1.0, 2.0, 2.0]) / 299792458.0
+    assert d1 == pytest.approx(expect, rel=1e-3) and d1 != pytest.approx(d0, rel=1e-3)
+    tw.apply_edit(Edit(op="move", target="AP1", position=(9.0, 2.0, 2.0)))
+    with pytest.raises(ValueError, match="move 'AP1'.*outside the room"):
         tw.step()

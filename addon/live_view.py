@@ -1,0 +1,538 @@
+"""Apply live-link messages to a Blender scene, and find viewport edits to send back.
+
+Plain functions (plus two small state holders) that :class:`~.live.LiveSession`
+calls; no operator or panel logic. Everything the live view creates lives in
+the collection :data:`COLLECTION` and is named ``ISAC_Live_*``:
+
+* robots: a TurtleBot3-like proxy mesh (cylinder body, two wheels, a nose
+  showing +x), the estimated position as a small marker, and two trails
+  (truth, estimate) as poly curves;
+* rays: ONE hair-curves object (``ISAC_Live_Rays``) rebuilt per ``paths``
+  message: one curve per path, tx -> interaction vertices -> rx, with a
+  per-point colour attribute ``ray_color`` (by path power or by interaction
+  type) read by the material, so Cycles, EEVEE and Workbench all show it;
+* link metrics, step and connection state: on ``Scene.isac_live`` for the panel.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import time
+from pathlib import Path
+
+import bpy
+from mathutils import Matrix, Vector
+
+from .exporter import safe_name
+from .modelling import get_collection
+
+COLLECTION = "ISAC Live"
+PREFIX = "ISAC_Live_"
+RAYS = PREFIX + "Rays"
+RAY_COLOR_ATTR = "ray_color"
+#: Ray radius in the render, m.
+RAY_RADIUS_M = 0.004
+#: Dynamic range of the power colour map, dB below the strongest path.
+POWER_RANGE_DB = 40.0
+#: Colours per interaction type (RGBA): LOS/none, specular, diffuse, refraction, diffraction.
+TYPE_COLORS = {0: (1.0, 1.0, 1.0, 1.0), 1: (0.1, 0.6, 1.0, 1.0), 2: (0.9, 0.8, 0.1, 1.0),
+               4: (0.2, 0.9, 0.3, 1.0), 8: (1.0, 0.2, 0.8, 1.0)}
+#: Colour-map stops (t, RGB) for power: weak = dark blue, strong = yellow/white.
+_POWER_STOPS = ((0.0, (0.05, 0.05, 0.4)), (0.4, (0.1, 0.5, 0.9)), (0.7, (0.2, 0.9, 0.4)),
+                (1.0, (1.0, 0.95, 0.2)))
+#: TurtleBot3 dimensions (m): body radius, body height, wheel radius, wheel width, track.
+_BOT = {"burger": (0.075, 0.19, 0.033, 0.018, 0.16), "waffle": (0.14, 0.14, 0.033, 0.018, 0.29)}
+
+
+# --------------------------------------------------------------------------- state holders
+
+
+class LiveView:
+    """What the view keeps between messages: trails and the devices the scene announced."""
+
+    def __init__(self, trail_length: int = 500):
+        self.trail_length = trail_length
+        self.trails: dict[str, collections.deque] = {}
+        self.estimates: dict[str, collections.deque] = {}
+        self.robot_models: dict[str, str] = {}
+        self.last_step = -1
+        self.rays_built = 0
+        #: Engine publish -> applied here, s (from ``state.sent_at``; same-host clocks).
+        self.last_latency_s: float | None = None
+
+
+def power_color(t: float) -> tuple[float, float, float, float]:
+    """Colour-map ``t`` in [0, 1] (weak -> strong) to RGBA."""
+    t = min(1.0, max(0.0, t))
+    for (t0, c0), (t1, c1) in zip(_POWER_STOPS, _POWER_STOPS[1:]):
+        if t <= t1:
+            u = (t - t0) / (t1 - t0)
+            return (c0[0] + u * (c1[0] - c0[0]), c0[1] + u * (c1[1] - c0[1]),
+                    c0[2] + u * (c1[2] - c0[2]), 1.0)
+    return (*_POWER_STOPS[-1][1], 1.0)
+
+
+# --------------------------------------------------------------------------- geometry helpers
+
+
+def _cylinder(cx, cy, cz, r, h, axis="z", n=16):
+    """Closed cylinder centred at (cx, cy, cz): vertices, faces."""
+    verts, faces = [], []
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        u, v = r * math.cos(a), r * math.sin(a)
+        for s in (-h / 2, h / 2):
+            if axis == "z":
+                verts.append((cx + u, cy + v, cz + s))
+            else:  # y axis (wheels)
+                verts.append((cx + u, cy + s, cz + v))
+    for k in range(n):
+        a, b = 2 * k, 2 * ((k + 1) % n)
+        faces.append((a, b, b + 1, a + 1))
+    faces.append(tuple(2 * k for k in range(n)))
+    faces.append(tuple(2 * k + 1 for k in reversed(range(n))))
+    return verts, faces
+
+
+def _box(lo, hi):
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    v = [(x, y, z) for z in (z0, z1) for y in (y0, y1) for x in (x0, x1)]
+    f = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    return v, f
+
+
+def robot_mesh(name: str, model: str = "burger"):
+    """A TurtleBot3-like proxy mesh in base_link (x forward, z up, origin on the floor)."""
+    r, h, wr, ww, track = _BOT.get(model, _BOT["burger"])
+    parts = [_cylinder(0.0, 0.0, wr + h / 2, r, h),
+             _cylinder(0.0, track / 2, wr, wr, ww, axis="y"),
+             _cylinder(0.0, -track / 2, wr, wr, ww, axis="y"),
+             _box((r * 0.6, -0.015, wr + h), (r * 1.3, 0.015, wr + h + 0.03))]
+    verts, faces = [], []
+    for v, f in parts:
+        base = len(verts)
+        verts += v
+        faces += [tuple(i + base for i in face) for face in f]
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(verts, [], faces)
+    mesh.update()
+    return mesh
+
+
+def _material(name: str, rgba, *, emission: bool = False, attribute: str | None = None):
+    mat = bpy.data.materials.get(name)
+    if mat is not None:
+        return mat
+    mat = bpy.data.materials.new(name)
+    mat.diffuse_color = rgba
+    if bpy.app.version < (5, 0, 0):  # always on (and deprecated) from Blender 5
+        mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    if emission:
+        sh = nt.nodes.new("ShaderNodeEmission")
+        sh.inputs["Strength"].default_value = 3.0
+    else:
+        sh = nt.nodes.new("ShaderNodeBsdfPrincipled")
+    color_in = sh.inputs["Color" if emission else "Base Color"]
+    color_in.default_value = rgba
+    if attribute:
+        attr = nt.nodes.new("ShaderNodeAttribute")
+        attr.attribute_name = attribute
+        nt.links.new(attr.outputs["Color"], color_in)
+    nt.links.new(sh.outputs[0], out.inputs["Surface"])
+    return mat
+
+
+def _object(scene, name: str, data):
+    obj = bpy.data.objects.get(name)
+    if obj is None:
+        obj = bpy.data.objects.new(name, data)
+        get_collection(scene, COLLECTION).objects.link(obj)
+    return obj
+
+
+def ensure_robot(scene, name: str, model: str = "burger"):
+    """The proxy object of robot ``name`` (created on first use)."""
+    oname = f"{PREFIX}{name}"
+    obj = bpy.data.objects.get(oname)
+    if obj is None:
+        mesh = robot_mesh(oname, model)
+        mesh.materials.append(_material(PREFIX + "Robot", (0.9, 0.35, 0.05, 1.0)))
+        obj = _object(scene, oname, mesh)
+        obj.rotation_mode = "XYZ"
+    return obj
+
+
+def _ensure_marker(scene, name: str):
+    oname = f"{PREFIX}{name}_estimate"
+    obj = bpy.data.objects.get(oname)
+    if obj is None:
+        mesh = bpy.data.meshes.new(oname)
+        s = 0.05
+        v = [(s, 0, 0), (-s, 0, 0), (0, s, 0), (0, -s, 0), (0, 0, s), (0, 0, -s)]
+        f = [(0, 2, 4), (2, 1, 4), (1, 3, 4), (3, 0, 4), (2, 0, 5), (1, 2, 5), (3, 1, 5),
+             (0, 3, 5)]
+        mesh.from_pydata(v, [], f)
+        mesh.materials.append(_material(PREFIX + "Estimate", (1.0, 0.3, 0.1, 1.0),
+                                        emission=True))
+        obj = _object(scene, oname, mesh)
+    return obj
+
+
+def _set_trail(scene, name: str, points, rgba) -> None:
+    """Poly curve ``name`` through ``points`` ``[(x, y, z), ...]`` (m)."""
+    oname = f"{PREFIX}{name}"
+    obj = bpy.data.objects.get(oname)
+    if obj is None:
+        cu = bpy.data.curves.new(oname, "CURVE")
+        cu.dimensions = "3D"
+        cu.bevel_depth = 0.008
+        cu.materials.append(_material(oname, rgba, emission=True))
+        obj = _object(scene, oname, cu)
+    cu = obj.data
+    cu.splines.clear()
+    if len(points) < 2:
+        return
+    sp = cu.splines.new("POLY")
+    sp.points.add(len(points) - 1)
+    flat = []
+    for p in points:
+        flat += (p[0], p[1], p[2], 1.0)
+    sp.points.foreach_set("co", flat)
+
+
+# --------------------------------------------------------------------------- rays
+
+
+def ensure_rays(scene):
+    """The hair-curves object that holds every ray polyline."""
+    obj = bpy.data.objects.get(RAYS)
+    if obj is None:
+        cv = bpy.data.hair_curves.new(RAYS)
+        cv.materials.append(_material(PREFIX + "Rays", (1.0, 1.0, 1.0, 1.0), emission=True,
+                                      attribute=RAY_COLOR_ATTR))
+        obj = _object(scene, RAYS, cv)
+        obj.visible_shadow = False  # light paths, not things: no shadows on the room
+    return obj
+
+
+def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0):
+    """Flatten a ``paths`` message: curve sizes, positions, colours.
+
+    Args:
+        msg: a ``paths`` message.
+        mode: ``"POWER"`` (colour by path power, strongest = yellow) or ``"TYPE"``
+            (each point coloured by the interaction it is: specular blue,
+            diffuse yellow, refraction green, diffraction magenta, ends white).
+        max_paths: at most this many paths per link (0 = all that were sent).
+
+    Returns:
+        ``(sizes [C], positions [3 P] flat, colours [4 P] flat)`` as lists.
+    """
+    links = msg["links"]
+    top = max((p["power_db"] for lk in links for p in lk["paths"]), default=0.0)
+    sizes, pos, col = [], [], []
+    tc = TYPE_COLORS
+    for lk in links:
+        paths = lk["paths"][:max_paths] if max_paths > 0 else lk["paths"]
+        for p in paths:
+            pts = p["points"]
+            sizes.append(len(pts))
+            for q in pts:
+                pos += q
+            if mode == "TYPE":
+                col += tc[0]
+                for t in p["types"]:
+                    col += tc.get(t, tc[0])
+                col += tc[0]
+            else:
+                c = power_color(1.0 + (p["power_db"] - top) / POWER_RANGE_DB)
+                col += c * len(pts)
+    return sizes, pos, col
+
+
+def set_rays(scene, sizes, positions, colors, *, visible: bool = True):
+    """Rebuild the rays object from flat arrays (see :func:`ray_arrays`)."""
+    obj = ensure_rays(scene)
+    cv = obj.data
+    if len(cv.curves):
+        cv.remove_curves()
+    obj.hide_render = obj.hide_viewport = not (visible and sizes)
+    if not sizes:
+        return obj
+    cv.add_curves(sizes)
+    cv.set_types(type="POLY")  # straight segments between interactions (default: Catmull-Rom)
+    cv.attributes["position"].data.foreach_set("vector", positions)
+    attrs = cv.attributes
+    rad = attrs.get("radius") or attrs.new("radius", "FLOAT", "POINT")
+    rad.data.foreach_set("value", [RAY_RADIUS_M] * len(cv.points))
+    colr = attrs.get(RAY_COLOR_ATTR) or attrs.new(RAY_COLOR_ATTR, "FLOAT_COLOR", "POINT")
+    colr.data.foreach_set("color", colors)
+    cv.update_tag()
+    return obj
+
+
+# --------------------------------------------------------------------------- messages
+
+
+def _props(scene):
+    return getattr(scene, "isac_live", None)
+
+
+def _set(props, key, value):
+    """Assign only on change: every RNA write tags the scene for a redraw."""
+    if props is not None and getattr(props, key) != value:
+        setattr(props, key, value)
+
+
+def apply_scene(scene, msg: dict, view: LiveView) -> None:
+    """``scene``: remember devices, create robot proxies at their configured poses."""
+    p = _props(scene)
+    _set(p, "scene_name", msg["name"])
+    _set(p, "scene_hash", msg["content_hash"][:16])
+    view.trails.clear()
+    view.estimates.clear()
+    for d in msg["devices"]:
+        if d["kind"] == "robot":
+            view.robot_models[d["name"]] = d.get("model") or "burger"
+            obj = ensure_robot(scene, d["name"], view.robot_models[d["name"]])
+            obj.location = d["position"]
+            obj.rotation_euler = d.get("orientation") or (0.0, 0.0, 0.0)
+
+
+def apply_state(scene, msg: dict, view: LiveView) -> None:
+    """``state``: robot proxies to their poses, estimate markers, trails."""
+    p = _props(scene)
+    _set(p, "step", msg["step"])
+    _set(p, "time_s", msg["time_s"])
+    for r in msg["robots"]:
+        name = r["name"]
+        obj = ensure_robot(scene, name, view.robot_models.get(name, "burger"))
+        pose = r["pose"]
+        obj.location = pose[:3]
+        obj.rotation_euler = pose[3:]
+        trail = view.trails.setdefault(name, collections.deque(maxlen=view.trail_length))
+        trail.append((pose[0], pose[1], 0.01))
+        _set_trail(scene, f"{name}_trail", trail, (0.1, 0.9, 0.9, 1.0))
+        est = r.get("estimate")
+        if est is not None:
+            m = _ensure_marker(scene, name)
+            m.location = est
+            etrail = view.estimates.setdefault(name, collections.deque(maxlen=view.trail_length))
+            etrail.append(tuple(est))
+            _set_trail(scene, f"{name}_estimate_trail", etrail, (1.0, 0.3, 0.1, 1.0))
+    view.last_step = msg["step"]
+    if "sent_at" in msg:
+        view.last_latency_s = time.time() - msg["sent_at"]
+
+
+def apply_paths(scene, msg: dict, view: LiveView) -> None:
+    """``paths``: rebuild the rays object."""
+    p = _props(scene)
+    mode = p.ray_color_mode if p is not None else "POWER"
+    cap = p.max_paths_per_link if p is not None else 0
+    visible = p.show_rays if p is not None else True
+    sizes, pos, col = ray_arrays(msg, mode, cap)
+    set_rays(scene, sizes, pos, col, visible=visible)
+    view.rays_built += 1
+    _set(p, "num_rays", len(sizes))
+    _set(p, "paths_step", msg["step"])
+
+
+def apply_metrics(scene, msg: dict, view: LiveView) -> None:
+    """``metrics``: one row per link on ``Scene.isac_live.links``."""
+    p = _props(scene)
+    if p is None:
+        return
+    rows = p.links
+    if len(rows) != len(msg["links"]):
+        rows.clear()
+        for _ in msg["links"]:
+            rows.add()
+    for row, m in zip(rows, msg["links"]):
+        _set(row, "tx", m["tx"])
+        _set(row, "rx", m["rx"])
+        _set(row, "snr_db", m["snr_db"] if m["snr_db"] is not None else float("nan"))
+        _set(row, "rate_bps", m["rate_bps"] if m["rate_bps"] is not None else 0.0)
+        _set(row, "num_paths", int(m.get("num_paths", 0)))
+        _set(row, "los", bool(m.get("los", False)))
+    _set(p, "metrics_step", msg["step"])
+
+
+def apply_status(scene, msg: dict, view: LiveView) -> None:
+    p = _props(scene)
+    _set(p, "running", msg["running"])
+    _set(p, "engine_step", msg["step"])
+    _set(p, "edits_applied", msg.get("edits_applied", 0))
+
+
+def apply_error(scene, msg: dict, view: LiveView) -> None:
+    _set(_props(scene), "last_error", f"{msg['code']}: {msg['message']}"[:500])
+
+
+def apply_hello(scene, msg: dict, view: LiveView) -> None:
+    _set(_props(scene), "engine_name", msg.get("name", ""))
+
+
+_APPLY = {"scene": apply_scene, "state": apply_state, "paths": apply_paths,
+          "metrics": apply_metrics, "status": apply_status, "error": apply_error,
+          "hello": apply_hello}
+
+
+def apply_message(scene, msg: dict, view: LiveView) -> None:
+    """Dispatch one decoded message to its ``apply_*`` function."""
+    fn = _APPLY.get(msg["type"])
+    if fn is not None:
+        fn(scene, msg, view)
+
+
+def store_connection(scene, state: str, error: str, rejections: dict) -> None:
+    """Connection state and decoder rejections, for the panel."""
+    p = _props(scene)
+    _set(p, "connection", state)
+    if error:
+        _set(p, "last_error", error[:500])
+    _set(p, "rejected", int(sum(rejections.values())))
+
+
+def clear(scene) -> None:
+    """Remove everything the live view created."""
+    coll = bpy.data.collections.get(COLLECTION)
+    if coll is not None:
+        for obj in list(coll.objects):
+            data = obj.data
+            bpy.data.objects.remove(obj)
+            if data is not None and data.users == 0:
+                if isinstance(data, bpy.types.Mesh):
+                    bpy.data.meshes.remove(data)
+                elif isinstance(data, bpy.types.Curve):
+                    bpy.data.curves.remove(data)
+                elif isinstance(data, bpy.types.Curves):
+                    bpy.data.hair_curves.remove(data)
+        bpy.data.collections.remove(coll)
+
+
+# --------------------------------------------------------------------------- edits
+
+
+def _mat_key(obj) -> tuple[str, float]:
+    return (obj.isac.itu_material, round(float(obj.isac.thickness), 9))
+
+
+def _m_key(m: Matrix) -> tuple:
+    return tuple(round(x, 7) for row in m for x in row)
+
+
+class EditTracker:
+    """Finds viewport changes to send: tick-based, so it works headless.
+
+    :meth:`baseline` records, for every engine object and device, its world
+    matrix, its world bounding-box centre and its radio material as they are
+    when the engine's ``scene`` arrives (the two are assumed to agree then).
+    :meth:`poll` compares against what was last sent and returns ``edit``
+    messages: ``move`` with ``position`` = new world bounding-box centre of
+    the geometry as loaded (``M_now M_base^-1 c_base``) and ``orientation`` =
+    ``[roll, pitch, yaw]`` of ``R_now R_base^T`` (rotation relative to the
+    loaded geometry); for devices the object's location and XYZ Euler
+    angles; ``material`` when the ITU material or thickness changed;
+    ``remove`` when the object was deleted; ``add`` (mesh written to a PLY in
+    ``mesh_dir``, world coordinates) for a new mesh once it has a radio material.
+    """
+
+    def __init__(self, mesh_dir: str | None = None):
+        self._base: dict[str, tuple] = {}    # object name -> (kind, wire name, M_base, c_base)
+        self._sent: dict[str, tuple] = {}    # object name -> (matrix key, material key)
+        self._mesh_dir = mesh_dir
+        self.active = False
+
+    @property
+    def tracked(self) -> list[str]:
+        return sorted(self._base)
+
+    def _track_object(self, obj, wname: str) -> None:
+        m = obj.matrix_world.copy()
+        corners = [m @ Vector(c) for c in obj.bound_box]
+        lo = Vector([min(c[i] for c in corners) for i in range(3)])
+        hi = Vector([max(c[i] for c in corners) for i in range(3)])
+        self._base[obj.name] = ("object", wname, m, (lo + hi) / 2)
+        self._sent[obj.name] = (_m_key(obj.matrix_world), _mat_key(obj))
+
+    def baseline(self, scene, object_names, device_names) -> None:
+        self._base.clear()
+        self._sent.clear()
+        self.active = True
+        for obj in scene.objects:
+            if obj.name.startswith(PREFIX):
+                continue
+            kind = obj.isac.device_kind
+            wname = safe_name(obj.name)
+            if kind == "NONE" and obj.type == "MESH" and wname in object_names:
+                self._track_object(obj, wname)
+            elif kind != "NONE" and obj.name in device_names:
+                self._base[obj.name] = ("device", obj.name, obj.matrix_world.copy(), None)
+                self._sent[obj.name] = (_m_key(obj.matrix_world), _mat_key(obj))
+        self._known = set(scene.objects.keys())
+
+    def _added(self, scene) -> list[dict]:
+        """New radio-tagged meshes: world mesh written to a PLY, ``add`` edits."""
+        from . import materials, wire
+        from .exporter.geometry import world_mesh, write_ply
+
+        out = []
+        names = scene.objects.keys()
+        if len(names) == len(self._known) and not set(names) - self._known:
+            return out
+        for name in set(names) - self._known:
+            obj = scene.objects[name]
+            if (name.startswith(PREFIX) or obj.type != "MESH" or obj.isac.device_kind != "NONE"
+                    or obj.isac.itu_material == materials.NO_MATERIAL
+                    or not obj.isac.export_geometry):
+                continue  # not (yet) radio geometry: looked at again when tagged
+            if self._mesh_dir is None:
+                import tempfile
+
+                self._mesh_dir = tempfile.mkdtemp(prefix="isac-live-meshes-")
+            wname = safe_name(name)
+            path = Path(self._mesh_dir) / f"{wname}.ply"
+            write_ply(path, world_mesh(obj, bpy.context.evaluated_depsgraph_get(), wname))
+            out.append(wire.edit("add", wname, material=obj.isac.itu_material,
+                                 thickness=obj.isac.thickness, mesh_file=str(path)))
+            self._track_object(obj, wname)
+            self._known.add(name)
+        self._known &= set(names) | set(self._base)
+        return out
+
+    def poll(self, scene) -> list[dict]:
+        from . import wire
+
+        if not self.active:
+            return []
+        out = self._added(scene)
+        objs = scene.objects
+        for name, (kind, wname, m0, c0) in list(self._base.items()):
+            obj = objs.get(name)
+            if obj is None:
+                out.append(wire.edit("remove", wname))
+                del self._base[name]
+                del self._sent[name]
+                continue
+            mk, matk = _m_key(obj.matrix_world), _mat_key(obj)
+            last_m, last_mat = self._sent[name]
+            if mk != last_m:
+                m = obj.matrix_world
+                if kind == "object":
+                    delta = m @ m0.inverted()
+                    pos = delta @ c0
+                    rot = (delta.to_3x3().normalized()).to_euler("XYZ")
+                else:
+                    pos = m.to_translation()
+                    rot = m.to_3x3().normalized().to_euler("XYZ")
+                out.append(wire.edit("move", wname, position=tuple(pos),
+                                     orientation=tuple(rot)))
+            if kind == "object" and matk != last_mat:
+                out.append(wire.edit("material", wname, material=matk[0], thickness=matk[1]))
+            self._sent[name] = (mk, matk)
+        return out

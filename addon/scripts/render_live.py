@@ -1,0 +1,177 @@
+"""Headless: stream a live twin into the bundled lab and render stills of it with its rays.
+
+Runs with Blender as a Python module (the PyPI ``bpy``); no GUI, no GPU::
+
+    .venv/bin/python addon/scripts/render_live.py --steps 20 --every 5 --out renders/live
+
+It opens ``blend_scenes/aces_lab/aces_lab.blend``, starts ``isac-twin serve``
+on a free loopback port (paused), registers the add-on, connects its live
+client, then for each of ``--steps`` steps sends ``step``, ticks the client
+until that step's state, paths and metrics are applied, and every
+``--every`` steps renders two PNGs (the whole lab from above, and a close-up
+of the robot with its trail; ``--no-closeup`` skips the second) (Cycles on the CPU by default; Workbench
+also works headless; EEVEE works but takes minutes per frame without a GPU).
+The engine's step log is written next to the PNGs (``steps.jsonl``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+import bpy  # noqa: E402
+from mathutils import Vector  # noqa: E402
+
+log = logging.getLogger("render_live")
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--blend", type=Path, default=ROOT / "blend_scenes/aces_lab/aces_lab.blend")
+    p.add_argument("--scene", default="", help="scene folder the engine serves (default: bundled)")
+    p.add_argument("--python", default="", help="engine interpreter (default: this one)")
+    p.add_argument("--steps", type=int, default=20, help="twin steps to stream")
+    p.add_argument("--every", type=int, default=5, help="render every this many steps")
+    p.add_argument("--out", type=Path, default=ROOT / "renders/live", help="output folder")
+    p.add_argument("--engine", default="CYCLES", choices=("CYCLES", "BLENDER_WORKBENCH",
+                                                          "BLENDER_EEVEE"))
+    p.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel")
+    p.add_argument("--resolution", type=int, nargs=2, default=(960, 540))
+    p.add_argument("--color", choices=("POWER", "TYPE"), default="POWER",
+                   help="colour rays by path power or by interaction type")
+    p.add_argument("--rays-per-link", type=int, default=40,
+                   help="draw the strongest N rays per link (0 = all the engine sends)")
+    p.add_argument("--robot", default="robot1", help="robot to drive")
+    p.add_argument("--no-circle", dest="circle", action="store_false",
+                   help="do not send the robot round the lab's free circle (set_path)")
+    p.add_argument("--no-closeup", dest="closeup", action="store_false",
+                   help="skip the second still per step, close to the robot")
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait per step")
+    return p.parse_args(argv)
+
+
+def setup_camera(scene, resolution, engine: str, samples: int) -> None:
+    """Oblique view over the lab (ceiling hidden), a sun, a grey world."""
+    lo = Vector((0.0, 0.0, 0.0))
+    hi = Vector((8.0, 6.0, 3.0))
+    target = (lo + hi) / 2
+    target.z = 0.5
+    cam = bpy.data.objects.new("LiveCamera", bpy.data.cameras.new("LiveCamera"))
+    scene.collection.objects.link(cam)
+    cam.location = Vector((target.x, -2.5, 10.5))
+    cam.rotation_euler = (target - cam.location).to_track_quat("-Z", "Y").to_euler()
+    cam.data.lens = 22
+    scene.camera = cam
+    sun = bpy.data.objects.new("LiveSun", bpy.data.lights.new("LiveSun", "SUN"))
+    sun.data.energy = 4.0
+    sun.rotation_euler = (math.radians(30), 0.0, math.radians(20))
+    scene.collection.objects.link(sun)
+    if scene.world is None:
+        scene.world = bpy.data.worlds.new("LiveWorld")
+    scene.world.color = (0.05, 0.05, 0.06)
+    for obj in scene.objects:
+        # hide what blocks the view from the south: the ceiling and the south wall
+        if any(k in obj.name for k in ("Ceiling", "Cutter", "Wall_1")):
+            obj.hide_render = True
+    r = scene.render
+    r.engine = engine
+    r.resolution_x, r.resolution_y = resolution
+    r.resolution_percentage = 100
+    r.image_settings.file_format = "PNG"
+    if engine == "CYCLES":
+        scene.cycles.device = "CPU"
+        scene.cycles.samples = samples
+        scene.cycles.use_denoising = True
+        scene.cycles.denoiser = "OPENIMAGEDENOISE"
+    elif engine == "BLENDER_WORKBENCH":
+        scene.display.shading.light = "STUDIO"
+        scene.display.shading.color_type = "MATERIAL"
+
+
+def aim_closeup(scene, robot) -> None:
+    """Make a camera 2 m behind and above ``robot`` (looking at it) the scene camera."""
+    cam = bpy.data.objects.get("LiveCloseup")
+    if cam is None:
+        cam = bpy.data.objects.new("LiveCloseup", bpy.data.cameras.new("LiveCloseup"))
+        scene.collection.objects.link(cam)
+        cam.data.lens = 28
+    if robot is None:
+        return
+    target = robot.location.copy()
+    target.z = 0.15
+    cam.location = target + Vector((-1.3, -1.3, 1.4))
+    cam.rotation_euler = (target - cam.location).to_track_quat("-Z", "Y").to_euler()
+    scene.camera = cam
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    import addon
+    from addon import live
+
+    bpy.ops.wm.open_mainfile(filepath=str(args.blend))
+    if not hasattr(bpy.types.Scene, "isac_live"):
+        addon.register()
+    scene = bpy.context.scene
+    scene.isac_live.ray_color_mode = args.color
+    scene.isac_live.max_paths_per_link = args.rays_per_link
+    setup_camera(scene, args.resolution, args.engine, args.samples)
+    args.out.mkdir(parents=True, exist_ok=True)
+    step_log = args.out / "steps.jsonl"
+    step_log.unlink(missing_ok=True)
+    eng = live.EngineProcess(args.python, args.scene,
+                             ("--rate", "0", "--paused", "--step-log", str(step_log)))
+    session = live.LiveSession(scene, engine=eng)
+    p = scene.isac_live
+
+    def wait(pred, what):
+        end = time.monotonic() + args.timeout
+        while time.monotonic() < end:
+            session.tick()
+            if pred():
+                return
+            if session.engine is not None and not session.engine.alive():
+                raise RuntimeError(f"the engine exited: {session.engine.log_tail()}")
+            time.sleep(0.01)
+        raise TimeoutError(f"no {what} within {args.timeout:g} s ({session.client.last_error})")
+
+    written = []
+    try:
+        wait(lambda: session.client.connected and session.applied["scene"], "connection")
+        if args.circle:  # the lab keeps a circle of radius 1.5 m around (4, 3) free
+            session.send_command("set_path", robot=args.robot, path={
+                "kind": "circle", "centre": [4.0, 3.0], "radius": 1.5})
+        for k in range(args.steps):
+            session.send_command("step")
+            wait(lambda: p.step == k and p.paths_step == k and p.metrics_step == k,
+                 f"step {k}")
+            if k % args.every == 0 or k == args.steps - 1:
+                t0 = time.perf_counter()
+                scene.camera = bpy.data.objects["LiveCamera"]
+                scene.render.filepath = str(args.out / f"live_{k:04d}.png")
+                bpy.ops.render.render(write_still=True)
+                written.append(scene.render.filepath)
+                if args.closeup:
+                    aim_closeup(scene, bpy.data.objects.get(f"ISAC_Live_{args.robot}"))
+                    scene.render.filepath = str(args.out / f"live_{k:04d}_{args.robot}.png")
+                    bpy.ops.render.render(write_still=True)
+                    written.append(scene.render.filepath)
+                links = ", ".join(f"{lk.tx}->{lk.rx} {lk.snr_db:.1f} dB" for lk in p.links)
+                log.info("step %d: %d rays, %s; rendered %s in %.1f s", k, p.num_rays, links,
+                         scene.render.filepath, time.perf_counter() - t0)
+    finally:
+        session.close()
+    print("\n".join(written))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,435 @@
+"""The live link's wire format: the one definition the add-on and the engine share.
+
+Standard library only (no ``bpy``, no numpy): the engine loads this file by
+path (``engine/live/protocol.py``), the add-on imports it as ``.wire``.
+See ``docs/wire.md`` for the prose version of everything below.
+
+Framing:
+    Every message is one *frame*: a 4-byte big-endian unsigned length ``n``
+    followed by ``n`` bytes of UTF-8 JSON encoding one object with a string
+    field ``"type"``. Frames longer than :data:`MAX_FRAME_BYTES` are refused
+    by the sender and skipped by the receiver (the announced bytes are
+    discarded, the connection survives).
+
+Versioning:
+    Both peers open with ``hello`` carrying ``protocol: [major, minor]``. A
+    peer with another *major* version is refused with an ``error`` message
+    (code ``"version"``) naming both versions; minor versions only add
+    optional fields and message types, which old peers reject one by one
+    (counted, logged) without dropping the connection.
+
+Units: SI (m, s, Hz, W or dB/dBm where named so), angles in rad, world frame
+Z up. Poses are ``[x, y, z, roll, pitch, yaw]``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import struct
+from collections import Counter
+
+log = logging.getLogger(__name__)
+
+#: Protocol version ``(major, minor)``: bump major for incompatible changes.
+PROTOCOL_VERSION = (1, 0)
+#: Largest frame payload a peer sends or accepts, bytes.
+MAX_FRAME_BYTES = 8 * 1024 * 1024
+#: Default cap on ray polylines per link in a ``paths`` message (strongest first).
+DEFAULT_MAX_PATHS_PER_LINK = 250
+
+_HEADER = struct.Struct(">I")
+HEADER_BYTES = _HEADER.size
+
+#: Edit operations (``engine.state.Edit.op``).
+EDIT_OPS = ("move", "material", "remove", "add")
+#: Command operations (``engine.state.Command.op``).
+COMMAND_OPS = ("run", "pause", "step", "reset", "set_path", "set_goal", "teleop")
+#: Sionna interaction codes (``engine.raytrace.base``): none, specular, diffuse, refraction,
+#: diffraction.
+INTERACTION_NAMES = {0: "none", 1: "specular", 2: "diffuse", 4: "refraction", 8: "diffraction"}
+
+
+class WireError(ValueError):
+    """A message that cannot be sent (invalid or too large)."""
+
+
+# --------------------------------------------------------------------------- field checks
+# Each check returns None when ``v`` is fine, else a short description of what was expected.
+
+
+_NUMS = (int, float)  # exact types: bool is not a number here
+
+
+def _is_num(v) -> bool:
+    return type(v) in _NUMS
+
+
+def _vec(n: int):
+    def check(v):
+        if type(v) is list and len(v) == n and all(type(x) in _NUMS for x in v):
+            return None
+        return f"a list of {n} numbers"
+    return check
+
+
+def _points(v):
+    """A polyline: a list of [x, y, z] (the hot path of ``paths`` validation)."""
+    nums = _NUMS
+    if type(v) is list and all(type(q) is list and len(q) == 3 and type(q[0]) in nums
+                               and type(q[1]) in nums and type(q[2]) in nums for q in v):
+        return None
+    return "a list of [x, y, z] points"
+
+
+def _ints(v):
+    if type(v) is list and all(type(x) is int for x in v):
+        return None
+    return "a list of integers"
+
+
+def _opt(check):
+    def c(v):
+        return None if v is None else check(v)
+    return c
+
+
+def _str(v):
+    return None if isinstance(v, str) else "a string"
+
+
+def _int(v):
+    return None if isinstance(v, int) and not isinstance(v, bool) else "an integer"
+
+
+def _num(v):
+    return None if _is_num(v) else "a number"
+
+
+def _bool(v):
+    return None if isinstance(v, bool) else "true or false"
+
+
+def _dict(v):
+    return None if isinstance(v, dict) else "an object"
+
+
+def _one_of(*choices):
+    def c(v):
+        return None if v in choices else f"one of {', '.join(map(repr, choices))}"
+    return c
+
+
+def _list_of(check):
+    def c(v):
+        if not isinstance(v, list):
+            return "a list"
+        for i, item in enumerate(v):
+            r = check(item)
+            if r is not None:
+                return f"a list whose items are {r} (item {i})"
+        return None
+    return c
+
+
+def _record(spec):
+    def c(v):
+        if not isinstance(v, dict):
+            return "an object"
+        r = _check_fields(v, spec)
+        return None if r is None else f"an object with {r}"
+    return c
+
+
+def _check_fields(msg: dict, spec: dict) -> str | None:
+    for name, (check, required) in spec.items():
+        if name not in msg:
+            if required:
+                return f"field {name!r} missing"
+            continue
+        r = check(msg[name])
+        if r is not None:
+            return f"field {name!r} must be {r}, got {_short(msg[name])}"
+    return None
+
+
+def _short(v) -> str:
+    s = json.dumps(v) if not isinstance(v, bytes) else repr(v)
+    return s if len(s) <= 60 else s[:57] + "..."
+
+
+_R, _O = True, False  # required, optional
+
+_ROBOT = {
+    "name": (_str, _R), "pose": (_vec(6), _R), "velocity": (_vec(2), _R),
+    "odometry": (_opt(_vec(3)), _O), "estimate": (_opt(_vec(3)), _O),
+}
+_PATH = {
+    "points": (_points, _R), "types": (_ints, _R),
+    "power_db": (_num, _R), "tau_s": (_num, _R),
+}
+_LINK_PATHS = {
+    "tx": (_str, _R), "rx": (_str, _R), "num_paths": (_int, _R),
+    "paths": (_list_of(_record(_PATH)), _R),
+}
+_LINK_METRICS = {
+    "tx": (_str, _R), "rx": (_str, _R), "snr_db": (_opt(_num), _R),
+    "rate_bps": (_opt(_num), _R), "num_paths": (_int, _O), "los": (_bool, _O),
+    "strongest_db": (_opt(_num), _O), "total_db": (_opt(_num), _O),
+}
+_OBJECT = {
+    "name": (_str, _R), "material": (_str, _R), "thickness": (_num, _R),
+    "bounds_min": (_vec(3), _O), "bounds_max": (_vec(3), _O),
+}
+_DEVICE = {
+    "name": (_str, _R), "kind": (_str, _R), "role": (_str, _R), "position": (_vec(3), _R),
+    "orientation": (_vec(3), _O), "model": (_opt(_str), _O),
+}
+
+#: ``type -> (directions, field spec)``; directions: "e2v" engine -> viewer, "v2e" back.
+MESSAGES: dict[str, tuple[frozenset, dict]] = {
+    "hello": (frozenset({"e2v", "v2e"}), {
+        "protocol": (_vec(2), _R), "role": (_one_of("engine", "viewer"), _R),
+        "name": (_str, _O), "capabilities": (_list_of(_str), _O), "token": (_str, _O),
+    }),
+    "error": (frozenset({"e2v", "v2e"}), {
+        "code": (_str, _R), "message": (_str, _R), "fatal": (_bool, _O), "ref": (_str, _O),
+    }),
+    "scene": (frozenset({"e2v"}), {
+        "name": (_str, _R), "content_hash": (_str, _R), "frequency_hz": (_num, _R),
+        "objects": (_list_of(_record(_OBJECT)), _R),
+        "devices": (_list_of(_record(_DEVICE)), _R),
+        "links": (_list_of(_list_of(_str)), _R),
+    }),
+    "state": (frozenset({"e2v"}), {
+        "step": (_int, _R), "time_s": (_num, _R), "scene_hash": (_str, _O),
+        "robots": (_list_of(_record(_ROBOT)), _R), "sent_at": (_num, _O),
+    }),
+    "paths": (frozenset({"e2v"}), {
+        "step": (_int, _R), "links": (_list_of(_record(_LINK_PATHS)), _R),
+    }),
+    "metrics": (frozenset({"e2v"}), {
+        "step": (_int, _R), "links": (_list_of(_record(_LINK_METRICS)), _R),
+    }),
+    "status": (frozenset({"e2v"}), {
+        "running": (_bool, _R), "step": (_int, _R), "rate_hz": (_num, _O),
+        "edits_applied": (_int, _O), "viewers": (_int, _O), "message": (_str, _O),
+    }),
+    "edit": (frozenset({"v2e"}), {
+        "op": (_one_of(*EDIT_OPS), _R), "target": (_str, _R),
+        "position": (_opt(_vec(3)), _O), "orientation": (_opt(_vec(3)), _O),
+        "material": (_opt(_str), _O), "thickness": (_opt(_num), _O),
+        "mesh_file": (_opt(_str), _O),
+    }),
+    "command": (frozenset({"v2e"}), {
+        "op": (_one_of(*COMMAND_OPS), _R), "args": (_dict, _O),
+    }),
+}
+
+#: Engine -> viewer messages that only matter in their latest version (the server
+#: coalesces them per viewer: a slow viewer gets the newest, drops are counted).
+COALESCED_TYPES = ("state", "paths", "metrics", "status")
+
+
+def validate(msg, direction: str | None = None) -> str | None:
+    """Why ``msg`` is not a valid message (None when it is).
+
+    Args:
+        msg: the decoded JSON value.
+        direction: ``"e2v"`` or ``"v2e"`` to also check who may send it; None = either.
+    """
+    if not isinstance(msg, dict):
+        return f"a message must be a JSON object, got {type(msg).__name__}"
+    t = msg.get("type")
+    if not isinstance(t, str):
+        return "field 'type' missing or not a string"
+    if t not in MESSAGES:
+        return f"unknown message type {t!r}"
+    dirs, spec = MESSAGES[t]
+    if direction is not None and direction not in dirs:
+        return f"message type {t!r} is not accepted in direction {direction}"
+    r = _check_fields(msg, spec)
+    if r is not None:
+        return f"{t}: {r}"
+    if t == "paths":
+        for lk in msg["links"]:
+            for i, p in enumerate(lk["paths"]):
+                if len(p["points"]) != len(p["types"]) + 2:
+                    return (f"paths: link {lk['tx']}->{lk['rx']} path {i}: {len(p['points'])} "
+                            f"points for {len(p['types'])} interactions (expected n + 2)")
+    return None
+
+
+# --------------------------------------------------------------------------- encode / decode
+
+
+def encode(msg: dict, *, check: bool = True, max_frame: int = MAX_FRAME_BYTES) -> bytes:
+    """One frame (header + JSON) for ``msg``.
+
+    Raises:
+        WireError: the message is invalid (when ``check``), holds NaN/inf, or is too large.
+    """
+    if check:
+        r = validate(msg)
+        if r is not None:
+            raise WireError(r)
+    try:
+        payload = json.dumps(msg, separators=(",", ":"), allow_nan=False).encode("utf-8")
+    except (TypeError, ValueError) as exc:
+        raise WireError(f"{msg.get('type', '?')}: cannot encode: {exc}") from exc
+    if len(payload) > max_frame:
+        raise WireError(f"{msg.get('type')}: frame of {len(payload)} bytes exceeds the maximum "
+                        f"of {max_frame}")
+    return _HEADER.pack(len(payload)) + payload
+
+
+def frame_raw(payload: bytes) -> bytes:
+    """Frame arbitrary bytes (tests use it to send malformed payloads)."""
+    return _HEADER.pack(len(payload)) + payload
+
+
+class Decoder:
+    """Incremental frame decoder: feed bytes as they arrive, get valid messages out.
+
+    Faults never raise and never lose the stream: a malformed payload, an
+    unknown type, a missing or ill-typed field is one rejection (logged with
+    its reason, counted in :attr:`rejections` by kind); an oversized frame is
+    skipped by discarding exactly the announced number of bytes.
+
+    Args:
+        direction: ``"e2v"`` (decode what an engine sends) or ``"v2e"``; None = any.
+        max_frame: largest payload accepted, bytes.
+        peer: name used in log messages.
+    """
+
+    def __init__(self, direction: str | None = None, *, max_frame: int = MAX_FRAME_BYTES,
+                 peer: str = "peer"):
+        self.direction = direction
+        self.max_frame = int(max_frame)
+        self.peer = peer
+        self._buf = bytearray()
+        self._skip = 0
+        #: Rejections by kind: ``oversized``, ``malformed``, ``unknown_type``, ``invalid``.
+        self.rejections: Counter = Counter()
+        #: The last rejections' reasons (newest last, at most 20).
+        self.reasons: list[str] = []
+        self.frames = 0
+
+    @property
+    def buffered(self) -> int:
+        """Bytes held waiting for the rest of a frame."""
+        return len(self._buf)
+
+    def _reject(self, kind: str, reason: str) -> None:
+        self.rejections[kind] += 1
+        self.reasons = (self.reasons + [reason])[-20:]
+        log.warning("wire: rejected a frame from %s (%s): %s", self.peer, kind, reason)
+
+    def feed(self, data: bytes) -> list[dict]:
+        """Consume ``data``; return the complete, valid messages it finished."""
+        out: list[dict] = []
+        buf = self._buf
+        buf += data
+        pos = 0
+        n_buf = len(buf)
+        while True:
+            if self._skip:
+                k = min(self._skip, n_buf - pos)
+                pos += k
+                self._skip -= k
+                if self._skip:
+                    break
+                continue
+            if n_buf - pos < HEADER_BYTES:
+                break
+            (n,) = _HEADER.unpack_from(buf, pos)
+            if n > self.max_frame:
+                self.frames += 1
+                self._reject("oversized", f"frame of {n} bytes exceeds the maximum of "
+                                          f"{self.max_frame}; skipping it")
+                pos += HEADER_BYTES
+                self._skip = n
+                continue
+            if n_buf - pos - HEADER_BYTES < n:
+                break
+            payload = bytes(buf[pos + HEADER_BYTES:pos + HEADER_BYTES + n])
+            pos += HEADER_BYTES + n
+            self.frames += 1
+            msg = self._parse(payload)
+            if msg is not None:
+                out.append(msg)
+        del buf[:pos]
+        return out
+
+    def _parse(self, payload: bytes) -> dict | None:
+        try:
+            msg = json.loads(payload.decode("utf-8"))
+        except (UnicodeDecodeError, ValueError) as exc:
+            self._reject("malformed", f"not UTF-8 JSON: {exc}")
+            return None
+        r = validate(msg, self.direction)
+        if r is None:
+            return msg
+        kind = "unknown_type" if r.startswith("unknown message type") else "invalid"
+        self._reject(kind, r)
+        return None
+
+
+# --------------------------------------------------------------------------- builders
+
+
+def finite_or_none(x) -> float | None:
+    """``float(x)``, or None when it is NaN/inf/None (JSON has no NaN)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def hello(role: str, name: str = "", *, capabilities=(), token: str | None = None) -> dict:
+    """The opening message of either peer."""
+    msg = {"type": "hello", "protocol": list(PROTOCOL_VERSION), "role": role, "name": name,
+           "capabilities": list(capabilities)}
+    if token is not None:
+        msg["token"] = token
+    return msg
+
+
+def check_version(msg: dict) -> str | None:
+    """Why a peer's ``hello`` is incompatible with this side (None when it is compatible)."""
+    major, minor = (int(x) for x in msg["protocol"])
+    if major != PROTOCOL_VERSION[0]:
+        return (f"protocol version {major}.{minor} is incompatible with "
+                f"{PROTOCOL_VERSION[0]}.{PROTOCOL_VERSION[1]} (major versions differ)")
+    return None
+
+
+def error(code: str, message: str, *, fatal: bool = False, ref: str | None = None) -> dict:
+    """An error report; ``fatal`` means the sender closes the connection next."""
+    msg = {"type": "error", "code": code, "message": message, "fatal": bool(fatal)}
+    if ref is not None:
+        msg["ref"] = ref
+    return msg
+
+
+def edit(op: str, target: str, *, position=None, orientation=None, material=None,
+         thickness=None, mesh_file=None) -> dict:
+    """A scene edit (mirrors ``engine.state.Edit``); see docs/wire.md for ``move`` semantics."""
+    msg = {"type": "edit", "op": op, "target": target}
+    for k, v in (("position", position), ("orientation", orientation)):
+        if v is not None:
+            msg[k] = [float(x) for x in v]
+    if material is not None:
+        msg["material"] = str(material)
+    if thickness is not None:
+        msg["thickness"] = float(thickness)
+    if mesh_file is not None:
+        msg["mesh_file"] = str(mesh_file)
+    return msg
+
+
+def command(op: str, **args) -> dict:
+    """A command (mirrors ``engine.state.Command``): run, pause, step, reset, set_path,
+    set_goal, teleop."""
+    return {"type": "command", "op": op, "args": dict(args)}

@@ -1,0 +1,153 @@
+"""The engine's side of the wire format: load ``addon/wire.py``, convert records.
+
+Why load by path: ``addon/wire.py`` is the one definition of the protocol
+(stdlib only). Importing it as ``addon.wire`` would run ``addon/__init__.py``,
+which imports the ``bpy`` glue, and would need the repository root on
+``sys.path`` (only ``engine`` is installed). Loading the single file by path
+under a private module name keeps the add-on's registration untouched (legacy
+and extension loading work as before) and gives the engine exactly the bytes
+the add-on uses. ``ISAC_TWIN_WIRE`` may point to another copy of the file.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from engine.state import Command, Edit, StepResult
+
+_MODULE_NAME = "isac_twin_wire"
+
+
+def _load_wire():
+    if _MODULE_NAME in sys.modules:
+        return sys.modules[_MODULE_NAME]
+    path = Path(os.environ.get("ISAC_TWIN_WIRE") or
+                Path(__file__).resolve().parents[2] / "addon" / "wire.py")
+    if not path.is_file():
+        raise ImportError(f"the wire format definition {path} is missing (set ISAC_TWIN_WIRE "
+                          "to the add-on's wire.py)")
+    spec = importlib.util.spec_from_file_location(_MODULE_NAME, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[_MODULE_NAME] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+wire = _load_wire()
+
+_ROUND = 4  # coordinates on the wire: 0.1 mm
+
+
+def _vec(v, n=None) -> list[float]:
+    a = np.asarray(v, dtype=float).reshape(-1)
+    return [round(float(x), 6) for x in (a if n is None else a[:n])]
+
+
+def scene_message(scene) -> dict:
+    """``scene`` message for a :class:`~engine.scene.TwinScene`."""
+    cfg = scene.config
+    objects = [{"name": o.name, "material": o.material, "thickness": float(o.thickness),
+                "bounds_min": _vec(o.bounds_min), "bounds_max": _vec(o.bounds_max)}
+               for o in scene.objects.values()]
+    devices = [{"name": d.name, "kind": d.kind, "role": d.role, "position": _vec(d.position),
+                "orientation": _vec(d.orientation), "model": getattr(d, "model", None)}
+               for d in cfg.devices]
+    return {"type": "scene", "name": cfg.scene.name, "content_hash": scene.content_hash(),
+            "frequency_hz": float(cfg.scene.frequency_hz), "objects": objects,
+            "devices": devices, "links": [[lk.tx, lk.rx] for lk in cfg.links]}
+
+
+def state_message(res: StepResult) -> dict:
+    """``state`` message: robot poses, velocities, odometry, estimates."""
+    robots = []
+    for name, r in res.robots.items():
+        robots.append({
+            "name": name, "pose": _vec(r.pose, 6), "velocity": _vec(r.velocity, 2),
+            "odometry": None if r.odometry is None else _vec(r.odometry, 3),
+            "estimate": None if r.estimate is None else _vec(r.estimate, 3)})
+    return {"type": "state", "step": int(res.step), "time_s": float(res.time_s),
+            "scene_hash": res.scene_hash, "robots": robots, "sent_at": time.time()}
+
+
+def link_polylines(lp, max_paths: int) -> dict:
+    """One link's ``paths`` entry: the ``max_paths`` strongest paths as polylines.
+
+    Each polyline is tx array centre -> interaction vertices -> rx array centre
+    (m), with the interaction codes and the path power ``|a|^2`` in dB.
+    """
+    n = lp.num_paths
+    out = {"tx": lp.tx, "rx": lp.rx, "num_paths": int(n), "paths": []}
+    if n == 0 or max_paths <= 0:
+        return out
+    p = lp.power
+    order = np.argsort(-p, kind="stable")[:max_paths]
+    with np.errstate(divide="ignore"):
+        pdb = 10.0 * np.log10(np.maximum(p[order], 1e-30))
+    tx = np.round(np.asarray(lp.tx_position, float), _ROUND).tolist()
+    rx = np.round(np.asarray(lp.rx_position, float), _ROUND).tolist()
+    verts = np.round(np.asarray(lp.vertices, float)[order], _ROUND)
+    inter = np.asarray(lp.interactions)[order]
+    counts = np.count_nonzero(inter != 0, axis=1)
+    paths = out["paths"]
+    for i in range(len(order)):
+        k = int(counts[i])
+        paths.append({"points": [tx, *verts[i, :k].tolist(), rx],
+                      "types": [int(t) for t in inter[i, :k]],
+                      "power_db": round(float(pdb[i]), 3),
+                      "tau_s": float(lp.tau[order[i]])})
+    return out
+
+
+def paths_message(res: StepResult, max_paths: int = wire.DEFAULT_MAX_PATHS_PER_LINK) -> dict:
+    """``paths`` message: per link the strongest ``max_paths`` polylines."""
+    links = [link_polylines(ls.paths, max_paths) for ls in res.links.values()
+             if ls.paths is not None]
+    return {"type": "paths", "step": int(res.step), "links": links}
+
+
+def metrics_message(res: StepResult) -> dict:
+    """``metrics`` message: SNR (dB), rate (bit/s) and a path summary per link."""
+    links = []
+    for (tx, rx), ls in res.links.items():
+        m = {"tx": tx, "rx": rx, "snr_db": wire.finite_or_none(ls.snr_db),
+             "rate_bps": wire.finite_or_none(ls.rate_bps)}
+        if ls.paths is not None:
+            s = ls.paths.summary()
+            m.update(num_paths=int(s["num_paths"]), los=bool(s["los"]),
+                     strongest_db=wire.finite_or_none(s["strongest_path_gain_db"]),
+                     total_db=wire.finite_or_none(s["total_gain_db"]))
+        links.append(m)
+    return {"type": "metrics", "step": int(res.step), "links": links}
+
+
+def step_summary(res: StepResult) -> dict:
+    """A JSON line describing a step (the server's step log; tests compare against it)."""
+    return {"step": int(res.step), "time_s": float(res.time_s), "scene_hash": res.scene_hash,
+            "robots": {n: _vec(r.pose, 6) for n, r in res.robots.items()},
+            "links": {f"{tx}->{rx}": {
+                "num_paths": None if ls.paths is None else ls.paths.num_paths,
+                "snr_db": wire.finite_or_none(ls.snr_db),
+                "total_db": None if ls.paths is None else
+                wire.finite_or_none(ls.paths.summary()["total_gain_db"])}
+                for (tx, rx), ls in res.links.items()}}
+
+
+def edit_from_message(msg: dict) -> Edit:
+    """:class:`~engine.state.Edit` from a validated ``edit`` message."""
+    def t(k):
+        v = msg.get(k)
+        return None if v is None else tuple(float(x) for x in v)
+    return Edit(op=msg["op"], target=msg["target"], position=t("position"),
+                orientation=t("orientation"), material=msg.get("material"),
+                thickness=msg.get("thickness"), mesh_file=msg.get("mesh_file"))
+
+
+def command_from_message(msg: dict) -> Command:
+    """:class:`~engine.state.Command` from a validated ``command`` message."""
+    return Command(op=msg["op"], args=dict(msg.get("args") or {}))

@@ -1,0 +1,521 @@
+"""The live link server: a twin stepping in a thread plus a TCP server for viewers.
+
+Two threads, one lock:
+
+* the *loop* thread owns the twin: it drains the inbox (edits and commands
+  from viewers), applies them between steps, steps while running (at most
+  ``rate_hz`` steps per second), encodes each step's messages once and hands
+  the frames to every viewer;
+* the *I/O* thread runs a ``selectors`` loop over the listening socket, the
+  viewers' sockets and a wake-up socket pair; it never touches the twin.
+
+A slow viewer never stalls the twin: per viewer, ``state``/``paths``/
+``metrics``/``status`` are coalesced (a newer frame replaces an unsent one,
+the drop is counted per type); only ``hello``/``scene``/``error`` are queued
+in order. A viewer that leaves, or is dropped, leaves the loop running.
+"""
+
+from __future__ import annotations
+
+import collections
+import ipaddress
+import json
+import logging
+import queue
+import selectors
+import socket
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+from engine.live import protocol
+from engine.live.protocol import wire
+from engine.state import Command, Edit, StepResult
+
+log = logging.getLogger(__name__)
+
+#: Seconds a viewer has to send its ``hello``.
+HANDSHAKE_TIMEOUT_S = 10.0
+#: In-order frames a viewer may have pending before it is dropped as stuck.
+MAX_QUEUED_FRAMES = 256
+_CAPABILITIES = ("state", "paths", "metrics", "status", "edit", "command")
+
+
+@runtime_checkable
+class LiveTwin(Protocol):
+    """What the server needs from a twin (``engine.twin.Twin`` satisfies it)."""
+
+    scene: object
+
+    def step(self) -> StepResult: ...
+
+    def apply_edit(self, edit: Edit) -> None: ...
+
+    def command(self, cmd: Command) -> None: ...
+
+    def reset(self) -> None: ...
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (name or address) is a loopback address."""
+    if host in ("localhost", ""):
+        return host == "localhost"
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        try:
+            return all(ipaddress.ip_address(a[4][0]).is_loopback
+                       for a in socket.getaddrinfo(host, None))
+        except OSError:
+            return False
+
+
+class _Viewer:
+    """One connected viewer: its socket, decoder and outgoing frames."""
+
+    def __init__(self, sock: socket.socket, addr):
+        self.sock = sock
+        self.addr = f"{addr[0]}:{addr[1]}" if isinstance(addr, tuple) else str(addr)
+        self.decoder = wire.Decoder("v2e", peer=f"viewer {self.addr}")
+        self.name = ""
+        self.ready = False          # hello accepted
+        self.closing = False        # close once the queue is flushed
+        self.opened = time.monotonic()
+        self.queue: collections.deque[bytes] = collections.deque()
+        self.latest: dict[str, bytes] = {}
+        self.drops: collections.Counter = collections.Counter()
+        self.wbuf = b""
+        self.woff = 0
+        self.sent_frames = 0
+
+    def has_output(self) -> bool:
+        return bool(self.wbuf) or bool(self.queue) or bool(self.latest)
+
+    def next_frame(self) -> bytes | None:
+        if self.queue:
+            return self.queue.popleft()
+        for t in wire.COALESCED_TYPES:
+            if t in self.latest:
+                return self.latest.pop(t)
+        return None
+
+
+class LiveServer:
+    """Serve a twin to viewers over TCP.
+
+    Args:
+        twin: a :class:`LiveTwin`.
+        host, port: where to listen (port 0 = any free port; see :attr:`address`).
+        token: shared secret viewers must send in ``hello``; required when
+            ``host`` is not a loopback address.
+        rate_hz: at most this many steps per second while running (0 = as fast as possible).
+        max_steps: pause after this many steps (None = run until paused).
+        running: start running (else wait for a ``run`` or ``step`` command).
+        max_paths: ray polylines per link in ``paths`` messages (strongest first).
+        step_log: append one JSON line per step (:func:`protocol.step_summary`) here.
+        on_step: called with each :class:`StepResult` in the loop thread.
+        viewer_sndbuf: kernel send buffer per viewer socket, bytes (None = OS default;
+            small values make a slow viewer's backlog coalesce sooner).
+
+    Raises:
+        ValueError: a non-loopback ``host`` without a ``token``.
+    """
+
+    def __init__(self, twin: LiveTwin, host: str = "127.0.0.1", port: int = 0, *,
+                 token: str | None = None, rate_hz: float = 10.0, max_steps: int | None = None,
+                 running: bool = True, max_paths: int = wire.DEFAULT_MAX_PATHS_PER_LINK,
+                 step_log: str | Path | None = None,
+                 on_step: Callable[[StepResult], None] | None = None,
+                 viewer_sndbuf: int | None = None):
+        if not is_loopback(host) and not token:
+            raise ValueError(f"refusing to listen on non-loopback address {host!r} without an "
+                             "auth token (pass --token)")
+        self.twin = twin
+        self.host, self.port = host, int(port)
+        self.token = token or None
+        self.rate_hz = float(rate_hz)
+        self.max_steps = max_steps
+        self.max_paths = int(max_paths)
+        self.step_log = Path(step_log) if step_log else None
+        self.on_step = on_step
+        self.viewer_sndbuf = viewer_sndbuf
+        self.running = bool(running)
+        self.steps_done = 0
+        self.edits_applied = 0
+        self.last_result: StepResult | None = None
+        self.done = threading.Event()       # max_steps reached
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._inbox: queue.Queue = queue.Queue()
+        self._wake_loop = threading.Event()
+        self._viewers: dict[int, _Viewer] = {}
+        self._latest: dict[str, bytes] = {}  # for viewers that join later
+        self._scene_frame = b""
+        self._sel: selectors.BaseSelector | None = None
+        self._lsock: socket.socket | None = None
+        self._wake_r = self._wake_w = None
+        self._threads: list[threading.Thread] = []
+        self.stats = collections.Counter()
+
+    # ------------------------------------------------------------------ lifecycle
+
+    @property
+    def address(self) -> tuple[str, int]:
+        """``(host, port)`` actually listened on."""
+        return self._lsock.getsockname()[:2]
+
+    def start(self) -> "LiveServer":
+        """Bind, listen and start the loop and I/O threads."""
+        fam = socket.AF_INET6 if ":" in self.host else socket.AF_INET
+        ls = socket.socket(fam, socket.SOCK_STREAM)
+        ls.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        ls.bind((self.host, self.port))
+        ls.listen(16)
+        ls.setblocking(False)
+        self._lsock = ls
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self._sel = selectors.DefaultSelector()
+        self._sel.register(ls, selectors.EVENT_READ, "listen")
+        self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
+        self._scene_frame = wire.encode(protocol.scene_message(self.twin.scene))
+        self._threads = [threading.Thread(target=self._io_main, name="live-io", daemon=True),
+                         threading.Thread(target=self._loop_main, name="live-loop", daemon=True)]
+        for t in self._threads:
+            t.start()
+        log.info("live server listening on %s:%d", *self.address)
+        return self
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop both threads and close every socket."""
+        self._stop.set()
+        self._wake_loop.set()
+        self._wake()
+        for t in self._threads:
+            t.join(timeout)
+            if t.is_alive():
+                log.warning("live server: thread %s did not stop within %g s", t.name, timeout)
+        with self._lock:
+            viewers = list(self._viewers.values())
+            self._viewers.clear()
+        for v in viewers:
+            v.sock.close()
+        for s in (self._lsock, self._wake_r, self._wake_w):
+            if s is not None:
+                s.close()
+        if self._sel is not None:
+            self._sel.close()
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+
+    def viewers(self) -> list[dict]:
+        """A snapshot of the connected viewers: name, address, frames sent, drops per type."""
+        with self._lock:
+            return [{"name": v.name, "addr": v.addr, "ready": v.ready, "sent": v.sent_frames,
+                     "drops": dict(v.drops), "rejected": dict(v.decoder.rejections)}
+                    for v in self._viewers.values()]
+
+    # ------------------------------------------------------------------ publishing
+
+    def _wake(self) -> None:
+        try:
+            self._wake_w.send(b"x")
+        except (BlockingIOError, OSError):
+            pass  # already awake (buffer full) or shutting down
+
+    def publish(self, msg: dict) -> None:
+        """Encode ``msg`` once and hand it to every ready viewer (coalesced per type)."""
+        frame = wire.encode(msg)
+        t = msg["type"]
+        coalesce = t in wire.COALESCED_TYPES
+        with self._lock:
+            if coalesce:
+                self._latest[t] = frame
+            for v in self._viewers.values():
+                if not v.ready or v.closing:
+                    continue
+                if coalesce:
+                    if t in v.latest:
+                        v.drops[t] += 1
+                    v.latest[t] = frame
+                else:
+                    v.queue.append(frame)
+        self._wake()
+
+    def _send_to(self, v: _Viewer, msg: dict, *, close: bool = False) -> None:
+        with self._lock:
+            v.queue.append(wire.encode(msg))
+            if close:
+                v.closing = True
+        self._wake()
+
+    def _status(self, message: str = "") -> dict:
+        return {"type": "status", "running": self.running, "step": self.steps_done,
+                "rate_hz": self.rate_hz, "edits_applied": self.edits_applied,
+                "viewers": len(self._viewers), "message": message}
+
+    # ------------------------------------------------------------------ the loop thread
+
+    def _loop_main(self) -> None:
+        pending_steps = 0
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            pending_steps += self._drain_inbox()
+            if self._stop.is_set():
+                break
+            if self.running or pending_steps:
+                now = time.monotonic()
+                if self.running and self.rate_hz > 0 and now < next_t and not pending_steps:
+                    self._wake_loop.wait(next_t - now)
+                    self._wake_loop.clear()
+                    continue
+                next_t = max(now, next_t) + (1.0 / self.rate_hz if self.rate_hz > 0 else 0.0)
+                pending_steps = max(0, pending_steps - 1)
+                self._do_step()
+            else:
+                self._wake_loop.wait(0.1)
+                self._wake_loop.clear()
+
+    def _do_step(self) -> None:
+        try:
+            res = self.twin.step()
+        except Exception as exc:  # noqa: BLE001 - report, pause, keep serving
+            log.exception("twin step failed")
+            self.running = False
+            self.publish(wire.error("step", f"twin step failed: {exc}"))
+            self.publish(self._status("paused after a failed step"))
+            return
+        self.steps_done += 1
+        self.last_result = res
+        for build in (protocol.state_message, protocol.metrics_message):
+            self.publish(build(res))
+        self.publish(protocol.paths_message(res, self.max_paths))
+        if self.step_log is not None:
+            with self.step_log.open("a") as f:
+                f.write(json.dumps(protocol.step_summary(res)) + "\n")
+        if self.on_step is not None:
+            self.on_step(res)
+        if self.max_steps is not None and self.steps_done >= self.max_steps:
+            if self.running:
+                log.info("reached %d steps: pausing", self.steps_done)
+            self.running = False
+            self.done.set()
+        self.publish(self._status())
+
+    def _check_edit(self, edit: Edit) -> None:
+        """Refuse an edit naming nothing in the scene now (a twin may apply edits lazily, at
+        its next step, where a bad one would fail the step instead of this one edit)."""
+        if edit.op == "add":
+            return
+        scene = self.twin.scene
+        names = set(scene.objects) | {d.name for d in scene.config.devices}
+        if edit.target not in names:
+            raise ValueError(f"unknown object or device {edit.target!r}")
+
+    def _drain_inbox(self) -> int:
+        """Apply queued edits and commands; return the number of single steps requested."""
+        steps = 0
+        changed = False
+        while True:
+            try:
+                viewer, item = self._inbox.get_nowait()
+            except queue.Empty:
+                break
+            try:
+                if isinstance(item, Edit):
+                    self._check_edit(item)
+                    self.twin.apply_edit(item)
+                    self.edits_applied += 1
+                    changed = True
+                elif item.op == "run":
+                    self.running = True
+                    changed = True
+                elif item.op == "pause":
+                    self.running = False
+                    changed = True
+                elif item.op == "step":
+                    self.running = False
+                    steps += int(item.args.get("count", 1))
+                elif item.op == "reset":
+                    self.twin.reset()
+                    self.steps_done = 0
+                    self.done.clear()
+                    self.publish(protocol.scene_message(self.twin.scene))
+                    changed = True
+                else:
+                    self.twin.command(item)
+            except Exception as exc:  # noqa: BLE001 - a bad edit must not stop the twin
+                what = f"{type(item).__name__.lower()} {item.op}"
+                log.warning("rejected %s from viewer %s: %s", what, viewer.addr, exc)
+                self.stats["edit_errors"] += 1
+                self._send_to(viewer, wire.error("rejected", f"{what}: {exc}",
+                                                 ref=getattr(item, "target", item.op)))
+        if changed:
+            self.publish(self._status())
+        return steps
+
+    # ------------------------------------------------------------------ the I/O thread
+
+    def _io_main(self) -> None:
+        try:
+            while not self._stop.is_set():
+                self._update_interest()
+                for key, events in self._sel.select(timeout=0.2):
+                    if key.data == "listen":
+                        self._accept()
+                    elif key.data == "wake":
+                        try:
+                            while self._wake_r.recv(4096):
+                                pass
+                        except (BlockingIOError, OSError):
+                            pass
+                    else:
+                        v = key.data
+                        if events & selectors.EVENT_READ:
+                            self._read(v)
+                        if events & selectors.EVENT_WRITE and v.sock.fileno() >= 0:
+                            self._flush(v)
+                self._check_handshakes()
+        except Exception:  # noqa: BLE001
+            log.exception("live server I/O thread crashed")
+
+    def _update_interest(self) -> None:
+        with self._lock:
+            viewers = list(self._viewers.values())
+        for v in viewers:
+            want = selectors.EVENT_READ | (selectors.EVENT_WRITE if v.has_output() else 0)
+            try:
+                if self._sel.get_key(v.sock).events != want:
+                    self._sel.modify(v.sock, want, v)
+            except (KeyError, ValueError):
+                pass
+            if v.closing and not v.has_output():
+                self._drop(v, "closed after a fatal error")
+
+    def _accept(self) -> None:
+        try:
+            sock, addr = self._lsock.accept()
+        except (BlockingIOError, OSError):
+            return
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if self.viewer_sndbuf:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, int(self.viewer_sndbuf))
+        v = _Viewer(sock, addr)
+        with self._lock:
+            self._viewers[sock.fileno()] = v
+        self._sel.register(sock, selectors.EVENT_READ, v)
+        self.stats["accepted"] += 1
+        log.info("viewer connected from %s", v.addr)
+
+    def _drop(self, v: _Viewer, why: str) -> None:
+        with self._lock:
+            if self._viewers.pop(v.sock.fileno(), None) is None:
+                return
+        try:
+            self._sel.unregister(v.sock)
+        except (KeyError, ValueError):
+            pass
+        v.sock.close()
+        self.stats["dropped"] += 1
+        log.info("viewer %s (%s) left: %s; drops %s, rejected %s", v.name or "?", v.addr, why,
+                 dict(v.drops), dict(v.decoder.rejections))
+
+    def _check_handshakes(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            late = [v for v in self._viewers.values()
+                    if not v.ready and not v.closing and now - v.opened > HANDSHAKE_TIMEOUT_S]
+        for v in late:
+            self._send_to(v, wire.error("handshake", "no hello within "
+                                        f"{HANDSHAKE_TIMEOUT_S:g} s", fatal=True), close=True)
+
+    def _read(self, v: _Viewer) -> None:
+        try:
+            data = v.sock.recv(65536)
+        except BlockingIOError:
+            return
+        except OSError as exc:
+            self._drop(v, f"receive failed: {exc}")
+            return
+        if not data:
+            self._drop(v, "disconnected")
+            return
+        for msg in v.decoder.feed(data):
+            self._handle(v, msg)
+
+    def _handle(self, v: _Viewer, msg: dict) -> None:
+        t = msg["type"]
+        if v.closing:
+            return
+        if not v.ready:
+            if t != "hello":
+                self._send_to(v, wire.error("handshake", f"expected hello first, got {t}",
+                                            fatal=True), close=True)
+                return
+            why = wire.check_version(msg)
+            if why is None and msg["role"] != "viewer":
+                why = f"role {msg['role']!r}: only viewers connect to an engine"
+            if why is None and self.token is not None and msg.get("token") != self.token:
+                self._send_to(v, wire.error("auth", "missing or wrong token", fatal=True),
+                              close=True)
+                return
+            if why is not None:
+                self._send_to(v, wire.error("version", why, fatal=True), close=True)
+                return
+            v.name = msg.get("name", "")
+            with self._lock:
+                v.ready = True
+                v.queue.append(wire.encode(wire.hello("engine", "isac-twin",
+                                                      capabilities=_CAPABILITIES)))
+                v.queue.append(self._scene_frame)
+                v.latest.update(self._latest)
+            self.publish(self._status(f"viewer {v.name or v.addr} joined"))
+            log.info("viewer %s (%s) ready", v.name, v.addr)
+            return
+        if t == "edit":
+            self._inbox.put((v, protocol.edit_from_message(msg)))
+        elif t == "command":
+            self._inbox.put((v, protocol.command_from_message(msg)))
+        elif t == "error":
+            log.warning("viewer %s reports %s: %s", v.addr, msg["code"], msg["message"])
+            return
+        else:  # a second hello
+            return
+        self._wake_loop.set()
+
+    def _flush(self, v: _Viewer) -> None:
+        while True:
+            with self._lock:
+                if not v.wbuf:
+                    frame = v.next_frame()
+                    if frame is None:
+                        return
+                    v.wbuf, v.woff = frame, 0
+                    v.sent_frames += 1
+                if len(v.queue) > MAX_QUEUED_FRAMES:
+                    stuck = True
+                else:
+                    stuck = False
+            if stuck:
+                self._drop(v, f"more than {MAX_QUEUED_FRAMES} frames queued")
+                return
+            try:
+                n = v.sock.send(memoryview(v.wbuf)[v.woff:])
+            except BlockingIOError:
+                return
+            except OSError as exc:
+                self._drop(v, f"send failed: {exc}")
+                return
+            v.woff += n
+            if v.woff >= len(v.wbuf):
+                v.wbuf, v.woff = b"", 0
+            else:
+                return

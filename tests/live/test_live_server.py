@@ -1,0 +1,168 @@
+"""The live server (engine/live/server.py) with a real twin: real Sionna paths in a box room."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from engine.live.server import LiveServer, is_loopback
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def twin(box_twin_factory):
+    return box_twin_factory()
+
+
+@pytest.fixture
+def server(twin):
+    twin.reset()
+    srv = LiveServer(twin, "127.0.0.1", 0, rate_hz=0, running=False, viewer_sndbuf=4096)
+    srv.start()
+    yield srv
+    srv.stop()
+
+
+def _wait(pred, timeout=20.0):
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def test_non_loopback_needs_a_token(twin):
+    assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
+    assert not is_loopback("0.0.0.0") and not is_loopback("")
+    with pytest.raises(ValueError, match="without an auth token"):
+        LiveServer(twin, "0.0.0.0", 0)
+    LiveServer(twin, "0.0.0.0", 0, token="t")  # constructing is fine; not started
+
+
+def test_handshake_scene_and_a_step(server, raw_viewer, wire, twin):
+    v = raw_viewer(server.address)
+    v.hello()
+    hello = v.until(lambda m: m["type"] == "hello")
+    assert hello["role"] == "engine" and hello["protocol"] == list(wire.PROTOCOL_VERSION)
+    scene = v.until(lambda m: m["type"] == "scene")
+    assert {o["name"] for o in scene["objects"]} >= {"floor", "wall_xmax"}
+    assert scene["content_hash"] == twin.scene.content_hash()
+    v.send(wire.command("step"))
+    state = v.until(lambda m: m["type"] == "state")
+    paths = v.until(lambda m: m["type"] == "paths")
+    metrics = v.until(lambda m: m["type"] == "metrics")
+    res = server.last_result
+    assert state["step"] == paths["step"] == metrics["step"] == res.step == 0
+    np.testing.assert_allclose(state["robots"][0]["pose"], res.robots["robot1"].pose, atol=1e-6)
+    lp = res.links[("AP1", "robot1")].paths
+    link = paths["links"][0]
+    assert link["num_paths"] == lp.num_paths == len(link["paths"])
+    # strongest first, powers in dB of |a|^2, polylines tx -> vertices -> rx
+    pdb = [p["power_db"] for p in link["paths"]]
+    assert pdb == sorted(pdb, reverse=True)
+    assert pdb[0] == pytest.approx(10 * np.log10(lp.power.max()), abs=1e-3)
+    for p in link["paths"]:
+        np.testing.assert_allclose(p["points"][0], lp.tx_position, atol=1e-4)
+        np.testing.assert_allclose(p["points"][-1], lp.rx_position, atol=1e-4)
+    assert metrics["links"][0]["snr_db"] == pytest.approx(res.links[("AP1", "robot1")].snr_db)
+
+
+def test_faults_from_a_viewer_are_rejected_and_the_connection_survives(server, raw_viewer, wire):
+    v = raw_viewer(server.address)
+    v.hello()
+    v.until(lambda m: m["type"] == "scene")
+    v.send_raw(wire.frame_raw(b"{broken"))
+    v.send_raw(wire.frame_raw(b'{"type": "warp"}'))
+    v.send_raw(wire.frame_raw(b'{"type": "edit", "op": "move", "target": 5}'))
+    v.send_raw(wire.frame_raw(b"z" * (wire.MAX_FRAME_BYTES + 10)))
+    v.send(wire.edit("move", "no_such_object", position=(1, 1, 1)))  # valid, but fails to apply
+    err = v.until(lambda m: m["type"] == "error")
+    assert err["code"] == "rejected" and "no_such_object" in err["message"]
+    v.send(wire.command("step"))
+    assert v.until(lambda m: m["type"] == "state")["step"] == 0
+    (info,) = server.viewers()
+    assert info["rejected"] == {"malformed": 1, "unknown_type": 1, "invalid": 1, "oversized": 1}
+
+
+def test_version_and_auth_refusals(twin, raw_viewer, wire):
+    with LiveServer(twin, "127.0.0.1", 0, token="s3cret", running=False) as srv:
+        v = raw_viewer(srv.address)
+        v.send(dict(wire.hello("viewer", token="s3cret"), protocol=[99, 0]))
+        err = v.until(lambda m: m["type"] == "error")
+        assert err["code"] == "version" and err["fatal"] and "99.0" in err["message"]
+        assert v.closed_by_peer()
+        v = raw_viewer(srv.address)
+        v.hello(token="wrong")
+        assert v.until(lambda m: m["type"] == "error")["code"] == "auth"
+        assert v.closed_by_peer()
+        v = raw_viewer(srv.address)
+        v.send(wire.command("run"))  # no hello first
+        assert v.until(lambda m: m["type"] == "error")["code"] == "handshake"
+        v = raw_viewer(srv.address)
+        v.hello(token="s3cret")
+        assert v.until(lambda m: m["type"] == "scene")
+
+
+def test_commands_and_edits_between_steps(server, raw_viewer, wire, twin):
+    v = raw_viewer(server.address)
+    v.hello()
+    v.until(lambda m: m["type"] == "scene")
+    v.send(wire.command("step"))
+    before = v.until(lambda m: m["type"] == "paths")
+    # move the far wall 0.5 m outwards: its reflections get longer
+    c = [float(x) for x in twin.scene.sionna.objects["wall_xmax"].position.numpy().reshape(-1)]
+    v.send(wire.edit("move", "wall_xmax", position=(c[0] + 0.5, c[1], c[2])))
+    v.send(wire.command("reset"))
+    v.send(wire.command("step"))
+    st = v.until(lambda m: m["type"] == "status" and m["edits_applied"] == 1)
+    after = v.until(lambda m: m["type"] == "paths")
+    assert after["step"] == before["step"] == 0  # same robot pose (reset), moved wall
+    taus_b = sorted(p["tau_s"] for p in before["links"][0]["paths"])
+    taus_a = sorted(p["tau_s"] for p in after["links"][0]["paths"])
+    assert taus_a != taus_b
+    assert taus_a[0] == pytest.approx(taus_b[0])  # LOS unchanged
+    assert st["running"] is False
+    v.send(wire.command("run"))
+    assert _wait(lambda: server.steps_done >= 3)
+    v.send(wire.command("pause"))
+    assert v.until(lambda m: m["type"] == "status" and not m["running"])
+    v.send(wire.edit("move", "wall_xmax", position=c))  # restore for other tests
+    v.send(wire.command("step"))
+    v.until(lambda m: m["type"] == "status" and m["edits_applied"] == 2)
+
+
+def test_slow_viewer_never_stalls_and_a_leaving_viewer_leaves_it_running(server, raw_viewer,
+                                                                          wire):
+    slow = raw_viewer(server.address, rcvbuf=2048)
+    slow.hello()
+    fast = raw_viewer(server.address)
+    fast.hello()
+    fast.until(lambda m: m["type"] == "scene")
+    fast.send(wire.command("run"))
+    # the slow viewer reads nothing; the twin keeps stepping and its frames coalesce
+    assert _wait(lambda: server.steps_done >= 15, timeout=40)
+    slow_info = next(i for i in server.viewers() if i["drops"])
+    assert sum(slow_info["drops"].values()) > 0
+    n = fast.until(lambda m: m["type"] == "state" and m["step"] >= 14)["step"]
+    # the slow viewer, when it finally reads, gets the newest state, not the whole backlog
+    newest = slow.until(lambda m: m["type"] == "state" and m["step"] >= n, timeout=20)
+    assert newest["step"] >= n
+    fast.close()
+    slow.close()
+    k = server.steps_done
+    assert _wait(lambda: server.steps_done >= k + 3)
+    assert _wait(lambda: server.viewers() == [])
+    again = raw_viewer(server.address)
+    again.hello()
+    assert again.until(lambda m: m["type"] == "state")["step"] >= k
+
+
+def test_serve_refuses_a_public_address_without_a_token(capsys):
+    from engine.cli import main
+
+    assert main(["serve", "--host", "0.0.0.0", "--port", "0"]) == 2
+    assert "without an auth token" in capsys.readouterr().err

@@ -1,0 +1,228 @@
+"""The add-on's live view and client pieces, headless bpy, no engine process."""
+
+from __future__ import annotations
+
+import math
+import socket
+import threading
+import time
+
+import pytest
+
+bpy = pytest.importorskip("bpy")
+
+pytestmark = pytest.mark.blender
+
+
+@pytest.fixture(scope="module")
+def addon_module():
+    import addon
+
+    if not hasattr(bpy.types.Scene, "isac_live"):
+        addon.register()
+    return addon
+
+
+@pytest.fixture
+def scene(addon_module):
+    from addon import live_view
+
+    live_view.clear(bpy.context.scene)
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    return bpy.context.scene
+
+
+def _paths(n_links=2, per_link=3):
+    links = []
+    for k in range(n_links):
+        paths = [{"points": [[0, 0, 2], [4, 3, 0.25]], "types": [], "power_db": -50.0,
+                  "tau_s": 1e-8}]
+        for i in range(per_link - 1):
+            paths.append({"points": [[0, 0, 2], [8, 1 + i, 1], [4, 3, 0.25]], "types": [1],
+                          "power_db": -60.0 - 10 * i, "tau_s": 3e-8})
+        links.append({"tx": f"AP{k}", "rx": "robot1", "num_paths": per_link, "paths": paths})
+    return {"type": "paths", "step": 7, "links": links}
+
+
+def test_ray_arrays_colour_modes(addon_module):
+    from addon import live_view
+
+    sizes, pos, col = live_view.ray_arrays(_paths(), "POWER")
+    assert sizes == [2, 3, 3] * 2 and len(pos) == 3 * 16 and len(col) == 4 * 16
+    assert tuple(col[:4]) == live_view.power_color(1.0)  # strongest path: top of the map
+    sizes, pos, col = live_view.ray_arrays(_paths(), "TYPE", max_paths=2)
+    assert sizes == [2, 3] * 2
+    # second path: tx (white), specular vertex (blue), rx (white)
+    assert tuple(col[8:12]) == live_view.TYPE_COLORS[0]
+    assert tuple(col[12:16]) == live_view.TYPE_COLORS[1]
+
+
+def test_paths_state_metrics_are_applied(scene):
+    from addon import live_view
+
+    view = live_view.LiveView()
+    live_view.apply_message(scene, _paths(), view)
+    rays = bpy.data.objects[live_view.RAYS]
+    assert rays.type == "CURVES" and len(rays.data.curves) == 6 and len(rays.data.points) == 16
+    assert scene.isac_live.num_rays == 6 and scene.isac_live.paths_step == 7
+    data = rays.data
+    live_view.apply_message(scene, _paths(1, 1), view)  # rebuilt in place, not appended
+    assert len(rays.data.curves) == 1 and rays.data == data
+    for step in range(3):
+        live_view.apply_message(scene, {
+            "type": "state", "step": step, "time_s": 0.1 * step, "robots": [{
+                "name": "robot1", "pose": [1 + 0.1 * step, 2, 0, 0, 0, math.pi / 2],
+                "velocity": [0.1, 0], "estimate": [1.05 + 0.1 * step, 2.02, 0]}]}, view)
+    bot = bpy.data.objects["ISAC_Live_robot1"]
+    assert tuple(round(x, 6) for x in bot.location) == (1.2, 2.0, 0.0)
+    assert bot.rotation_euler.z == pytest.approx(math.pi / 2)
+    assert len(bot.data.polygons) > 30  # body + wheels + nose
+    assert bpy.data.objects["ISAC_Live_robot1_estimate"].location.x == pytest.approx(1.25)
+    trail = bpy.data.objects["ISAC_Live_robot1_trail"].data.splines[0]
+    assert len(trail.points) == 3
+    live_view.apply_message(scene, {"type": "metrics", "step": 2, "links": [
+        {"tx": "AP1", "rx": "robot1", "snr_db": 31.5, "rate_bps": 2.5e8, "num_paths": 40,
+         "los": True}, {"tx": "AP2", "rx": "robot1", "snr_db": None, "rate_bps": None}]}, view)
+    rows = scene.isac_live.links
+    assert [(r.tx, round(r.snr_db, 1), r.num_paths, r.los) for r in rows[:1]] == [
+        ("AP1", 31.5, 40, True)]
+    assert math.isnan(rows[1].snr_db)
+    live_view.clear(scene)
+    assert "ISAC Live" not in bpy.data.collections
+
+
+def test_edit_tracker_move_rotate_material_remove(scene):
+    from mathutils import Vector
+
+    from addon import live_view, materials, modelling
+
+    box = modelling.add_furniture("table", (2.0, 1.0, 0.0), 0.0, scene=scene)
+    materials.tag_objects([box], "wood", 0.05)
+    bpy.context.view_layer.update()
+    lo = Vector([min(c[i] for c in box.bound_box) for i in range(3)])
+    hi = Vector([max(c[i] for c in box.bound_box) for i in range(3)])
+    centre = box.matrix_world @ ((lo + hi) / 2)
+    tr = live_view.EditTracker()
+    tr.baseline(scene, {box.name}, set())
+    assert tr.tracked == [box.name] and tr.poll(scene) == []
+    box.location.x += 1.0
+    bpy.context.view_layer.update()
+    (e,) = tr.poll(scene)
+    assert e["op"] == "move" and e["target"] == box.name
+    assert e["position"] == pytest.approx([centre.x + 1.0, centre.y, centre.z])
+    assert e["orientation"] == pytest.approx([0, 0, 0], abs=1e-6)
+    assert tr.poll(scene) == []  # sent once
+    box.rotation_euler.z = 0.5
+    bpy.context.view_layer.update()
+    (e,) = tr.poll(scene)
+    assert e["orientation"][2] == pytest.approx(0.5)
+    box.isac.itu_material = "metal"
+    (e,) = tr.poll(scene)
+    assert (e["op"], e["material"], e["thickness"]) == ("material", "metal", pytest.approx(0.05))
+    bpy.data.objects.remove(box)
+    (e,) = tr.poll(scene)
+    assert (e["op"], e["target"]) == ("remove", "Table")
+    assert tr.poll(scene) == []
+    rack = modelling.add_furniture("rack", (1.0, 1.0, 0.0), 0.0, scene=scene)  # tagged metal
+    bpy.context.view_layer.update()
+    (e,) = tr.poll(scene)
+    assert (e["op"], e["target"], e["material"]) == ("add", rack.name, "metal")
+    assert open(e["mesh_file"], "rb").read(3) == b"ply"
+    assert tr.poll(scene) == [] and rack.name in tr.tracked
+
+
+def test_live_panel_draws_from_properties_only(scene):
+    calls = []
+
+    class Stub:
+        def _child(self, *a, **k):
+            return self
+
+        row = column = box = _child
+
+        def prop(self, data, name, **k):
+            calls.append(("prop", name))
+
+        def operator(self, idname, **k):
+            calls.append(("operator", idname))
+            return type("P", (), {})()
+
+        def label(self, text="", **k):
+            calls.append(("label", text))
+
+    scene.isac_live.links.add().tx = "AP1"
+    panel = bpy.types.ISAC_PT_live
+    panel.draw(type("P", (), {"layout": Stub()})(), bpy.context)
+    ops = {c[1] for c in calls if c[0] == "operator"}
+    assert {"isac.live_connect", "isac.live_disconnect", "isac.live_start_engine",
+            "isac.live_command"} <= ops
+    assert any("AP1 ->" in c[1] for c in calls if c[0] == "label")
+    scene.isac_live.links.clear()
+    from addon import properties
+
+    prefs = properties.ISAC_AddonPreferences
+    assert prefs.is_registered and prefs.bl_idname == "addon"  # == the add-on's package
+    assert "engine_python" in prefs.__annotations__
+    assert properties.addon_preferences() is None  # registered from a script, not enabled
+
+
+def _fake_engine(major: int):
+    """A one-shot server that answers a hello with protocol ``major``.0."""
+    from addon import wire
+
+    ls = socket.socket()
+    ls.bind(("127.0.0.1", 0))
+    ls.listen(1)
+    ls.settimeout(10)
+
+    def serve():
+        try:
+            c, _ = ls.accept()
+            c.settimeout(5)
+            c.recv(4096)
+            c.sendall(wire.encode(dict(wire.hello("engine"), protocol=[major, 0])))
+            time.sleep(0.5)
+            c.close()
+        except OSError:
+            pass
+        ls.close()
+
+    threading.Thread(target=serve, daemon=True).start()
+    return ls.getsockname()[1]
+
+
+def test_client_refuses_an_engine_of_another_major_version(addon_module):
+    from addon import live
+
+    c = live.LiveClient("127.0.0.1", _fake_engine(99), backoff_s=(0.05, 0.1))
+    c.connect()
+    end = time.monotonic() + 10
+    while c.state != live.REFUSED and time.monotonic() < end:
+        c.tick()
+        time.sleep(0.01)
+    assert c.state == live.REFUSED and "incompatible" in c.last_error
+
+
+def test_client_backs_off_while_nothing_listens(addon_module):
+    from addon import live
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens here now
+    c = live.LiveClient("127.0.0.1", port, backoff_s=(0.05, 0.2))
+    c.connect()
+    worst = 0.0
+    end = time.monotonic() + 1.0
+    while time.monotonic() < end:
+        t = time.perf_counter()
+        assert c.tick() == []
+        worst = max(worst, time.perf_counter() - t)
+        time.sleep(0.005)
+    assert c.state in (live.WAITING, live.CONNECTING) and c._failures >= 3
+    assert worst < 0.05
+    c.send(live.wire.command("run"))  # queued while disconnected, not lost
+    assert len(c.outbox) == 1
+    c.disconnect()
+    assert c.state == live.IDLE

@@ -1,0 +1,150 @@
+"""The wire format (addon/wire.py): framing, validation, every fault, versioning."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import pytest
+
+
+def _paths_msg():
+    return {"type": "paths", "step": 3, "links": [{
+        "tx": "AP1", "rx": "robot1", "num_paths": 2, "paths": [
+            {"points": [[0, 0, 2], [1, 1, 1]], "types": [], "power_db": -50.0, "tau_s": 1e-8},
+            {"points": [[0, 0, 2], [3, 0, 1], [1, 1, 1]], "types": [1], "power_db": -60.0,
+             "tau_s": 2e-8}]}]}
+
+
+def _all_messages(wire):
+    return [
+        wire.hello("engine", "isac-twin", capabilities=["state"]),
+        wire.hello("viewer", "blender", token="secret"),
+        wire.error("rejected", "edit move: unknown object 'x'", ref="x"),
+        {"type": "scene", "name": "lab", "content_hash": "ab" * 32, "frequency_hz": 2.4e9,
+         "objects": [{"name": "Wall", "material": "concrete", "thickness": 0.2,
+                      "bounds_min": [0, 0, 0], "bounds_max": [1, 1, 1]}],
+         "devices": [{"name": "AP1", "kind": "access_point", "role": "tx",
+                      "position": [0, 0, 2], "orientation": [0, 0, 0], "model": None}],
+         "links": [["AP1", "robot1"]]},
+        {"type": "state", "step": 0, "time_s": 0.1, "scene_hash": "x",
+         "robots": [{"name": "robot1", "pose": [1, 2, 0, 0, 0, 1.5], "velocity": [0.2, 0],
+                     "odometry": [1, 2, 1.5], "estimate": None}]},
+        _paths_msg(),
+        {"type": "metrics", "step": 3, "links": [{"tx": "AP1", "rx": "robot1", "snr_db": 20.5,
+                                                  "rate_bps": 1e8, "num_paths": 2}]},
+        {"type": "status", "running": True, "step": 4, "rate_hz": 10.0, "viewers": 1},
+        wire.edit("move", "Table_1", position=(1, 2, 0.4), orientation=(0, 0, 0.5)),
+        wire.edit("material", "Table_1", material="metal", thickness=0.01),
+        wire.edit("remove", "Chair_1"),
+        wire.edit("add", "Box", position=(1, 1, 0), material="wood", mesh_file="/tmp/b.ply"),
+        wire.command("run"), wire.command("teleop", robot="robot1", linear=0.1, angular=0.2),
+    ]
+
+
+def test_every_message_type_round_trips(wire):
+    msgs = _all_messages(wire)
+    assert {m["type"] for m in msgs} == set(wire.MESSAGES)
+    stream = b"".join(wire.encode(m) for m in msgs)
+    dec = wire.Decoder()
+    assert dec.feed(stream) == msgs
+    assert not dec.rejections and dec.buffered == 0
+
+
+def test_byte_by_byte_and_split_frames(wire):
+    msgs = _all_messages(wire)
+    stream = b"".join(wire.encode(m) for m in msgs)
+    dec = wire.Decoder()
+    out = []
+    for i in range(len(stream)):
+        out += dec.feed(stream[i:i + 1])
+    assert out == msgs
+
+
+def test_engine_and_addon_share_one_definition(wire):
+    from pathlib import Path
+
+    assert Path(wire.__file__).resolve() == Path(__file__).resolve().parents[2] / "addon/wire.py"
+    assert wire.__name__ == "isac_twin_wire"
+
+
+@pytest.mark.parametrize("payload, kind, reason", [
+    (b"{not json", "malformed", "not UTF-8 JSON"),
+    (b"\xff\xfe\x00", "malformed", "not UTF-8 JSON"),
+    (b"[1, 2, 3]", "invalid", "must be a JSON object"),
+    (b'{"step": 1}', "invalid", "field 'type' missing"),
+    (b'{"type": "teleport"}', "unknown_type", "unknown message type 'teleport'"),
+    (b'{"type": "state", "step": "one", "time_s": 0, "robots": []}', "invalid",
+     "field 'step' must be an integer"),
+    (b'{"type": "state", "step": 1, "time_s": 0}', "invalid", "field 'robots' missing"),
+    (b'{"type": "state", "step": 1, "time_s": 0, "robots": [{"name": "r", "pose": [1, 2],'
+     b' "velocity": [0, 0]}]}', "invalid", "a list of 6 numbers"),
+    (b'{"type": "edit", "op": "explode", "target": "x"}', "invalid", "field 'op' must be one of"),
+    (b'{"type": "edit", "op": "move", "target": "x", "position": [1, "a", 3]}', "invalid",
+     "field 'position' must be a list of 3 numbers"),
+    (b'{"type": "command", "op": "run", "args": []}', "invalid", "field 'args' must be an object"),
+    (b'{"type": "hello", "protocol": [1, 0], "role": "viewer", "capabilities": "all"}',
+     "invalid", "field 'capabilities' must be a list"),
+])
+def test_faults_are_rejected_with_a_reason_and_the_stream_survives(wire, caplog, payload,
+                                                                    kind, reason):
+    good = wire.command("pause")
+    dec = wire.Decoder(peer="fuzz")
+    with caplog.at_level(logging.WARNING):
+        out = dec.feed(wire.frame_raw(payload) + wire.encode(good))
+    assert out == [good]
+    assert dict(dec.rejections) == {kind: 1}
+    assert reason in dec.reasons[-1]
+    assert any(reason in r.getMessage() and "fuzz" in r.getMessage() for r in caplog.records)
+
+
+def test_oversized_frame_is_skipped_even_when_it_arrives_in_pieces(wire):
+    dec = wire.Decoder(max_frame=100)
+    big = wire.frame_raw(b"x" * 5000)
+    good = wire.command("step")
+    stream = wire.encode(good) + big + wire.encode(good)
+    out = []
+    for i in range(0, len(stream), 7):
+        out += dec.feed(stream[i:i + 7])
+    assert out == [good, good]
+    assert dict(dec.rejections) == {"oversized": 1}
+    assert "5000 bytes exceeds the maximum of 100" in dec.reasons[0]
+
+
+def test_direction_is_enforced(wire):
+    dec = wire.Decoder("v2e")
+    assert dec.feed(wire.encode({"type": "status", "running": True, "step": 1})) == []
+    assert "not accepted in direction v2e" in dec.reasons[0]
+    dec = wire.Decoder("e2v")
+    assert dec.feed(wire.encode(wire.command("run"))) == []
+
+
+def test_paths_point_count_must_match_interactions(wire):
+    msg = _paths_msg()
+    msg["links"][0]["paths"][1]["types"] = [1, 1]
+    assert "3 points for 2 interactions" in wire.validate(msg)
+
+
+def test_encode_refuses_invalid_nan_and_oversized(wire):
+    with pytest.raises(wire.WireError, match="field 'step' missing"):
+        wire.encode({"type": "paths", "links": []})
+    with pytest.raises(wire.WireError, match="cannot encode"):
+        wire.encode({"type": "status", "running": True, "step": 1, "rate_hz": float("nan")})
+    with pytest.raises(wire.WireError, match="exceeds the maximum"):
+        wire.encode(wire.error("x", "y" * 1000), max_frame=100)
+    assert wire.finite_or_none(float("inf")) is None and wire.finite_or_none(2) == 2.0
+
+
+def test_version_check(wire):
+    ok = wire.hello("viewer")
+    assert wire.check_version(ok) is None
+    assert wire.check_version(dict(ok, protocol=[wire.PROTOCOL_VERSION[0], 99])) is None
+    why = wire.check_version(dict(ok, protocol=[wire.PROTOCOL_VERSION[0] + 1, 0]))
+    assert "incompatible" in why and "major versions differ" in why
+
+
+def test_frames_are_compact_json(wire):
+    frame = wire.encode(wire.command("run"))
+    n = int.from_bytes(frame[:4], "big")
+    assert n == len(frame) - 4
+    assert json.loads(frame[4:]) == {"type": "command", "op": "run", "args": {}}
