@@ -55,6 +55,8 @@ def add_access_point(
     polarization: str = "V",
     power_dbm: float = 20.0,
     role: str = "tx",
+    subcarriers: Sequence[int] | None = None,
+    symbols: Sequence[int] | None = None,
     scene=None,
 ):
     """An access point: an empty at the array centre whose +x axis is the boresight.
@@ -69,6 +71,8 @@ def add_access_point(
         polarization: "V" | "H" | "VH" | "cross".
         power_dbm: total transmit power, dBm.
         role: "tx" | "rx" | "txrx".
+        subcarriers, symbols: resource set as half-open ``[start, stop)`` ranges
+            (None: the whole grid).
 
     Returns:
         The new empty object.
@@ -79,7 +83,31 @@ def add_access_point(
     p.role = role
     p.power_dbm = float(power_dbm)
     _set_array(p, rows, cols, vertical_spacing, horizontal_spacing, pattern, polarization)
+    set_resources(obj, subcarriers, symbols)
     return obj
+
+
+def set_resources(obj, subcarriers: Sequence[int] | None = None,
+                  symbols: Sequence[int] | None = None) -> None:
+    """Set a transmitter's resource set R_q: half-open ``[start, stop)`` ranges of
+    subcarriers and OFDM symbols; None keeps the whole grid on that axis."""
+    p = obj.isac
+    p.subcarrier_start, p.subcarrier_stop = subcarriers if subcarriers else (0, 0)
+    p.symbol_start, p.symbol_stop = symbols if symbols else (0, 0)
+
+
+def set_circle_path(obj, centre: Sequence[float], radius: float, direction: str = "ccw",
+                    speed: float | None = None) -> None:
+    """Make a robot follow a circle (centre ``[2]`` m, radius m, ``"ccw"``/``"cw"``,
+    cruise speed m/s or None for the model's limit) in the twin."""
+    p = obj.isac
+    if p.device_kind != "ROBOT":
+        raise ValueError(f"'{obj.name}' is not a robot: only robots follow paths")
+    p.path_kind = "circle"
+    p.path_centre = tuple(centre)
+    p.path_radius = float(radius)
+    p.path_direction = direction
+    p.path_speed = float(speed or 0.0)
 
 
 def add_robot(

@@ -91,6 +91,10 @@ class ISAC_PT_object(_Base, bpy.types.Panel):
         if p.device_kind == "ROBOT":
             layout.prop(p, "robot_model")
             layout.prop(p, "antenna_offset")
+            layout.prop(p, "path_kind")
+            if p.path_kind == "circle":
+                for key in ("path_centre", "path_radius", "path_direction", "path_speed"):
+                    layout.prop(p, key)
         box = layout.box()
         box.label(text="Antenna array")
         row = box.row(align=True)
@@ -101,6 +105,15 @@ class ISAC_PT_object(_Base, bpy.types.Panel):
         row.prop(p, "horizontal_spacing")
         box.prop(p, "pattern")
         box.prop(p, "polarization")
+        if p.role in ("tx", "txrx"):
+            box = layout.box()
+            box.label(text="Resource set (0, 0 = whole grid)")
+            row = box.row(align=True)
+            row.prop(p, "subcarrier_start")
+            row.prop(p, "subcarrier_stop")
+            row = box.row(align=True)
+            row.prop(p, "symbol_start")
+            row.prop(p, "symbol_stop")
 
 
 class ISAC_PT_links(_Base, bpy.types.Panel):

@@ -59,6 +59,24 @@ class ISAC_ObjectProps(bpy.types.PropertyGroup):
     antenna_offset: FloatVectorProperty(name="Antenna offset", size=3, default=(0.0, 0.0, 0.25),
                                         subtype="TRANSLATION", unit="LENGTH",
                                         description="Array centre in base_link, m")
+    # resource set R_q (transmitters): half-open ranges; all four 0 = the whole grid
+    subcarrier_start: IntProperty(name="First subcarrier", default=0, min=0)
+    subcarrier_stop: IntProperty(name="Stop subcarrier", default=0, min=0,
+                                 description="One past the last subcarrier (0 = all)")
+    symbol_start: IntProperty(name="First symbol", default=0, min=0)
+    symbol_stop: IntProperty(name="Stop symbol", default=0, min=0,
+                             description="One past the last OFDM symbol (0 = all)")
+    # robots: the path the twin's controller follows
+    path_kind: EnumProperty(name="Path", default="NONE", items=[
+        ("NONE", "None", "No path: the robot stands until commanded"),
+        ("circle", "Circle", "Pure pursuit on a circle")])
+    path_centre: FloatVectorProperty(name="Centre", size=2, default=(0.0, 0.0),
+                                     subtype="XYZ", unit="LENGTH")
+    path_radius: FloatProperty(name="Radius", default=1.0, min=0.0, unit="LENGTH")
+    path_direction: EnumProperty(name="Direction", default="ccw", items=[
+        ("ccw", "Counter-clockwise", ""), ("cw", "Clockwise", "")])
+    path_speed: FloatProperty(name="Speed", default=0.0, min=0.0,
+                              description="Cruise speed, m/s (0 = the model's limit)")
 
 
 class ISAC_LinkItem(bpy.types.PropertyGroup):

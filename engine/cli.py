@@ -59,8 +59,156 @@ def cmd_info(args) -> int:
         print(f"  device {d.name}: {d.kind} {d.role}, {d.array.rows}x{d.array.cols} "
               f"{d.array.polarization} ({d.array.num_ant} ports), {d.power_dbm:g} dBm at "
               f"{tuple(round(x, 3) for x in d.position)}")
+        if d.is_tx:
+            print(f"    resources: subcarriers [{d.subcarriers[0]}, {d.subcarriers[1]}), "
+                  f"symbols [{d.symbols[0]}, {d.symbols[1]})")
+        if d.path is not None:
+            print(f"    path: {d.path}")
     for lk in cfg.links:
         print(f"  link {lk.tx} -> {lk.rx}")
+    return 0
+
+
+def _trace_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--out", type=Path, default=None,
+                   help="write the paths: .json (per-link summary) or .npz (full arrays)")
+
+
+@command("trace", "trace all links of a scene once and print a per-link table", _trace_args)
+def cmd_trace(args) -> int:
+    import json
+
+    import numpy as np
+
+    from engine.raytrace import device_poses, make_tracer
+    from engine.scene import load_scene
+
+    scene = load_scene(scene_path(args))
+    cfg = scene.config
+    if args.out is not None and args.out.suffix not in (".json", ".npz"):
+        print(f"isac-twin: error: --out {args.out}: expected a .json or .npz file",
+              file=sys.stderr)
+        return 2
+    try:
+        res = make_tracer(cfg)(scene, device_poses(cfg))
+    except ValueError as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{cfg.scene.name}: {len(res)} links traced with backend {cfg.tracer.backend!r} "
+          f"at {cfg.scene.frequency_hz / 1e9:g} GHz")
+    print(f"  {'link':<24} {'paths':>5} {'LOS':>4} {'LOS delay ns':>13} {'dist m':>7} "
+          f"{'strongest dB':>13} {'total dB':>9}")
+    rows = []
+    for lp in res.values():
+        s = lp.summary()
+        rows.append(s)
+        los = f"{s['los_delay_s'] * 1e9:13.4f}" if s["los"] else f"{'-':>13}"
+        strong = s["strongest_path_gain_db"]
+        total = s["total_gain_db"]
+        print(f"  {lp.tx + ' -> ' + lp.rx:<24} {s['num_paths']:>5} {'yes' if s['los'] else 'no':>4} "
+              f"{los} {s['distance_m']:7.3f} "
+              f"{strong if strong is None else round(strong, 2):>13} "
+              f"{total if total is None else round(total, 2):>9}")
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        if args.out.suffix == ".json":
+            doc = {"scene": cfg.scene.name, "scene_hash": scene.content_hash(),
+                   "frequency_hz": cfg.scene.frequency_hz, "backend": cfg.tracer.backend,
+                   "links": rows}
+            args.out.write_text(json.dumps(doc, indent=2) + "\n")
+        else:
+            arrays = {}
+            for (tx, rx), lp in res.items():
+                for k in ("a", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r",
+                          "vertices", "interactions", "tx_position", "rx_position",
+                          "tx_orientation", "rx_orientation"):
+                    arrays[f"{tx}->{rx}/{k}"] = getattr(lp, k)
+            np.savez(args.out, links=np.array(json.dumps(rows)), **arrays)
+        print(f"wrote {args.out}")
+    return 0
+
+
+def _grid_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--spacing", type=float, default=0.05, help="grid spacing, m (default 0.05)")
+    p.add_argument("--height", type=float, default=None,
+                   help="receiver height z, m (default: the first robot's antenna height)")
+    p.add_argument("--margin", type=float, default=0.0,
+                   help="distance kept from the room's bounding box, m")
+    p.add_argument("--tx", action="append", default=None,
+                   help="transmitter to trace (repeatable; default: all link transmitters)")
+    p.add_argument("--chunk-size", type=int, default=None, help="receivers per solver call")
+    p.add_argument("--deterministic", action="store_true",
+                   help="use Sionna's deterministic generator (needs much more memory)")
+    p.add_argument("--verify", type=int, default=8,
+                   help="re-trace this many points one per call and report missing paths")
+    p.add_argument("--compress", action="store_true", help="write a compressed NPZ")
+    p.add_argument("--out", type=Path, required=True, help="output grid file (.npz)")
+
+
+@command("grid", "trace a floor grid of receiver positions and store it (NPZ)", _grid_args)
+def cmd_grid(args) -> int:
+    import time
+
+    from engine.raytrace.base import TruncationError
+    from engine.raytrace.grid import grid_summary, save_grid, trace_grid
+    from engine.scene import load_scene
+
+    scene = load_scene(scene_path(args))
+    t0 = time.perf_counter()
+    try:
+        g = trace_grid(scene, args.tx, spacing=args.spacing, height=args.height,
+                       margin=args.margin, chunk_size=args.chunk_size,
+                       deterministic=True if args.deterministic else None,
+                       verify=args.verify)
+    except (ValueError, TruncationError) as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
+    save_grid(g, args.out, compress=args.compress)
+    s = grid_summary(g)
+    print(f"grid {s['shape'][0]} x {s['shape'][1]} at {s['spacing']:g} m, z={s['height']:.3f} m: "
+          f"{s['free']}/{s['points']} points in free space, {s['mean_paths_per_link']:.1f} "
+          f"paths per link on average (max {s['max_paths_per_link']}), "
+          f"{s['truncation_retries']} truncation retries, {time.perf_counter() - t0:.1f} s")
+    v = s["verification"]
+    if v.get("points"):
+        print(f"verification: {v['points']} points re-traced one per call: "
+              f"{v['paths_missing']} of {v['paths_single_calls']} paths missing in the grid")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _run_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--steps", type=int, default=100, help="steps to run (default 100)")
+    p.add_argument("--rate", type=float, default=None,
+                   help="pace the loop at this many steps per second in real time "
+                        "(default: as fast as possible)")
+    p.add_argument("--dt", type=float, default=0.05, help="simulated time per step, s")
+    p.add_argument("--seed", type=int, default=0, help="seed of every random stream")
+    p.add_argument("--no-phy", action="store_true", help="skip channels and rates")
+    p.add_argument("--timing", action="store_true", help="print the per-stage timing table")
+
+
+@command("run", "run the twin (Algorithm 1) for N steps and print a per-step line", _run_args)
+def cmd_run(args) -> int:
+    from engine.twin import Twin
+
+    if args.steps < 0:
+        print(f"isac-twin: error: --steps {args.steps}: expected >= 0", file=sys.stderr)
+        return 2
+    twin = Twin.from_scene(scene_path(args), seed=args.seed, dt=args.dt, phy=not args.no_phy)
+    for r in twin.run(args.steps, rate_hz=args.rate):
+        parts = [f"step {r.step:4d} t={r.time_s:6.2f}s"]
+        for name, rb in r.robots.items():
+            parts.append(f"{name} ({rb.pose[0]:.2f}, {rb.pose[1]:.2f}) yaw {rb.pose[5]:+.2f}")
+        for (tx, rx), ls in r.links.items():
+            parts.append(f"{tx}->{rx} {ls.paths.num_paths if ls.paths else 0} paths"
+                         + ("" if args.no_phy else f" {ls.rate_bps / 1e6:.0f} Mbit/s"))
+        print("  ".join(parts), flush=True)
+    if args.timing:
+        print(twin.stats.table())
     return 0
 
 
@@ -85,6 +233,252 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"isac-twin: error: {exc}", file=sys.stderr)
         return 2
+
+
+def _topics_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--steps", type=int, default=0,
+                   help="run the robots this many 50 ms steps first (fills MSGS; the LiDAR "
+                        "then loads the scene into Mitsuba)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the robots' noise")
+
+
+@command("topics", "list the topic bus registry of a twin's robots (nodes, topics, types)",
+         _topics_args)
+def cmd_topics(args) -> int:
+    from engine.bus import Bus
+    from engine.robots import build_robots
+    from engine.scene import load_scene
+
+    scene = load_scene(scene_path(args), load_sionna=False)
+    bus = Bus()
+    agents = build_robots(scene.config, bus, scene, seed=args.seed)
+    dt = 0.05
+    for k in range(max(args.steps, 0)):
+        for a in agents.values():
+            a.step((k + 1) * dt, dt)
+    print(f"scene {scene.config.scene.name}: {len(agents)} robots "
+          f"({', '.join(agents) or 'none'}), {max(args.steps, 0)} steps")
+    print(bus.registry().table())
+    return 0
+
+
+def _serve_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1; others need --token)")
+    p.add_argument("--port", type=int, default=8765, help="TCP port (0 = any free port)")
+    p.add_argument("--token", default=None, help="shared secret viewers must send")
+    p.add_argument("--rate", type=float, default=10.0,
+                   help="at most this many steps per second (0 = as fast as possible)")
+    p.add_argument("--steps", type=int, default=None, help="pause after this many steps")
+    p.add_argument("--linger", type=float, default=None,
+                   help="with --steps: exit this many seconds after the last step")
+    p.add_argument("--paused", action="store_true", help="start paused (wait for run/step)")
+    p.add_argument("--max-paths", type=int, default=None,
+                   help="ray polylines per link sent to viewers (strongest first)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the twin's noise")
+    p.add_argument("--twin", default=None,
+                   help="twin factory MODULE:ATTR with .from_scene(path, seed=) "
+                        "(default engine.twin:Twin, else engine.live.line_twin:LineTwin)")
+    p.add_argument("--port-file", type=Path, default=None,
+                   help="write the port listened on to this file once listening")
+    p.add_argument("--step-log", type=Path, default=None,
+                   help="append a JSON line per step (poses, path counts, SNR)")
+
+
+def _twin_factory(spec: str | None):
+    import importlib
+
+    if spec:
+        mod, _, attr = spec.partition(":")
+        return getattr(importlib.import_module(mod), attr or "Twin")
+    try:
+        from engine.twin import Twin
+
+        return Twin
+    except ImportError as exc:
+        logging.getLogger("engine.cli").warning(
+            "engine.twin is not available (%s): serving the LineTwin stand-in", exc)
+        from engine.live.line_twin import LineTwin
+
+        return LineTwin
+
+
+@command("serve", "run the twin and stream it to Blender viewers over TCP", _serve_args)
+def cmd_serve(args) -> int:
+    import signal
+    import threading
+
+    from engine.live.protocol import wire
+    from engine.live.server import LiveServer, is_loopback
+
+    if not is_loopback(args.host) and not args.token:  # before the slow twin load
+        print(f"isac-twin: error: refusing to listen on non-loopback address {args.host!r} "
+              "without an auth token (pass --token)", file=sys.stderr)
+        return 2
+    factory = _twin_factory(args.twin)
+    twin = factory.from_scene(scene_path(args), seed=args.seed)
+    try:
+        server = LiveServer(twin, args.host, args.port, token=args.token, rate_hz=args.rate,
+                            max_steps=args.steps, running=not args.paused,
+                            max_paths=args.max_paths or wire.DEFAULT_MAX_PATHS_PER_LINK,
+                            step_log=args.step_log)
+        server.start()
+    except (ValueError, OSError) as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    host, port = server.address
+    if args.port_file is not None:
+        tmp = args.port_file.with_suffix(".tmp")
+        tmp.write_text(f"{port}\n")
+        tmp.replace(args.port_file)
+    print(f"isac-twin serve: listening on {host}:{port} ({type(twin).__name__}, "
+          f"scene {twin.scene.config.scene.name}, protocol "
+          f"{'.'.join(map(str, wire.PROTOCOL_VERSION))})", flush=True)
+    try:
+        while not stop.is_set():
+            if args.linger is not None and server.done.is_set():
+                stop.wait(args.linger)
+                break
+            stop.wait(0.2)
+    finally:
+        server.stop()
+    print(f"isac-twin serve: stopped after {server.steps_done} steps", flush=True)
+    return 0
+
+
+# ---------------------------------------------------------------- network: robot, record, replay
+
+def _robot_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", type=Path, help="robot.toml (see engine/runtime.py, docs/network.md)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+
+
+@command("robot", "run the robot runtime: drivers, estimation, control, topics on zenoh",
+         _robot_args)
+def cmd_robot(args) -> int:
+    import signal
+    import threading
+
+    from engine.runtime import RobotConfigError, RobotRuntime, load_robot_config
+
+    try:
+        cfg = load_robot_config(args.config)
+    except RobotConfigError as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    rt = RobotRuntime(cfg).start()
+    print(f"isac-twin robot: {cfg.name} ({cfg.model}{', emulated' if cfg.emulated else ''}) up, "
+          f"zenoh {rt.transport.zid()} listen {cfg.network.listen} connect "
+          f"{cfg.network.connect}", flush=True)
+    try:
+        stop.wait(args.duration)
+    finally:
+        rt.stop()
+    print(f"isac-twin robot: stopped ({rt.stats})", flush=True)
+    return 0
+
+
+def _record_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--steps", type=int, default=100, help="twin steps to run (default 100)")
+    p.add_argument("--out", type=Path, required=True, help="output .mcap")
+    p.add_argument("--rate", type=float, default=None, help="steps per second (default: max)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the twin's noise")
+    p.add_argument("--compression", choices=("none", "zstd", "lz4"), default="none")
+    p.add_argument("--connect", action="append", default=None,
+                   help="zenoh endpoint of real robots to mirror (repeatable), "
+                        "e.g. tcp/127.0.0.1:7447")
+
+
+@command("record", "run the twin and record all its topics, link metrics and paths to MCAP",
+         _record_args)
+def cmd_record(args) -> int:
+    from engine.record import record_twin
+    from engine.twin import Twin
+
+    twin = Twin.from_scene(scene_path(args), seed=args.seed)
+    bridge = None
+    if args.connect:
+        from engine.transport.bridge import TwinBridge
+        from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
+
+        bridge = TwinBridge(twin, ZenohTransport(ZenohConfig(connect=args.connect)))
+    try:
+        rec = record_twin(twin, args.steps, args.out, rate_hz=args.rate,
+                          compression=args.compression, bridge=bridge)
+    finally:
+        if bridge is not None:
+            bridge.close()
+    print(f"recorded {rec.messages} messages of {args.steps} steps to {args.out}")
+    return 0
+
+
+def _replay_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", type=Path, help="an .mcap written by `isac-twin record`")
+    p.add_argument("--scene", type=Path, default=None,
+                   help="scene folder (default: the one named in the recording)")
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="pace relative to the recording (0 = as fast as possible)")
+    p.add_argument("--steps", type=int, default=None, help="steps (default: the recording's)")
+    p.add_argument("--bus-only", action="store_true",
+                   help="only re-publish the messages on a bus and print the topic table")
+    p.add_argument("--serve", type=int, default=None, metavar="PORT",
+                   help="stream the replaying twin to Blender viewers on 127.0.0.1:PORT")
+
+
+@command("replay", "replay an MCAP recording: drive a twin along the recorded trajectories",
+         _replay_args)
+def cmd_replay(args) -> int:
+    from engine.record import TrajectoryReplay, read_metadata, replay_to_bus
+
+    if args.bus_only:
+        from engine.bus import Bus
+
+        bus = Bus()
+        n = replay_to_bus(args.recording, bus, speed=args.speed or None)
+        print(f"replayed {n} messages")
+        print(bus.registry().table())
+        return 0
+    from engine.twin import Twin
+
+    meta = read_metadata(args.recording)
+    scene = args.scene or (Path(meta["scene"]) if meta.get("scene") else None)
+    if scene is None:
+        print("isac-twin: error: the recording names no scene: pass --scene", file=sys.stderr)
+        return 2
+    dt = float(meta.get("dt", 0.05))
+    twin = Twin.from_scene(scene, seed=int(meta.get("seed", 0)), dt=dt)
+    try:
+        rp = TrajectoryReplay(twin, args.recording)
+    except ValueError as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
+    steps = args.steps if args.steps is not None else rp.steps
+    rate = args.speed / dt if args.speed else None
+    if args.serve is not None:
+        from engine.live.server import LiveServer
+
+        server = LiveServer(twin, "127.0.0.1", args.serve, rate_hz=rate or 0.0, max_steps=steps)
+        server.start()
+        print(f"isac-twin replay: serving on 127.0.0.1:{server.address[1]}", flush=True)
+        try:
+            server.done.wait()
+        finally:
+            server.stop()
+        return 0
+    for res in twin.run(steps, rate_hz=rate):
+        poses = "  ".join(f"{n} ({r.pose[0]:.2f}, {r.pose[1]:.2f})" for n, r in res.robots.items())
+        snr = "  ".join(f"{tx}->{rx} {ls.snr_db:.1f} dB" for (tx, rx), ls in res.links.items())
+        print(f"step {res.step:4d} t={res.time_s:7.2f} s  {poses}  {snr}")
+    return 0
 
 
 if __name__ == "__main__":

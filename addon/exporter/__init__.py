@@ -127,6 +127,13 @@ def validate_device(obj) -> list[str]:
                        f"got {getattr(p, key)}")
     if not math.isfinite(p.power_dbm):
         out.append(f"Device '{obj.name}': power_dbm must be finite, got {p.power_dbm}")
+    for axis in ("subcarrier", "symbol"):
+        start, stop = getattr(p, f"{axis}_start"), getattr(p, f"{axis}_stop")
+        if (start or stop) and not 0 <= start < stop:
+            out.append(f"Device '{obj.name}': {axis} range [{start}, {stop}) is empty "
+                       "(use 0, 0 for the whole grid)")
+    if p.device_kind == "ROBOT" and p.path_kind == "circle" and not p.path_radius > 0:
+        out.append(f"Device '{obj.name}': path radius must be > 0 m, got {p.path_radius}")
     return out
 
 
@@ -218,6 +225,12 @@ def _device_entry(obj, depsgraph) -> dict:
         "position": pos,
         "orientation": rot,
         "power_dbm": float(p.power_dbm),
+    })
+    if p.subcarrier_start or p.subcarrier_stop:
+        entry["subcarriers"] = [int(p.subcarrier_start), int(p.subcarrier_stop)]
+    if p.symbol_start or p.symbol_stop:
+        entry["symbols"] = [int(p.symbol_start), int(p.symbol_stop)]
+    entry.update({
         "array": {
             "rows": int(p.array_rows),
             "cols": int(p.array_cols),
@@ -227,6 +240,12 @@ def _device_entry(obj, depsgraph) -> dict:
             "polarization": p.polarization,
         },
     })
+    if p.device_kind == "ROBOT" and p.path_kind == "circle":
+        path = {"kind": "circle", "centre": [clean(float(x), 1e-9) for x in p.path_centre],
+                "radius": float(p.path_radius), "direction": p.path_direction}
+        if p.path_speed > 0:
+            path["speed"] = float(p.path_speed)
+        entry["path"] = path
     return entry
 
 

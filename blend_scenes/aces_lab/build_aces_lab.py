@@ -80,16 +80,21 @@ def build(scene=None):
             raise RuntimeError(f"{name} intrudes into the robot's circle ({gap:.2f} m)")
         modelling.add_furniture(kind, loc, yaw, name=name, scene=scene)
 
-    # AP1 on the west wall (x = 0) facing +x into the room; AP2 on the south wall facing +y
+    # AP1 on the west wall (x = 0) facing +x into the room; AP2 on the south wall facing +y.
+    # They share the band but not the time: AP1 sends on OFDM symbols 0-6, AP2 on 7-13,
+    # so each link's rate is its own (the paper plots them side by side, not interfering).
     devices.add_access_point("AP1", (0.05, 3.0, 2.0), (0.0, 0.0, 0.0), rows=4, cols=8,
                              vertical_spacing=0.5, horizontal_spacing=0.5, pattern="iso",
-                             polarization="V", power_dbm=20.0, role="tx", scene=scene)
+                             polarization="V", power_dbm=20.0, role="tx", symbols=(0, 7),
+                             scene=scene)
     devices.add_access_point("AP2", (4.0, 0.05, 2.0), (0.0, 0.0, math.pi / 2), rows=1, cols=1,
                              pattern="iso", polarization="V", power_dbm=20.0, role="tx",
-                             scene=scene)
-    devices.add_robot("robot1", (5.5, 3.0, 0.0), math.pi / 2, model="burger", rows=1, cols=2,
-                      antenna_offset=(0.0, 0.0, 0.25), pattern="iso", polarization="V",
-                      power_dbm=10.0, role="rx", scene=scene)
+                             symbols=(7, 14), scene=scene)
+    robot = devices.add_robot("robot1", (5.5, 3.0, 0.0), math.pi / 2, model="burger", rows=1,
+                              cols=2, antenna_offset=(0.0, 0.0, 0.25), pattern="iso",
+                              polarization="V", power_dbm=10.0, role="rx", scene=scene)
+    # The paper's circular path (section IV), counter-clockwise from the start pose.
+    devices.set_circle_path(robot, FREE_CENTRE, 1.5, "ccw")
     devices.set_radio_settings(scene, frequency_hz=2.4e9, num_subcarriers=1024,
                                subcarrier_spacing_hz=78125.0, num_symbols=14,
                                cyclic_prefix_samples=72, twin_name="aces_lab")

@@ -246,3 +246,31 @@ def test_refuses_blend_relative_folder_when_unsaved(scene):
     assert bpy.data.filepath == ""
     with pytest.raises(ExportError, match="'//scene' is relative"):
         export_scene(scene, "//scene")
+
+
+def test_resource_sets_and_robot_path_reach_twin_toml(scene, tmp_path):
+    from addon import devices
+    from addon.exporter import export_scene
+
+    small_scene(scene)
+    devices.set_resources(scene.objects["AP1"], subcarriers=(0, 512), symbols=(2, 9))
+    devices.set_circle_path(scene.objects["robot1"], (2.0, 1.5), 0.5, "cw", speed=0.1)
+    export_scene(scene, tmp_path / "out", interchange=False)
+    data = tomllib.loads((tmp_path / "out" / "twin.toml").read_text())
+    ap, robot = data["devices"][0], data["devices"][1]
+    assert ap["subcarriers"] == [0, 512] and ap["symbols"] == [2, 9]
+    assert "subcarriers" not in robot  # the default: the whole grid
+    assert robot["path"] == {"kind": "circle", "centre": [2.0, 1.5], "radius": 0.5,
+                             "direction": "cw", "speed": pytest.approx(0.1)}
+    with pytest.raises(ValueError, match="only robots follow paths"):
+        devices.set_circle_path(scene.objects["AP1"], (1, 1), 1.0)
+
+
+def test_refuses_empty_resource_range(scene, tmp_path):
+    from addon import devices
+    from addon.exporter import ExportError, export_scene
+
+    small_scene(scene)
+    devices.set_resources(scene.objects["AP1"], symbols=(9, 3))
+    with pytest.raises(ExportError, match=r"Device 'AP1': symbol range \[9, 3\) is empty"):
+        export_scene(scene, tmp_path / "out", interchange=False)
