@@ -1,0 +1,300 @@
+"""A zenoh network transport for :class:`engine.bus.Bus`, wire-compatible with rmw_zenoh.
+
+Each bus topic maps to one zenoh key expression (see
+:mod:`engine.transport.keyexpr`), payloads are CDR with the 4-byte
+encapsulation header (:mod:`engine.transport.cdr`), and every sample carries
+the rmw_zenoh attachment (sequence number, source timestamp, GID).
+
+Sessions default to **peer mode on loopback with multicast scouting off**:
+endpoints are explicit (``listen=["tcp/127.0.0.1:7447"]`` on one side,
+``connect=[...]`` on the other) so tests never touch another address. A
+router (``rmw_zenohd`` / ``zenohd``) is just a ``connect`` endpoint; ``mode``
+may be ``"client"`` to go through it only.
+
+Faults: :meth:`ZenohTransport.partition` closes the session (the network is
+gone for this process: publications are dropped, nothing arrives) and
+:meth:`ZenohTransport.heal` reopens it with the same configuration and
+re-declares every publisher and subscriber. Zenoh reconnects peers by itself
+(``connect`` endpoints are retried), so a restarted remote process is
+rejoined without help.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+
+from engine.transport import cdr
+from engine.transport.keyexpr import Attachment, parse_topic_key, topic_key
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ZenohConfig:
+    """Where and how a process joins the zenoh network.
+
+    Attributes:
+        mode: ``"peer"`` (default), ``"client"`` (through a router) or ``"router"``.
+        listen: endpoints to listen on, e.g. ``["tcp/127.0.0.1:7447"]``.
+        connect: endpoints to connect to (peers or a router), retried forever.
+        multicast: multicast scouting (off by default: explicit endpoints only).
+        domain_id: ROS_DOMAIN_ID, the first key chunk.
+        distro: ``"jazzy"`` (RIHS01 type hashes) or ``"humble"``.
+        retry_period_s: s between reconnection attempts to ``connect`` endpoints.
+    """
+
+    mode: str = "peer"
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    multicast: bool = False
+    domain_id: int = 0
+    distro: str = "jazzy"
+    retry_period_s: float = 0.2
+
+    def to_zenoh(self) -> zenoh.Config:
+        if self.mode not in ("peer", "client", "router"):
+            raise ValueError(f"zenoh mode: expected peer, client or router, got {self.mode!r}")
+        c = zenoh.Config()
+        c.insert_json5("mode", json.dumps(self.mode))
+        c.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        c.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        c.insert_json5("scouting/multicast/enabled", json.dumps(bool(self.multicast)))
+        # keep trying endpoints that are not up yet (the other process may start later)
+        c.insert_json5("connect/timeout_ms", "-1")
+        c.insert_json5("connect/exit_on_failure", "false")
+        period = max(int(self.retry_period_s * 1000), 10)
+        c.insert_json5("connect/retry", json.dumps(
+            {"period_init_ms": period, "period_max_ms": max(period, 1000),
+             "period_increase_factor": 2}))
+        return c
+
+
+@dataclass
+class TopicStats:
+    """Per-topic counters of a :class:`ZenohTransport` (plain numbers, any thread).
+
+    Attributes:
+        sent, received, decode_errors: samples.
+        last_source_ns: source timestamp (ns, the publisher's clock) of the last sample.
+        last_receive_ns: local wall clock (ns) when the last sample arrived.
+        lost: gaps in the publishers' sequence numbers.
+    """
+
+    sent: int = 0
+    received: int = 0
+    decode_errors: int = 0
+    lost: int = 0
+    last_source_ns: int = 0
+    last_receive_ns: int = 0
+
+
+class ZenohTransport:
+    """:class:`engine.bus.Transport` over zenoh (rmw_zenoh key expressions, CDR).
+
+    Example::
+
+        robot = Bus(transport=ZenohTransport(ZenohConfig(listen=["tcp/127.0.0.1:7447"])))
+        twin = Bus(transport=ZenohTransport(ZenohConfig(connect=["tcp/127.0.0.1:7447"])))
+
+    Args:
+        config: :class:`ZenohConfig` (default: an isolated peer, no endpoints).
+        name: for the publishers' GIDs and logs.
+        on_sample: optional ``f(topic, msg, attachment | None, receive_ns)`` called for
+            every received sample before delivery (clock-offset estimation, stats).
+    """
+
+    def __init__(self, config: ZenohConfig | None = None, *, name: str = "isac_twin",
+                 on_sample: Callable[[str, Any, Attachment | None, int], None] | None = None):
+        self.config = config or ZenohConfig()
+        self.name = name
+        self.on_sample = on_sample
+        self.stats: dict[str, TopicStats] = {}
+        self._lock = threading.RLock()
+        self._adverts: dict[str, str] = {}  # topic -> type name
+        self._subs: dict[str, tuple[str, Callable]] = {}
+        self._publishers: dict[str, Any] = {}
+        self._subscribers: dict[str, Any] = {}
+        self._seq: dict[str, int] = {}
+        self._last_seq: dict[tuple[str, bytes], int] = {}
+        self._warned_hash: set[str] = set()
+        self._session: zenoh.Session | None = None
+        self._closed = False
+        self._open()
+
+    # ------------------------------------------------------------ session
+    @property
+    def session(self) -> zenoh.Session | None:
+        """The open zenoh session (None while partitioned or closed)."""
+        return self._session
+
+    @property
+    def connected(self) -> bool:
+        return self._session is not None
+
+    def zid(self) -> str:
+        return str(self._session.zid()) if self._session is not None else ""
+
+    def peers(self) -> list[str]:
+        """Zenoh ids of the peers/routers this session is connected to."""
+        if self._session is None:
+            return []
+        info = self._session.info
+        return [str(z) for z in list(info.peers_zid()) + list(info.routers_zid())]
+
+    def wait_for_peers(self, n: int = 1, timeout: float = 10.0) -> bool:
+        """Block until at least ``n`` peers are connected; False after ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if len(self.peers()) >= n:
+                return True
+            time.sleep(0.02)
+        return False
+
+    def _open(self) -> None:
+        self._session = zenoh.open(self.config.to_zenoh())
+        log.info("zenoh session %s open (%s, listen %s, connect %s)", self._session.zid(),
+                 self.config.mode, self.config.listen, self.config.connect)
+        for topic, type_name in list(self._adverts.items()):
+            self._declare_publisher(topic, type_name)
+        for topic, (type_name, deliver) in list(self._subs.items()):
+            self._declare_subscriber(topic, type_name, deliver)
+
+    def partition(self) -> None:
+        """Simulate a network partition: close the session (publications are dropped,
+        nothing is received) until :meth:`heal`."""
+        with self._lock:
+            s, self._session = self._session, None
+            self._publishers.clear()
+            self._subscribers.clear()
+        if s is not None:
+            s.close()
+            log.warning("zenoh transport %s: partitioned (session closed)", self.name)
+
+    def heal(self) -> None:
+        """Reopen the session after :meth:`partition` and re-declare every entity."""
+        with self._lock:
+            if self._session is None and not self._closed:
+                self._open()
+                log.warning("zenoh transport %s: healed (session reopened)", self.name)
+
+    # ------------------------------------------------------------ Transport protocol
+    def advertise(self, topic: str, type_name: str) -> None:
+        with self._lock:
+            if topic in self._adverts:
+                return
+            self._adverts[topic] = type_name
+            self._seq.setdefault(topic, 0)
+            self.stats.setdefault(topic, TopicStats())
+            if self._session is not None:
+                self._declare_publisher(topic, type_name)
+
+    def publish(self, topic: str, type_name: str, msg: Any) -> None:
+        """Serialize and put ``msg``; dropped (counted as sent) while partitioned."""
+        if topic not in self._adverts:
+            self.advertise(topic, type_name)
+        payload = cdr.encode(msg)
+        with self._lock:
+            self._seq[topic] += 1
+            att = Attachment(self._seq[topic], time.time_ns(), self._gid(topic))
+            pub = self._publishers.get(topic)
+            self.stats[topic].sent += 1
+            if pub is None:
+                return
+            try:
+                pub.put(payload, attachment=att.to_bytes())
+            except Exception as exc:  # noqa: BLE001 - a closing session must not kill a publisher
+                log.debug("zenoh put on %s failed: %s", topic, exc)
+
+    def subscribe(self, topic: str, type_name: str, deliver: Callable[[str, Any], None]) -> None:
+        with self._lock:
+            if topic in self._subs:
+                return
+            self._subs[topic] = (type_name, deliver)
+            self.stats.setdefault(topic, TopicStats())
+            if self._session is not None:
+                self._declare_subscriber(topic, type_name, deliver)
+
+    def close(self) -> None:
+        """Undeclare everything and close the session (idempotent)."""
+        with self._lock:
+            self._closed = True
+            s, self._session = self._session, None
+            self._publishers.clear()
+            self._subscribers.clear()
+        if s is not None:
+            s.close()
+
+    def __enter__(self) -> ZenohTransport:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------ internals
+    def key(self, topic: str, type_name: str, *, any_hash: bool = False) -> str:
+        """The key expression of ``topic`` under this transport's domain and distro."""
+        return topic_key(topic, type_name, domain_id=self.config.domain_id,
+                         distro=self.config.distro, any_hash=any_hash)
+
+    def _gid(self, topic: str) -> bytes:
+        return hashlib.sha256(f"{self.zid()}|{topic}".encode()).digest()[:16]
+
+    def _declare_publisher(self, topic: str, type_name: str) -> None:
+        self._publishers[topic] = self._session.declare_publisher(
+            self.key(topic, type_name), congestion_control=zenoh.CongestionControl.DROP)
+
+    def _declare_subscriber(self, topic: str, type_name: str, deliver) -> None:
+        own_hash = self.key(topic, type_name).rsplit("/", 1)[1]
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            now = time.time_ns()
+            st = self.stats[topic]
+            key = str(sample.key_expr)
+            h = key.rsplit("/", 1)[-1]
+            if h != own_hash and key not in self._warned_hash:
+                self._warned_hash.add(key)
+                log.warning("%s: type hash %s differs from ours (%s): another distro or "
+                            "message version; decoding anyway", topic, h, own_hash)
+            try:
+                msg = cdr.decode(sample.payload.to_bytes(), type_name)
+            except Exception as exc:  # noqa: BLE001
+                st.decode_errors += 1
+                log.warning("%s: undecodable %s sample (%s); dropped", topic, type_name, exc)
+                return
+            att = None
+            if sample.attachment is not None:
+                try:
+                    att = Attachment.from_bytes(sample.attachment.to_bytes())
+                except ValueError as exc:
+                    log.debug("%s: %s", topic, exc)
+            if att is not None:
+                k = (topic, att.source_gid)
+                prev = self._last_seq.get(k)
+                if prev is not None and att.sequence_number > prev + 1:
+                    st.lost += att.sequence_number - prev - 1
+                self._last_seq[k] = att.sequence_number
+                st.last_source_ns = att.source_timestamp_ns
+            st.received += 1
+            st.last_receive_ns = now
+            try:
+                if self.on_sample is not None:
+                    self.on_sample(topic, msg, att, now)
+                deliver(topic, msg)
+            except Exception:  # noqa: BLE001 - never let a callback kill zenoh's thread
+                log.exception("%s: delivering a remote sample failed", topic)
+
+        self._subscribers[topic] = self._session.declare_subscriber(
+            self.key(topic, type_name, any_hash=True), on_sample,
+            allowed_origin=zenoh.Locality.REMOTE)
+
+
+__all__ = ["ZenohConfig", "ZenohTransport", "TopicStats", "parse_topic_key"]
