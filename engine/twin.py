@@ -115,15 +115,15 @@ class Twin:
         self.estimators: list[Estimator] = list(estimators or [])
         self.running = True
         self._pending_edits: list[Edit] = []
+        #: access points' array poses ``(position, orientation)``, movable by edits
+        self.ap_poses = {d.name: (tuple(d.position), tuple(d.orientation))
+                         for d in self.config.devices if d.kind != "robot"}
         #: name -> (scene content hash, access-point poses) a database was built for
         self.databases: dict[str, tuple[str, dict]] = {}
         grid = getattr(self.tracer, "grid", None)
         if grid is not None:
             self.register_database(str(grid.path or "grid tracer"), grid.meta["scene_hash"])
         self._controllers: dict[str, object] = {}
-        #: access points' array poses ``(position, orientation)``, movable by edits
-        self.ap_poses = {d.name: (tuple(d.position), tuple(d.orientation))
-                         for d in self.config.devices if d.kind != "robot"}
         self._build_agents()
         for d in self.config.devices:
             if d.kind == "robot" and d.path is not None:

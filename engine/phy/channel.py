@@ -68,24 +68,86 @@ def baseband_gains(a, tau, carrier_frequency_hz: float) -> np.ndarray:
     return a * ph.reshape((-1,) + (1,) * (a.ndim - 1))
 
 
-def _synthesize(gains: np.ndarray, tau: np.ndarray, doppler: np.ndarray,
-                grid: ResourceGrid, dtype) -> np.ndarray:
-    """Core of eq. 4: ``[L, M]`` antenna-pair gains -> ``[K, N, M]``.
+def _delay_phase(grid: ResourceGrid, tau: np.ndarray) -> np.ndarray:
+    """``exp(-j 2 pi f_n tau_l)`` ``[N, L]`` complex128, exactly (to float64 rounding).
 
-    The time-frequency kernel ``exp(j2pi(nu t_k - f_n tau))`` is separable:
-    two small exponentials ``[K, L]`` and ``[N, L]`` are multiplied into
-    ``[K, N, L]`` and contracted with the gains by one BLAS matmul.
+    Subcarriers are uniform, ``f_n = (n0 + n) delta_f``: with ``n = B a + c`` the
+    phase factors into ``exp(..(n0 + B a)..) * exp(..c..)``, two small tables of
+    ``~sqrt(N)`` exponentials per path and one complex multiply per entry (each
+    factor's phase is reduced modulo one cycle in float64 before the exponential,
+    so there is no error growth along n, unlike a running product).
+    """
+    n = grid.num_subcarriers
+    df = grid.subcarrier_spacing_hz
+    n0 = float(grid.subcarrier_indices[0])
+    blk = max(1, int(np.ceil(np.sqrt(n))))
+    na = -(-n // blk)
+    outer = np.exp(-2j * np.pi * np.mod(np.outer((n0 + blk * np.arange(na)) * df, tau), 1.0))
+    inner = np.exp(-2j * np.pi * np.mod(np.outer(np.arange(blk) * df, tau), 1.0))
+    return (outer[:, None, :] * inner[None, :, :]).reshape(na * blk, -1)[:n]
+
+
+#: Doppler phases are expanded in a Taylor series in time when the truncation
+#: error ``x^(J+1) / (J+1)!`` (x = largest phase drift from the centre time) is below
+#: this, far below complex64 rounding (6e-8); see :func:`_synthesize`.
+_TAYLOR_TOL = 1e-10
+
+
+def _taylor_order(x: float, max_order: int) -> int | None:
+    """Smallest J with ``x^(J+1) / (J+1)! <= _TAYLOR_TOL`` (None if > max_order)."""
+    term = x
+    for j in range(max_order + 1):
+        if term <= _TAYLOR_TOL:
+            return j
+        term = term * x / (j + 2)
+    return None
+
+
+def _synthesize(gains: np.ndarray, tau: np.ndarray, doppler: np.ndarray,
+                grid: ResourceGrid, dtype, times=None) -> np.ndarray:
+    """Core of eq. 4: ``[L, M]`` antenna-pair gains -> ``[T, N, M]``.
+
+    The time-frequency kernel ``exp(j2pi(nu t_k - f_n tau))`` is separable, so the
+    Doppler phase is folded into the (small) gains and one BLAS matmul with the
+    ``[N, L]`` delay phases covers all symbols, without materialising the
+    ``[T, N, L]`` kernel. Over a step the Doppler phase drifts by
+    ``x = 2 pi |nu| max_k |t_k - t_c|`` (~1e-3 rad for walking speeds), so
+    ``exp(j 2 pi nu t_k) = exp(j 2 pi nu t_c) sum_j (j 2 pi nu (t_k - t_c))^j / j!``
+    truncated after J + 1 terms (error <= _TAYLOR_TOL relative per path, i.e.
+    exact in complex64) needs only J + 1 << T "basis" channels, combined per symbol
+    by a second small matmul; used when J + 1 <= T / 2, else all T directly.
+
+    Args:
+        times: Symbol times ``[T]`` [s] (default ``grid.symbol_times``, T = K).
     """
     num_paths, m = gains.shape
-    k_, n_ = grid.shape
+    t = grid.symbol_times if times is None else np.asarray(times, dtype=np.float64)
+    k_, n_ = t.shape[0], grid.num_subcarriers
     if num_paths == 0:
         return np.zeros((k_, n_, m), dtype=dtype)
-    t = grid.symbol_times  # [K]
-    f = grid.subcarrier_frequencies  # [N]
-    doppler_phase = np.exp(2j * np.pi * np.mod(np.outer(t, doppler), 1.0)).astype(dtype)
-    delay_phase = np.exp(-2j * np.pi * np.mod(np.outer(f, tau), 1.0)).astype(dtype)
-    kernel = doppler_phase[:, None, :] * delay_phase[None, :, :]  # [K, N, L]
-    out = kernel.reshape(k_ * n_, num_paths) @ gains.astype(dtype, copy=False)
+    delay_phase = _delay_phase(grid, tau).astype(dtype)  # [N, L]
+    t_c = 0.5 * (t.max() + t.min())
+    half = 0.5 * float(t.max() - t.min())
+    x = 2 * np.pi * float(np.max(np.abs(doppler))) * half
+    order = _taylor_order(x, k_ // 2 - 1) if k_ >= 4 else None
+    if order is None:
+        doppler_phase = np.exp(2j * np.pi * np.mod(np.outer(t, doppler), 1.0))  # [T, L]
+        g_t = doppler_phase[:, :, None] * gains[None, :, :]  # [T, L, M]
+        g_t = g_t.transpose(1, 0, 2).reshape(num_paths, k_ * m).astype(dtype)
+        out = delay_phase @ g_t  # [N, T * M]
+        return np.ascontiguousarray(out.reshape(n_, k_, m).transpose(1, 0, 2))
+    j = np.arange(order + 1)
+    centre = np.exp(2j * np.pi * np.mod(t_c * doppler, 1.0))  # [L]
+    # coef[j, l] = (j 2 pi nu_l half)^j / j!  ;  basis[k, j] = ((t_k - t_c) / half)^j
+    xl = 2j * np.pi * doppler * half
+    fact = np.cumprod(np.concatenate([[1.0], np.arange(1, order + 1)]))
+    coef = xl[None, :] ** j[:, None] / fact[:, None]  # [J+1, L]
+    g_j = (coef[:, :, None] * (centre[:, None] * gains)[None]).transpose(1, 0, 2)
+    g_j = g_j.reshape(num_paths, (order + 1) * m).astype(dtype)  # [L, (J+1) M]
+    xb = (delay_phase @ g_j).reshape(n_, order + 1, m).transpose(1, 0, 2)  # [J+1, N, M]
+    s = (t - t_c) / half if half > 0 else np.zeros_like(t)
+    basis = (s[:, None] ** j[None, :]).astype(dtype)  # [T, J+1]
+    out = basis @ np.ascontiguousarray(xb).reshape(order + 1, n_ * m)  # [T, N * M]
     return out.reshape(k_, n_, m)
 
 
@@ -149,9 +211,12 @@ class OFDMChannel:
         theta_r, phi_r: Arrival zenith/azimuth ``[L]`` [rad].
         theta_t, phi_t: Departure zenith/azimuth ``[L]`` [rad].
         rx_orientation, tx_orientation: ``[yaw, pitch, roll]`` [rad].
+        times: Optional symbol times ``[T]`` [s] to evaluate instead of the
+            grid's ``k T_s`` (e.g. one mid-step time for a time-invariant step).
 
     Returns:
-        ``H [K, N, Nr, Nt]``; ``y[k, n] = H[k, n] @ x[k, n]``.
+        ``H [K, N, Nr, Nt]`` (``[T, N, Nr, Nt]`` with ``times``);
+        ``y[k, n] = H[k, n] @ x[k, n]``.
     """
 
     def __init__(self, grid: ResourceGrid, rx_array: PlanarArray,
@@ -169,7 +234,7 @@ class OFDMChannel:
 
     def __call__(self, b, tau, doppler, theta_r, phi_r, theta_t, phi_t,
                  rx_orientation=(0.0, 0.0, 0.0),
-                 tx_orientation=(0.0, 0.0, 0.0)) -> np.ndarray:
+                 tx_orientation=(0.0, 0.0, 0.0), times=None) -> np.ndarray:
         b = complex_array("b", b, ndim=1)
         tau = real_array("tau", tau, ndim=1)
         doppler = real_array("doppler", doppler, ndim=1)
@@ -186,5 +251,5 @@ class OFDMChannel:
         num_paths = b.shape[0]
         nr, nt = a_rx.shape[1], a_tx.shape[1]
         h = _synthesize(pair.reshape(num_paths, nr * nt), tau, doppler,
-                        self.grid, self.dtype)
-        return h.reshape(self.grid.num_symbols, self.grid.num_subcarriers, nr, nt)
+                        self.grid, self.dtype, times)
+        return h.reshape(h.shape[0], self.grid.num_subcarriers, nr, nt)

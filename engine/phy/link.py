@@ -45,7 +45,7 @@ from engine.phy.ofdm import ResourceGrid
 __all__ = [
     "MRTPrecoder", "SVDPrecoder", "EqualPower", "WaterFilling", "water_filling",
     "transmit", "receive", "transmit_power", "Interferer", "LinkRate",
-    "AchievableRate", "channel_gains",
+    "AchievableRate", "channel_gains", "svd_streams", "rate_per_re",
 ]
 
 
@@ -83,8 +83,9 @@ class MRTPrecoder:
             norm = np.linalg.norm(w, axis=-1, keepdims=True)
             w = np.where(norm > 0, w / np.where(norm > 0, norm, 1), 1 / np.sqrt(h.shape[3]))
             return w[..., None]
-        _, _, vh = np.linalg.svd(h, full_matrices=False)
-        return np.conj(vh[:, :, :1, :]).swapaxes(-1, -2)
+        k, n, nr, nt = h.shape
+        w, _, _ = svd_streams(h.reshape(k * n, nr, nt), 1, dtype=np.complex128)
+        return w.reshape(k, n, nt, 1)
 
 
 class SVDPrecoder:
@@ -96,18 +97,26 @@ class SVDPrecoder:
             ``"wideband"`` (eigenvectors of ``mean_{R} H^H H``, one precoder
             for all REs of the mask).
 
+        method: ``"auto"`` (closed-form per-RE SVD when ``min(Nr, Nt) <= 2``,
+            see :func:`svd_streams`) or ``"numpy"`` (``np.linalg.svd`` always,
+            the reference). Both give orthonormal right singular vectors; columns
+            are unique only up to a phase.
+
     Call: ``(H [K, N, Nr, Nt], mask [K, N] | None) -> W [K, N, Nt, S]``
     (unit-norm, orthonormal columns).
     """
 
-    def __init__(self, num_streams: int, mode: str = "per_re") -> None:
+    def __init__(self, num_streams: int, mode: str = "per_re", method: str = "auto") -> None:
         if isinstance(num_streams, bool) or not isinstance(num_streams, (int, np.integer)) \
                 or num_streams < 1:
             raise ValueError(f"num_streams must be an integer >= 1, got {num_streams!r}")
         if mode not in ("per_re", "wideband"):
             raise ValueError(f"mode must be 'per_re' or 'wideband', got {mode!r}")
+        if method not in ("auto", "numpy"):
+            raise ValueError(f"method must be 'auto' or 'numpy', got {method!r}")
         self.num_streams = int(num_streams)
         self.mode = mode
+        self.method = method
 
     def __call__(self, h, mask=None) -> np.ndarray:
         h = _check_h("H", h)
@@ -117,6 +126,9 @@ class SVDPrecoder:
             raise ValueError(f"num_streams={s} exceeds min(Nr, Nt)={min(nr, nt)}")
         m = _check_mask(mask, (k, n))
         if self.mode == "per_re":
+            if self.method == "auto" and min(nr, nt) <= 2:
+                w, _, _ = svd_streams(h.reshape(k * n, nr, nt), s, dtype=np.complex128)
+                return w.reshape(k, n, nt, s)
             _, _, vh = np.linalg.svd(h, full_matrices=False)
             return np.conj(vh[:, :, :s, :]).swapaxes(-1, -2)
         hm = h[m]  # [R, Nr, Nt]
@@ -166,15 +178,9 @@ def water_filling(gains, total_power: float, noise_power: float = 1.0,
     out = np.zeros(g.shape)
     if p_tot == 0 or not active.any():
         return out
-    inv = n0 / g[active]  # floor levels 1/SNR_i
-    order = np.sort(inv)
-    m = np.arange(1, order.size + 1)
-    levels = (p_tot + np.cumsum(order)) / m  # water level if m best entries active
-    n_on = int(np.max(np.nonzero(levels > order)[0])) + 1
-    mu = levels[n_on - 1]
-    out[active] = np.maximum(mu - inv, 0.0)
-    # Remove the rounding residue so the budget is never exceeded.
-    out *= min(1.0, p_tot / out.sum())
+    # Floor levels 1/SNR_i, sorted; water level if the m best entries are active;
+    # the rounding residue is removed so the budget is never exceeded.
+    out[active] = _water_level(g[active], p_tot, n0)
     return out
 
 
@@ -336,13 +342,19 @@ class AchievableRate:
     Args:
         grid: OFDM grid (for ``K T_s``).
         noise_power: sigma^2 per RE and receive antenna [W].
+        method: ``"auto"`` (closed-form 2 x 2 log-det / MMSE SINR on the mask's
+            REs when Nr <= 2, see :func:`rate_per_re`) or ``"numpy"``
+            (``slogdet`` / ``solve`` on every RE, the reference).
     """
 
-    def __init__(self, grid: ResourceGrid, noise_power: float) -> None:
+    def __init__(self, grid: ResourceGrid, noise_power: float, method: str = "auto") -> None:
         if not isinstance(grid, ResourceGrid):
             raise ValueError("grid must be a ResourceGrid")
+        if method not in ("auto", "numpy"):
+            raise ValueError(f"method must be 'auto' or 'numpy', got {method!r}")
         self.grid = grid
         self.noise_power = positive_float("noise_power", noise_power)
+        self.method = method
 
     def _effective(self, name, h, w, p, mask):
         h = _check_h(f"{name}.h", h)
@@ -364,6 +376,20 @@ class AchievableRate:
         :class:`Interferer`. Returns :class:`LinkRate`."""
         f, m = self._effective("link", h, w, p, mask)
         k, n, nr, s = f.shape
+        if self.method == "auto" and nr <= 2:
+            fis = []
+            for i, itf in enumerate(interferers):
+                fi, _ = self._effective(f"interferers[{i}]", itf.h, itf.w, itf.p, itf.mask)
+                if fi.shape[2] != nr:
+                    raise ValueError(f"interferers[{i}].h has Nr={fi.shape[2]}, link has {nr}")
+                fis.append(fi[m])
+            se_m, sinr_m = rate_per_re(f[m], fis, self.noise_power)
+            se = np.zeros((k, n))
+            sinr = np.zeros((k, n, s))
+            se[m], sinr[m] = se_m, sinr_m
+            bits = float(se_m.sum())
+            return LinkRate(rate_bps=bits / self.grid.step_duration_s, bits_per_step=bits,
+                            spectral_efficiency=se, sinr=sinr)
         cov = np.broadcast_to(self.noise_power * np.eye(nr), (k, n, nr, nr)).astype(complex)
         for i, itf in enumerate(interferers):
             fi, _ = self._effective(f"interferers[{i}]", itf.h, itf.w, itf.p, itf.mask)
@@ -381,3 +407,296 @@ class AchievableRate:
         bits = float(se.sum())
         return LinkRate(rate_bps=bits / self.grid.step_duration_s, bits_per_step=bits,
                         spectral_efficiency=se, sinr=sinr)
+
+
+# --------------------------------------------------------------------------------------
+# Exact small-matrix fast paths (vectorised over resource elements).
+#
+# For a link with Nr <= 2 (or Nt <= 2) receive/transmit antennas, the per-RE SVD,
+# log-det and MMSE SINR reduce to closed forms on 2 x 2 Hermitian matrices, evaluated
+# for all REs at once with elementwise numpy (no per-matrix LAPACK calls):
+#
+# * SVD: the Gram ``G = H H^H`` (Nr x Nr, float64 accumulation) has the closed-form
+#   eigen-decomposition ``lambda_1,2 = (a+d)/2 +- sqrt(((a-d)/2)^2 + |b|^2)``; its
+#   eigenvectors are the left singular vectors U, ``sigma = sqrt(lambda)`` and the
+#   right singular vectors are ``W = H^H U Sigma^-1`` (orthonormal; the effective
+#   channel is ``H W = U Sigma`` exactly). When Nt <= 2 < Nr the Gram ``H^H H`` gives
+#   W directly.
+# * Rates: ``log2 det(C + F F^H) - log2 det(C)`` and the per-stream MMSE SINR
+#   ``f_s^H (C + sum_{j != s} f_j f_j^H)^-1 f_s`` with 2 x 2 closed-form determinants
+#   and adjugates (the same quantity as the reference ``g / (1 - g)`` form, without
+#   its cancellation at high SINR).
+#
+# Precision (documented error bounds, checked by tests/engine/phy/test_link_fast.py):
+# all Gram, eigenvalue, determinant and SINR arithmetic is float64. The absolute error
+# of lambda_2 is ~1e-16 * lambda_1, so a stream's per-RE rate error is
+# ~1e-16 * SNR_1 / ln 2 bit -- negligible for any SNR below ~1e10 (rates match the
+# LAPACK reference to ~1e-12 relative in the tests). W from the Gram has a direction
+# error ~eps / r with r = sigma_2 / sigma_1: REs with r < 1e-6 (incl. rank-deficient
+# channels) therefore go to LAPACK, so complex128 W is accurate to ~1e-10 (when more
+# than 512 REs of a call are that ill-conditioned, e.g. a single-path channel, the
+# weak column is completed orthogonally in closed form instead: it carries <= 1e-12
+# of the gain, so rates are unaffected). Zero channels get W = [e_0, e_1].
+# W may be formed in complex64 when H is complex64 (``H^H U`` in single precision,
+# error ~6e-8 / r); REs with r < 0.05 are then recomputed in complex128, so complex64
+# W is accurate to ~1e-6 (complex128 W is recomputed for them too, normalised by the
+# actual column norms). Rates never use W for the link's own stream gains (they
+# use ``U Sigma`` from the float64 eigen-decomposition), so complex64 W only enters
+# through cross-channel interference (relative power error ~1e-6).
+# Singular vectors are, as with LAPACK, unique only up to a phase per column (and
+# any orthonormal completion for a zero singular value); rates do not depend on it.
+
+#: complex64 W columns with sigma_2 < _REFINE * sigma_1 are recomputed in complex128.
+_REFINE = 0.05
+#: REs with sigma_2 < _LAPACK * sigma_1 (incl. rank-deficient) go to np.linalg.svd
+#: (up to _LAPACK_MAX_REs of them; beyond, a closed-form orthogonal completion).
+_LAPACK = 1e-6
+_LAPACK_MAX_REs = 512
+
+
+def _eigh2(a, d, b):
+    """Closed-form eigen-decomposition of Hermitian PSD ``[[a, b], [conj(b), d]]``.
+
+    Args: ``a, d`` float64 ``[R]``, ``b`` complex128 ``[R]``.
+    Returns: ``lam [R, 2]`` (descending, >= 0) and ``u [R, 2, 2]`` complex128 with
+    orthonormal eigenvector columns.
+    """
+    half = 0.5 * (a - d)
+    mid = 0.5 * (a + d)
+    r = np.hypot(half, np.abs(b))
+    lam = np.stack([mid + r, np.maximum(mid - r, 0.0)], axis=-1)
+    pos = half >= 0
+    # Eigenvector of lambda_1 from whichever row of (G - lambda_1 I) is better
+    # conditioned: |x| >= r >= |b| in both branches, so no cancellation.
+    x = np.where(pos, r + half, b)
+    y = np.where(pos, np.conj(b), r - half)
+    nrm = np.sqrt(np.abs(x) ** 2 + np.abs(y) ** 2)
+    flat = nrm == 0  # G = a I: any basis
+    nrm = np.where(flat, 1.0, nrm)
+    x = np.where(flat, 1.0, x / nrm)
+    y = np.where(flat, 0.0, y / nrm)
+    u = np.empty(a.shape + (2, 2), dtype=np.complex128)
+    u[..., 0, 0], u[..., 1, 0] = x, y
+    u[..., 0, 1], u[..., 1, 1] = -np.conj(y), np.conj(x)
+    return lam, u
+
+
+def _gram_rows2(h) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``G = h h^H`` of ``h [R, 2, M]`` as ``(a, d, b)`` (float64 accumulation).
+
+    Products of two float32 numbers are exact in float64, so for complex64 ``h``
+    the sums are formed from the float32 components directly (einsum casting to
+    float64 in its buffers), without a complex128 copy of ``h``.
+    """
+    h = np.asarray(h)
+    if h.dtype != np.complex64:
+        h = np.ascontiguousarray(h, dtype=np.complex128)
+    elif not h.flags.c_contiguous:
+        h = np.ascontiguousarray(h)
+    v = h.view(h.real.dtype)  # [R, 2, 2M]: re/im interleaved
+    x0, y0, x1, y1 = v[:, 0, 0::2], v[:, 0, 1::2], v[:, 1, 0::2], v[:, 1, 1::2]
+    dt = np.float64
+    a = np.einsum("ri,ri->r", v[:, 0], v[:, 0], dtype=dt)
+    d = np.einsum("ri,ri->r", v[:, 1], v[:, 1], dtype=dt)
+    re = np.einsum("ri,ri->r", v[:, 0], v[:, 1], dtype=dt)
+    im = np.einsum("ri,ri->r", y0, x1, dtype=dt) - np.einsum("ri,ri->r", x0, y1, dtype=dt)
+    return a, d, re + 1j * im
+
+
+def svd_streams(h, num_streams: int, dtype=None):
+    """Per-RE dominant right singular vectors, exactly (closed form when
+    ``min(Nr, Nt) <= 2``, LAPACK otherwise).
+
+    Args:
+        h: Channels ``[R, Nr, Nt]`` (complex64 or complex128).
+        num_streams: S <= min(Nr, Nt).
+        dtype: dtype of the returned W (default: complex64 for complex64 ``h``,
+            else complex128).
+
+    Returns:
+        ``(w [R, Nt, S], lam [R, S], f [R, Nr, S])``: orthonormal precoders,
+        eigenmode gains ``lambda_s = sigma_s^2 = ||H w_s||^2`` (float64, descending)
+        and effective channels ``f = H W`` (complex128; ``= U Sigma`` for Nr <= 2).
+    """
+    h = np.asarray(h)
+    r, nr, nt = h.shape
+    s = int(num_streams)
+    if dtype is None:
+        dtype = np.complex64 if h.dtype == np.complex64 else np.complex128
+    if nr == 1:
+        hd = np.ascontiguousarray(h[:, 0, :], dtype=np.complex128)
+        lam = np.einsum("ri,ri->r", hd.view(np.float64), hd.view(np.float64))
+        sig = np.sqrt(lam)
+        zero = sig == 0
+        w = np.where(zero[:, None], 1 / np.sqrt(nt), np.conj(hd) / np.where(zero, 1, sig)[:, None])
+        f = sig.astype(np.complex128)[:, None, None]
+        return w[:, :, None].astype(dtype, copy=False), lam[:, None], f
+    if nr == 2:
+        a, d, b = _gram_rows2(h)
+        lam, u = _eigh2(a, d, b)
+        lam, u = lam[:, :s], u[:, :, :s]
+        sig = np.sqrt(lam)
+        # W = H^H (U Sigma^-1): scale the small [R, 2, S] factor, not the product.
+        us = u / np.where(sig > 0, sig, 1.0)[:, None, :]
+        hc = np.conj(h).swapaxes(-1, -2)  # [R, Nt, 2]
+        w = np.matmul(hc, us.astype(h.dtype)) if h.dtype == np.complex64 \
+            else np.matmul(hc.astype(np.complex128, copy=False), us)
+        w = w.astype(dtype, copy=False)
+        f = u * sig[:, None, :]
+        if s < 2:
+            zero = sig[:, 0] == 0
+            if zero.any():  # H = 0: any unit vector (LAPACK gives e_0)
+                w[zero] = 0
+                w[zero, 0, 0] = 1
+            return w, lam, f
+        # Weak second modes: W from the Gram has direction error ~eps / r for
+        # r = sigma_2 / sigma_1 (eps of the arithmetic used) and sigma_2 a relative
+        # error ~1e-16 / r^2. For r < _REFINE redo them in complex128, normalised by
+        # the actual column norms and re-orthogonalised; for r < _LAPACK (incl. rank
+        # deficiency) with LAPACK on just those REs.
+        ratio = sig[:, 1] / np.where(sig[:, 0] > 0, sig[:, 0], 1.0)
+        zero = sig[:, 0] == 0
+        tiny = (ratio < _LAPACK) & ~zero
+        weak = (ratio < _REFINE) & ~tiny & ~zero
+        if zero.any():  # H = 0: lam = f = 0 already; W = [e_0, e_1] like LAPACK
+            w[zero] = np.eye(nt, s, dtype=w.dtype)
+        if weak.any():
+            rows = np.nonzero(weak)[0]
+            hb = np.conj(np.asarray(h[rows], dtype=np.complex128)).swapaxes(-1, -2)
+            wb = np.matmul(hb, us[rows])  # [B, Nt, 2]
+            w1 = wb[:, :, 0] / np.linalg.norm(wb[:, :, 0], axis=-1, keepdims=True)
+            y = wb[:, :, 1] - np.sum(np.conj(w1) * wb[:, :, 1], axis=-1, keepdims=True) * w1
+            y = y / np.linalg.norm(y, axis=-1, keepdims=True)
+            w[rows] = np.stack([w1, y], axis=-1).astype(w.dtype)
+        if tiny.any():
+            rows = np.nonzero(tiny)[0]
+            if rows.size <= _LAPACK_MAX_REs:
+                ul, sl, vh = np.linalg.svd(np.asarray(h[rows], dtype=np.complex128),
+                                           full_matrices=False)
+                w[rows] = np.conj(vh[:, :s, :]).swapaxes(-1, -2).astype(w.dtype)
+                lam[rows] = sl[:, :s] ** 2
+                f[rows] = ul[:, :, :s] * sl[:, None, :s]
+            else:
+                # Many (near-)rank-1 REs (e.g. a single-path channel): w_1 from
+                # H^H u_1 in complex128 (accurate), w_2 = H^H u_2 orthogonalised
+                # against w_1 while it is above the rounding floor, else any unit
+                # vector orthogonal to w_1. Stream 2 carries <= 1e-12 of the
+                # RE's gain here, so rates are unaffected; its direction is
+                # accurate to ~1e-16 / r (undefined at r = 0, as with LAPACK).
+                hb = np.conj(np.asarray(h[rows], dtype=np.complex128)).swapaxes(-1, -2)
+                wb = np.matmul(hb, u[rows])  # [B, Nt, 2] = H^H U
+                w1 = wb[:, :, 0] / np.linalg.norm(wb[:, :, 0], axis=-1, keepdims=True)
+                y = wb[:, :, 1] - np.sum(np.conj(w1) * wb[:, :, 1], axis=-1,
+                                         keepdims=True) * w1
+                ny = np.linalg.norm(y, axis=-1)
+                ok = ny > 1e-12 * sig[rows, 0]
+                j = np.argmin(np.abs(w1), axis=-1)
+                e = np.zeros_like(w1)
+                e[np.arange(rows.size), j] = 1.0
+                e = e - np.sum(np.conj(w1) * e, axis=-1, keepdims=True) * w1
+                e /= np.linalg.norm(e, axis=-1, keepdims=True)
+                y = np.where(ok[:, None], y / np.where(ok, ny, 1.0)[:, None], e)
+                w[rows] = np.stack([w1, y], axis=-1).astype(w.dtype)
+        return w, lam, f
+    if nt <= 2:
+        # Gram H^H H (Nt x Nt): right singular vectors directly.
+        if nt == 1:
+            w = np.ones((r, 1, 1), dtype=np.complex128)
+        else:
+            a, d, b = _gram_rows2(np.swapaxes(h, -1, -2).conj())
+            _, v = _eigh2(a, d, b)
+            w = np.ascontiguousarray(v[:, :, :s])
+        f = np.matmul(np.asarray(h, dtype=np.complex128), w)
+        lam = np.einsum("rns,rns->rs", f.real, f.real) + np.einsum("rns,rns->rs", f.imag,
+                                                                   f.imag)
+        return w.astype(dtype, copy=False), lam, f
+    uu, sv, vh = np.linalg.svd(np.asarray(h, dtype=np.complex128), full_matrices=False)
+    w = np.conj(vh[:, :s, :]).swapaxes(-1, -2)
+    return w.astype(dtype, copy=False), sv[:, :s] ** 2, uu[:, :, :s] * sv[:, None, :s]
+
+
+def rate_per_re(f, interference, noise_power: float):
+    """Per-RE log-det rate and MMSE SINR from effective channels (closed form for
+    Nr <= 2, LAPACK otherwise).
+
+    Args:
+        f: Desired effective channels ``H W sqrt(P)`` ``[R, Nr, S]``.
+        interference: Sequence of interferers' effective channels ``[R, Nr, S_i]``
+            (zero where an interferer is silent).
+        noise_power: sigma^2.
+
+    Returns:
+        ``(se [R] bit, sinr [R, S])`` -- ``se = max(log2 det(I + C^-1 F F^H), 0)``
+        with ``C = sigma^2 I + sum_i F_i F_i^H`` and
+        ``sinr_s = f_s^H (C + sum_{j != s} f_j f_j^H)^-1 f_s``.
+    """
+    f = np.asarray(f, dtype=np.complex128)
+    r, nr, s = f.shape
+    n0 = float(noise_power)
+    if nr == 1:
+        c = np.full(r, n0)
+        for fi in interference:
+            c = c + np.sum(np.abs(fi[:, 0, :]) ** 2, axis=-1)
+        pw = np.abs(f[:, 0, :]) ** 2  # [R, S]
+        tot = pw.sum(axis=-1)
+        se = np.maximum(np.log2((c + tot) / c), 0.0)
+        others = tot[:, None] - pw if s > 1 else 0.0
+        return se, pw / (c[:, None] + others)
+    if nr == 2:
+        c00 = np.full(r, n0)
+        c11 = np.full(r, n0)
+        c01 = np.zeros(r, dtype=np.complex128)
+        for fi in interference:
+            fi = np.asarray(fi, dtype=np.complex128)
+            c00 = c00 + np.sum(fi[:, 0].real ** 2 + fi[:, 0].imag ** 2, axis=-1)
+            c11 = c11 + np.sum(fi[:, 1].real ** 2 + fi[:, 1].imag ** 2, axis=-1)
+            c01 = c01 + np.sum(fi[:, 0] * np.conj(fi[:, 1]), axis=-1)
+        f0, f1 = f[:, 0], f[:, 1]  # [R, S]
+        p0 = f0.real ** 2 + f0.imag ** 2
+        p1 = f1.real ** 2 + f1.imag ** 2
+        x01 = f0 * np.conj(f1)
+        t00 = c00 + p0.sum(axis=-1)
+        t11 = c11 + p1.sum(axis=-1)
+        t01 = c01 + x01.sum(axis=-1)
+        det_c = c00 * c11 - (c01.real ** 2 + c01.imag ** 2)
+        det_t = t00 * t11 - (t01.real ** 2 + t01.imag ** 2)
+        se = np.maximum(np.log2(det_t / det_c), 0.0)
+        # B_s = T - f_s f_s^H; sinr_s = f_s^H adj(B_s) f_s / det(B_s).
+        b00 = t00[:, None] - p0
+        b11 = t11[:, None] - p1
+        b01 = t01[:, None] - x01
+        det_b = b00 * b11 - (b01.real ** 2 + b01.imag ** 2)
+        num = b11 * p0 + b00 * p1 - 2.0 * np.real(np.conj(f0) * b01 * f1)
+        return se, np.maximum(num, 0.0) / det_b
+    cov = np.broadcast_to(n0 * np.eye(nr), (r, nr, nr)).astype(complex)
+    for fi in interference:
+        cov = cov + fi @ np.conj(fi).swapaxes(-1, -2)
+    tot = cov + f @ np.conj(f).swapaxes(-1, -2)
+    _, ld_tot = np.linalg.slogdet(tot)
+    _, ld_in = np.linalg.slogdet(cov)
+    se = np.maximum((ld_tot - ld_in) / np.log(2.0), 0.0)
+    g = np.real(np.einsum("rns,rns->rs", np.conj(f), np.linalg.solve(tot, f)))
+    return se, np.where(g < 1, g / np.maximum(1 - g, 1e-300), np.inf)
+
+
+def _water_level(g, total_power: float, noise_power: float, weights=None) -> np.ndarray:
+    """Water-filling powers for gains ``g [M] > 0`` whose entries count ``weights``
+    times in the budget (``sum w_i p_i = P``); ``weights=None`` = all ones."""
+    inv = noise_power / g
+    if weights is not None:
+        weights = np.asarray(weights, dtype=float)
+        if weights.size and np.all(weights == weights.flat[0]):
+            # Uniform weights: plain water-filling with the budget per copy.
+            return _water_level(g, total_power / weights.flat[0], noise_power)
+    if weights is None:
+        inv_s = np.sort(inv)
+        levels = (total_power + np.cumsum(inv_s)) / np.arange(1, inv.size + 1)
+    else:
+        order = np.argsort(inv)
+        inv_s = inv[order]
+        w_s = weights[order]
+        levels = (total_power + np.cumsum(w_s * inv_s)) / np.cumsum(w_s)
+    n_on = int(np.max(np.nonzero(levels > inv_s)[0])) + 1
+    p = np.maximum(levels[n_on - 1] - inv, 0.0)
+    spent = p.sum() if weights is None else float(np.dot(weights, p))
+    return p * min(1.0, total_power / spent)

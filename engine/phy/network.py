@@ -5,6 +5,38 @@ traced paths with each device's own array, a precoder and a power
 allocation that keep ``sum |x|^2 <= P_q`` over the transmitter's resource set
 ``R_q``, and the achievable rate with every *other* transmitter heard by
 ``v`` on shared resource elements treated as interference (eq. 2).
+
+Two implementations give the same result (tests/engine/phy/test_network_fast.py):
+
+* ``method="fast"`` (default): per link, the channel is synthesised once, the
+  per-RE SVD precoder comes from the closed-form 2 x 2 Gram eigen-decomposition
+  (:func:`~engine.phy.link.svd_streams`, exact; LAPACK when ``min(Nr, Nt) > 2``),
+  its eigenmode gains feed water-filling directly, and the effective channels
+  ``H W sqrt(P) = U Sigma sqrt(P)`` are computed once and reused for the link's
+  own rate *and* as interference at the same receiver
+  (:func:`~engine.phy.link.rate_per_re`, closed-form 2 x 2 log-det / SINR). Only
+  the REs of each transmitter's allocation are processed.
+* ``method="reference"``: the straightforward composition of
+  :class:`~engine.phy.link.SVDPrecoder`, :class:`~engine.phy.link.WaterFilling`
+  and :class:`~engine.phy.link.AchievableRate` with ``np.linalg`` on every RE.
+
+Time-invariant steps (``time_invariant_tol``, fast path only): the symbols are
+grouped by the pattern of all transmitters' allocations (one group for
+full-grid allocations). If every path's Doppler phase drift from its group's
+mean symbol time, ``2 pi |nu| max_k |t_k - t_mean|`` (:meth:`max_doppler_phase`),
+is at most the tolerance (default 1e-3 rad), the channel is evaluated once per
+group at ``t_mean`` and every per-RE quantity is computed once per (group,
+subcarrier), weighted by the number of symbols it stands for (water-filling
+included, so the budget is exact). The channel error is then at most
+``tol * sum_l |b_l|`` per entry (relative ``<= tol`` for a single path), and as
+the group's symbol times are symmetric about ``t_mean`` in the mean, the
+first-order term of the rate error cancels in the sum over symbols: the bit
+count errs by ``O(tol^2)`` relative (measured <~ 1e-7 at tol = 1e-3, see
+tests/engine/phy/test_network_fast.py). A robot at 0.22 m/s at 2.4 GHz
+(nu <= 1.8 Hz) with K = 14 symbols of 13.7 us gives ~1e-3 rad for one group.
+``time_invariant_tol=0`` disables it. In this mode ``LinkSignal.h``/``w``/``p``
+repeat the group values over the symbols (read-only broadcast views for one
+group).
 """
 
 from __future__ import annotations
@@ -16,7 +48,8 @@ import numpy as np
 from engine.phy.arrays import PlanarArray
 from engine.phy.channel import OFDMChannel, baseband_gains
 from engine.phy.link import (AchievableRate, EqualPower, Interferer, SVDPrecoder,
-                             WaterFilling, channel_gains)
+                             WaterFilling, _water_level, channel_gains, rate_per_re,
+                             svd_streams)
 from engine.phy.ofdm import ResourceGrid, ResourceSet
 from engine.phy.units import dbm_to_watt, thermal_noise_power
 
@@ -30,13 +63,19 @@ class LinkSignal:
     Attributes:
         tx, rx: device names.
         h: channel ``[K, N, Nr, Nt]`` (complex64).
-        w: precoder ``[K, N, Nt, S]``.
+        w: precoder ``[K, N, Nt, S]`` (fast path: complex64 and zero off the
+            transmitter's allocation, where it is not used).
         p: power per RE and stream ``[K, N, S]``, W.
         mask: the transmitter's allocation ``[K, N]``.
         rate_bps: achievable rate, bit/s (interference treated as noise).
         snr_db: mean SNR over the allocation before precoding,
             ``P_q/|R_q| * ||H||_F^2 / (Nr sigma^2)``, dB.
         sinr_db: mean post-MMSE SINR over the allocation and streams, dB.
+        time_invariant: the step was computed with the time-invariant shortcut
+            (``h``/``w``/``p`` then hold one value per symbol group, at the group's
+            mean time; use ``NetworkPHY.channel(paths)`` or
+            ``time_invariant_tol=0`` for the exact per-symbol channel, e.g. for
+            Doppler sensing).
     """
 
     tx: str
@@ -48,6 +87,7 @@ class LinkSignal:
     rate_bps: float
     snr_db: float
     sinr_db: float
+    time_invariant: bool = False
 
 
 def _array(cfg) -> PlanarArray:
@@ -66,10 +106,20 @@ class NetworkPHY:
         config: :class:`~engine.config.TwinConfig`.
         power_allocation: ``"waterfilling"`` (default) or ``"equal"``.
         precoding: ``"svd"`` (per resource element) or ``"svd_wideband"``.
+        method: ``"fast"`` (default) or ``"reference"`` (see the module doc).
+        time_invariant_tol: Doppler phase tolerance [rad] below which a step is
+            treated as time-invariant (fast path only; 0 disables).
     """
 
     def __init__(self, config, *, power_allocation: str = "waterfilling",
-                 precoding: str = "svd") -> None:
+                 precoding: str = "svd", method: str = "fast",
+                 time_invariant_tol: float = 1e-3) -> None:
+        if method not in ("fast", "reference"):
+            raise ValueError(f"method: expected 'fast' or 'reference', got {method!r}")
+        if not time_invariant_tol >= 0:
+            raise ValueError(f"time_invariant_tol: expected >= 0 rad, got {time_invariant_tol}")
+        self.method = method
+        self.time_invariant_tol = float(time_invariant_tol)
         if power_allocation not in ("waterfilling", "equal"):
             raise ValueError(f"power_allocation: expected 'waterfilling' or 'equal', "
                              f"got {power_allocation!r}")
@@ -88,27 +138,182 @@ class NetworkPHY:
         self.arrays = {d.name: _array(d.array) for d in config.devices}
         self.masks = {d.name: ResourceSet(self.grid, d.subcarriers, d.symbols, name=d.name).mask
                       for d in config.devices if d.is_tx}
-        self.rate = AchievableRate(self.grid, self.noise_power)
+        self.rate = AchievableRate(self.grid, self.noise_power, method="numpy")
+        self._cache: dict = {}
 
-    def channel(self, paths) -> np.ndarray:
-        """Eq. 4 for one :class:`~engine.raytrace.base.LinkPaths` -> ``[K, N, Nr, Nt]``."""
+    def channel(self, paths, times=None) -> np.ndarray:
+        """Eq. 4 for one :class:`~engine.raytrace.base.LinkPaths` -> ``[K, N, Nr, Nt]``
+        (``[T, N, Nr, Nt]`` at explicit symbol ``times`` [s])."""
         from engine.raytrace.base import sionna_orientation
 
         syn = OFDMChannel(self.grid, self.arrays[paths.rx], self.arrays[paths.tx])
         b = baseband_gains(paths.a, paths.tau, paths.frequency_hz)
         return syn(b, paths.tau, paths.doppler, paths.theta_r, paths.phi_r, paths.theta_t,
                    paths.phi_t, rx_orientation=sionna_orientation(paths.rx_orientation),
-                   tx_orientation=sionna_orientation(paths.tx_orientation))
+                   tx_orientation=sionna_orientation(paths.tx_orientation), times=times)
 
     def __call__(self, link_paths: dict) -> dict[tuple[str, str], LinkSignal]:
         """Args: ``{(tx, rx): LinkPaths}``. Returns ``{(tx, rx): LinkSignal}``."""
+        if self.method == "reference":
+            return self._reference(link_paths)
+        return self._fast(link_paths)
+
+    def _groups(self, txs: tuple):
+        """Symbols grouped by the pattern of all transmitters' masks (cached):
+        ``(group [K], masks {tx: [G, N]}, weights [G], mean times [G], span)`` with
+        ``span = max_g max_{k in g} |t_k - mean_g|`` [s]."""
+        key = ("groups",) + txs
+        if key not in self._cache:
+            t = self.grid.symbol_times
+            n_ = self.grid.num_subcarriers
+            sig = np.concatenate([self.masks[tx] for tx in txs], axis=1)  # [K, ntx * N]
+            uniq, group, counts = np.unique(sig, axis=0, return_inverse=True,
+                                            return_counts=True)
+            group = np.asarray(group).reshape(-1)
+            times = np.bincount(group, weights=t) / counts
+            span = float(np.max(np.abs(t - times[group])))
+            masks = {tx: uniq[:, i * n_:(i + 1) * n_] for i, tx in enumerate(txs)}
+            self._cache[key] = (group, masks, counts.astype(float), times, span)
+        return self._cache[key]
+
+    def max_doppler_phase(self, link_paths: dict) -> float:
+        """Largest Doppler phase drift within a symbol group,
+        ``2 pi max|nu| max_k |t_k - t_mean(group of k)|`` [rad] (with one group,
+        e.g. full-grid allocations, ``t_mean`` is the mid-step time)."""
+        nu = max((float(np.max(np.abs(lp.doppler))) for lp in link_paths.values()
+                  if len(lp.doppler)), default=0.0)
+        span = self._groups(tuple(sorted({tx for tx, _ in link_paths})))[4]
+        return 2 * np.pi * nu * span
+
+    def _fast(self, link_paths: dict) -> dict[tuple[str, str], LinkSignal]:
+        k_, n_ = self.grid.shape
+        txs = tuple(sorted({tx for tx, _ in link_paths}))
+        invariant = (self.time_invariant_tol > 0 and k_ > 1 and bool(txs)
+                     and self.max_doppler_phase(link_paths) <= self.time_invariant_tol)
+        if invariant:
+            # One channel per symbol group, at the group's mean time (so the
+            # first-order Doppler error cancels within the group); every per-RE
+            # quantity is computed once per (group, subcarrier), weighted by the
+            # number of symbols in the group.
+            group, masks, weights_g, times, _ = self._groups(txs)
+        else:
+            times = None
+            masks = {tx: self.masks[tx] for tx in txs}
+            group = None
+            weights_g = None
+        g_ = next(iter(masks.values())).shape[0] if masks else k_
+        h = {lk: self.channel(lp, times) for lk, lp in link_paths.items()}  # [T, N, ...]
+
+        def gather(hl, idx, full):
+            """Channels at the flat (group/symbol, subcarrier) REs ``idx`` -> [R, Nr, Nt]."""
+            t_, _, nr, nt = hl.shape
+            flat = hl.reshape(t_ * n_, nr, nt)
+            return flat if full else flat[idx]
+
+        side = {}
+        for (tx, rx), hl in h.items():
+            mask = masks[tx]
+            full = bool(mask.all())
+            idx = None if full else np.flatnonzero(mask)
+            hm = gather(hl, idx, full)
+            wts = None
+            if invariant:
+                wts = np.repeat(weights_g, n_) if full else weights_g[idx // n_]
+            nr, nt = hl.shape[2], hl.shape[3]
+            s = min(nr, nt)
+            total = float(dbm_to_watt(self.devices[tx].power_dbm))
+            if self.precoding == "per_re":
+                w, lam, f1 = svd_streams(hm, s)
+            else:
+                hd = np.asarray(hm, dtype=np.complex128)
+                hw = hd if wts is None else hd * np.sqrt(wts)[:, None, None]
+                cov = np.einsum("rij,rik->jk", np.conj(hw), hw) / (
+                    hd.shape[0] if wts is None else wts.sum())
+                _, vec = np.linalg.eigh(cov)
+                w0 = vec[:, ::-1][:, :s]
+                f1 = hd @ w0
+                lam = np.sum(np.abs(f1) ** 2, axis=1)
+                w = np.broadcast_to(w0, (hd.shape[0], nt, s))
+            count = int(self.masks[tx].sum())
+            if self.power_allocation == "waterfilling":
+                p = np.zeros(lam.shape)
+                on = lam > 0
+                if total > 0 and on.any():
+                    pw = None if wts is None else np.broadcast_to(wts[:, None], lam.shape)[on]
+                    p[on] = _water_level(lam[on], total, self.noise_power, pw)
+            else:
+                p = np.full(lam.shape, total / (count * s))
+            f = f1 * np.sqrt(p)[:, None, :]
+            # ||H||_F^2 per RE (for the SNR): the sum of all eigenmode gains.
+            gain_re = lam.sum(axis=1) if self.precoding == "per_re" else \
+                np.sum(np.abs(np.asarray(hm, dtype=np.complex128).reshape(hm.shape[0], -1))
+                       ** 2, axis=1)
+            side[(tx, rx)] = dict(idx=idx, full=full, w=w, p=p, f=f, wts=wts, total=total,
+                                  count=count, gain=gain_re)
+
+        def on_grid(arr, d):
+            """Per-RE values of a link -> [G * N, ...] (zeros off its REs)."""
+            if d["full"]:
+                return arr
+            out = np.zeros((g_ * n_,) + arr.shape[1:], dtype=arr.dtype)
+            out[d["idx"]] = arr
+            return out
+
+        out = {}
+        for (tx, rx), hl in h.items():
+            d = side[(tx, rx)]
+            mask = masks[tx]
+            interf = []
+            for (tx2, rx2), d2 in side.items():
+                if tx2 == tx or (tx2, rx) not in h or not (masks[tx2] & mask).any():
+                    continue
+                if rx2 == rx:
+                    fi = d2["f"]  # the same effective channel, computed once
+                else:
+                    hc = gather(h[(tx2, rx)], d2["idx"], d2["full"])
+                    fi = np.matmul(np.asarray(hc, dtype=np.complex128),
+                                   np.asarray(d2["w"], dtype=np.complex128)) \
+                        * np.sqrt(d2["p"])[:, None, :]
+                fi = on_grid(fi, d2)
+                interf.append(fi if d["full"] else fi[d["idx"]])
+            se, sinr = rate_per_re(d["f"], interf, self.noise_power)
+            wts = d["wts"]
+            bits = float(se.sum() if wts is None else np.dot(wts, se))
+            nr = hl.shape[2]
+            gain = (d["gain"].mean() if wts is None else np.dot(wts, d["gain"]) / wts.sum()) / nr
+            snr = d["total"] / d["count"] * gain / self.noise_power
+            ok = np.isfinite(sinr) & (sinr > 0)
+            if wts is None:
+                sinr_mean = sinr[ok].mean() if ok.any() else 0.0
+            else:
+                ww = np.broadcast_to(wts[:, None], sinr.shape)[ok]
+                sinr_mean = float(np.dot(ww, sinr[ok]) / ww.sum()) if ok.any() else 0.0
+            w_g = on_grid(np.asarray(d["w"]), d)
+            p_g = on_grid(d["p"], d)
+            if invariant:
+                hx = _expand(hl, group)
+                wx = _expand(w_g.reshape((g_, n_) + w_g.shape[1:]), group)
+                px = _expand(p_g.reshape((g_, n_) + p_g.shape[1:]), group)
+            else:
+                hx = hl
+                wx = w_g.reshape((k_, n_) + w_g.shape[1:])
+                px = p_g.reshape((k_, n_) + p_g.shape[1:])
+            out[(tx, rx)] = LinkSignal(
+                tx=tx, rx=rx, h=hx, w=wx, p=px, mask=self.masks[tx],
+                rate_bps=bits / self.grid.step_duration_s,
+                snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
+                sinr_db=float(10 * np.log10(sinr_mean)) if sinr_mean > 0 else float("-inf"),
+                time_invariant=invariant)
+        return out
+
+    def _reference(self, link_paths: dict) -> dict[tuple[str, str], LinkSignal]:
         h = {lk: self.channel(lp) for lk, lp in link_paths.items()}
         tx_side = {}
         for (tx, rx), hl in h.items():
             mask = self.masks[tx]
             total = float(dbm_to_watt(self.devices[tx].power_dbm))
             s = min(hl.shape[2], hl.shape[3])
-            w = SVDPrecoder(s, self.precoding)(hl, mask)
+            w = SVDPrecoder(s, self.precoding, method="numpy")(hl, mask)
             if self.power_allocation == "waterfilling":
                 p = WaterFilling(total, self.noise_power)(channel_gains(hl, w), mask)
             else:
@@ -136,3 +341,11 @@ class NetworkPHY:
                 snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
                 sinr_db=float(10 * np.log10(sinr.mean())) if sinr.size else float("-inf"))
         return out
+
+
+def _expand(a: np.ndarray, group: np.ndarray) -> np.ndarray:
+    """``a [G, ...]`` -> ``[K, ...]`` with ``out[k] = a[group[k]]`` (a read-only
+    broadcast view when G == 1)."""
+    if a.shape[0] == 1:
+        return np.broadcast_to(a, (group.shape[0],) + a.shape[1:])
+    return a[group]

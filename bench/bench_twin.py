@@ -1,0 +1,174 @@
+"""Twin step rate of the bundled lab with full PHY (issue #4: >= 20 steps/s).
+
+The bundled lab (``blend_scenes/aces_lab/scene``): AP1 (4 x 8 = 32 antennas) and
+AP2 (1 x 1) to robot1 (1 x 2) driving the circle centre (4, 3) m, radius 1.5 m;
+lidar, IMU and odometry on, camera off; N = 1024 subcarriers, K = 14 symbols.
+Two allocations: ``bundled`` (the resource sets of twin.toml, e.g. AP1 on
+symbols 0-6 and AP2 on 7-13) and ``overlap`` (both APs on all REs, so each
+interferes with the other: the heaviest PHY case). For each PHY variant, a
+fresh twin (same seed) runs ``--steps`` steps after ``--warmup`` steps; printed: the per-stage split
+(``twin.stats.table()``), steps/s, PHY ms/step, and ratios against the
+``reference`` variant (``NetworkPHY(method="reference")``: np.linalg SVD /
+slogdet / solve on every RE) measured in the same run.
+
+Variants: ``fast`` (default NetworkPHY: closed-form 2 x 2 paths + the
+time-invariant shortcut at 1e-3 rad), ``fast-exact`` (closed forms, shortcut
+off), ``reference``. With ``--grid FILE`` (or a ``tracer.grid_file`` in the
+scene's config) the ``fast`` variant is repeated with the grid tracer; skipped
+otherwise. Rates of the variants are compared on the last step. No assertions
+on time.
+
+    .venv/bin/python bench/bench_twin.py [--quick] [--steps 40] [--grid FILE]
+
+On a shared 2-core machine, ``OPENBLAS_NUM_THREADS=1`` makes every variant
+faster and steadier (OpenBLAS threads otherwise wait on descheduled peers).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import engine  # noqa: E402  - configures Dr.Jit's LLVM before mitsuba
+from engine.phy.network import NetworkPHY  # noqa: E402
+from engine.robots import SensorOptions  # noqa: E402
+from engine.twin import STAGES, Twin  # noqa: E402
+
+PATH = {"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5}
+VARIANTS = {
+    "fast": dict(),
+    "fast-exact": dict(time_invariant_tol=0.0),
+    "reference": dict(method="reference"),
+}
+
+
+def overlap_config(cfg):
+    """Every transmitter on all REs of the grid."""
+    o = cfg.ofdm
+    devs = tuple(dataclasses.replace(d, subcarriers=(0, o.num_subcarriers),
+                                     symbols=(0, o.num_symbols)) if d.is_tx else d
+                 for d in cfg.devices)
+    return dataclasses.replace(cfg, devices=devs)
+
+
+def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
+                overlap: bool = False) -> dict:
+    tw = Twin.from_scene(engine.bundled_scene_dir(), seed=seed, tracer=tracer,
+                         sensors=SensorOptions(lidar=True, imu=True, odometry=True,
+                                               camera=False))
+    cfg = overlap_config(tw.config) if overlap else tw.config
+    tw.phy = NetworkPHY(cfg, **VARIANTS[name])
+    tw.set_path("robot1", PATH)
+    for _ in tw.run(warmup):
+        pass
+    tw.stats = type(tw.stats)()  # measure after the warm-up only
+    phy_ms = []
+    t0 = time.perf_counter()
+    last = None
+    for res in tw.run(steps):
+        phy_ms.append(1e3 * res.timings_s["phy"])
+        last = res
+    wall = time.perf_counter() - t0
+    return dict(name=name, table=tw.stats.table(), steps_s=steps / wall,
+                phy_ms=float(np.mean(phy_ms)), phy_min=float(np.min(phy_ms)),
+                stage_ms={s: 1e3 * tw.stats.stage_s[s] / steps for s in STAGES},
+                rates={lk: ls.rate_bps for lk, ls in last.links.items()},
+                paths={lk: ls.paths for lk, ls in last.links.items()}, config=cfg,
+                doppler_phase=tw.phy.max_doppler_phase({lk: ls.paths
+                                                        for lk, ls in last.links.items()}))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=40)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--quick", action="store_true", help="10 steps (reference: 5)")
+    ap.add_argument("--grid", type=Path, default=None, help="grid NPZ for the grid tracer")
+    ap.add_argument("--variants", default="fast,fast-exact,reference")
+    ap.add_argument("--allocations", default="bundled,overlap")
+    args = ap.parse_args(argv)
+    steps = 10 if args.quick else args.steps
+    names = [v for v in args.variants.split(",") if v]
+    results = []
+    for alloc in args.allocations.split(","):
+        for name in names:
+            n = max(4, steps // 2) if name == "reference" else steps
+            r = run_variant(name, n, 1 if args.quick else args.warmup,
+                            overlap=alloc == "overlap")
+            r["name"] = f"{alloc}/{name}"
+            results.append(r)
+            print(f"== {r['name']} ({n} steps, Sionna tracer)\n{r['table']}")
+            print(f"  -> {r['steps_s']:.1f} steps/s, PHY {r['phy_ms']:.1f} ms/step "
+                  f"(min {r['phy_min']:.1f}); max Doppler phase drift "
+                  f"{r['doppler_phase']:.2e} rad\n", flush=True)
+    grid = args.grid
+    if grid is None:
+        from engine.scene import load_scene
+
+        cfg = load_scene(engine.bundled_scene_dir()).config
+        if cfg.tracer.grid_file:
+            grid = cfg.folder / cfg.tracer.grid_file
+    if grid is not None and Path(grid).exists():
+        from engine.raytrace.grid_backend import GridTracer
+
+        try:
+            r = run_variant("fast", steps, 1 if args.quick else args.warmup,
+                            tracer=GridTracer(grid))
+        except Exception as exc:  # a stale / foreign grid file must not kill the bench
+            print(f"(grid tracer variant skipped: {type(exc).__name__}: {exc})\n")
+        else:
+            r["name"] = "bundled/fast+grid"
+            results.append(r)
+            print(f"== fast, grid tracer {grid}\n{r['table']}")
+            print(f"  -> {r['steps_s']:.1f} steps/s, PHY {r['phy_ms']:.1f} ms/step\n")
+    else:
+        print("(grid tracer variant skipped: no --grid file and no tracer.grid_file)\n")
+
+    print(f"{'variant':<24} {'steps/s':>8} {'phy ms':>8} {'phy min':>8} {'trace ms':>9} "
+          f"{'phy speed-up':>13} {'step speed-up':>14}")
+    for r in results:
+        alloc = r["name"].split("/")[0]
+        ref = next((x for x in results if x["name"] == f"{alloc}/reference"), None)
+        su = f"{ref['phy_ms'] / r['phy_ms']:12.1f}x" if ref else "-"
+        st = f"{r['steps_s'] / ref['steps_s']:13.1f}x" if ref else "-"
+        print(f"{r['name']:<24} {r['steps_s']:8.1f} {r['phy_ms']:8.1f} {r['phy_min']:8.1f} "
+              f"{r['stage_ms']['trace']:9.1f} {su:>13} {st:>14}")
+    # PHY alone, replayed on the last step's paths (no tracer in between): min / median.
+    print("\nPHY replay on the last step's paths (ms, min / median):")
+    for r in results:
+        if not r["name"].endswith("/fast"):
+            continue
+        line = []
+        for name in VARIANTS:
+            phy = NetworkPHY(r["config"], **VARIANTS[name])
+            reps = 3 if name == "reference" else 11
+            phy(r["paths"])
+            ts = []
+            for _ in range(reps):
+                t0 = time.perf_counter()
+                phy(r["paths"])
+                ts.append(1e3 * (time.perf_counter() - t0))
+            line.append((name, min(ts), float(np.median(ts))))
+        ref_min = next(m for n, m, _ in line if n == "reference")
+        print(f"  {r['name'].split('/')[0]:<9} " + "   ".join(
+            f"{n} {m:.1f} / {md:.1f} ({ref_min / m:.0f}x)" for n, m, md in line))
+    # Accuracy: the reference PHY on each variant's last-step paths.
+    for r in results:
+        if r["name"].endswith("/reference"):
+            continue
+        ref_sig = NetworkPHY(r["config"], method="reference")(r["paths"])
+        errs = [abs(r["rates"][lk] / ref_sig[lk].rate_bps - 1) for lk in ref_sig
+                if ref_sig[lk].rate_bps > 0]
+        print(f"  {r['name']}: last-step rate rel. diff vs reference PHY on the same paths "
+              f"{max(errs) if errs else float('nan'):.1e}")
+
+
+if __name__ == "__main__":
+    main()
