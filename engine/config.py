@@ -245,7 +245,7 @@ class _Reader:
         return (start, stop)
 
 
-_TOP_KEYS = ("schema", "scene", "ofdm", "noise", "tracer", "devices", "links")
+_TOP_KEYS = ("schema", "scene", "ofdm", "noise", "tracer", "devices", "links", "sensing")
 _DEVICE_KEYS = ("name", "kind", "role", "position", "orientation", "power_dbm", "array",
                 "subcarriers", "symbols", "model", "antenna_offset", "path")
 PATH_KINDS = ("circle", "polyline", "figure_eight", "goal")
@@ -433,8 +433,15 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
             raise r.fail(prefix.rstrip("."), f"a link needs two devices, got {tx!r} twice")
         links.append(LinkConfig(tx=tx, rx=rx))
 
-    return TwinConfig(path=path, scene=scene, ofdm=ofdm, noise=noise, tracer=tracer,
-                      devices=devices, links=tuple(links), schema=schema, raw=data)
+    cfg = TwinConfig(path=path, scene=scene, ofdm=ofdm, noise=noise, tracer=tracer,
+                     devices=devices, links=tuple(links), schema=schema, raw=data)
+    if "sensing" in data:
+        # Sensing links are validated by their own module (docs/sensing.md); a bad
+        # table fails here, at load, like every other key.
+        from engine.sensing.config import parse_sensing
+
+        parse_sensing(cfg)
+    return cfg
 
 
 def load_config(path: str | Path) -> TwinConfig:

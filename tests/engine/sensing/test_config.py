@@ -1,0 +1,54 @@
+"""engine/sensing/config.py: ``[[sensing]]`` tables read from ``TwinConfig.raw``."""
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from engine.config import ConfigError, load_config
+from engine.sensing.config import parse_sensing
+
+LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"
+
+
+def _with(tables):
+    cfg = load_config(LAB)
+    return dataclasses.replace(cfg, raw=dict(cfg.raw, sensing=tables))
+
+
+def test_parse_sensing_links():
+    specs = parse_sensing(_with([{"tx": "AP2", "rx": "AP1", "rho": 0.25},
+                                 {"tx": "AP1", "rx": "AP1", "subcarriers": [0, 512],
+                                  "target_height_m": False}]))
+    assert [s.name for s in specs] == ["AP2->AP1", "AP1->AP1"]
+    assert specs[0].rx_array.num_ant == 32 and specs[0].power_dbm == 20.0
+    assert specs[1].monostatic and specs[1].subcarriers == (0, 512)
+    assert specs[1].target_height_m is None
+    assert parse_sensing(load_config(LAB)) == []
+
+
+@pytest.mark.parametrize("table, msg", [
+    ({"tx": "AP2", "rx": "AP7"}, r"sensing\[0\]\.rx: unknown device 'AP7'"),
+    ({"tx": "AP2", "rx": "AP1", "rho": 2}, r"sensing\[0\]\.rho"),
+    ({"tx": "AP2", "rx": "AP1", "beam": 1}, r"sensing\[0\]\.beam: unknown key"),
+    ({"tx": "AP2", "rx": "AP1", "symbols": [0]}, r"sensing\[0\]\.symbols"),
+])
+def test_parse_sensing_errors(table, msg):
+    with pytest.raises(ConfigError, match=msg):
+        parse_sensing(_with([table]))
+
+
+def test_load_config_accepts_and_validates_sensing_tables(tmp_path):
+    """`[[sensing]]` is a known top-level key: good tables load, bad ones fail at load."""
+    import pytest as _pytest
+
+    from engine.config import ConfigError, load_config
+    from engine.synthetic import box_room
+
+    folder = box_room(tmp_path / "room")
+    p = folder / "twin.toml"
+    p.write_text(p.read_text() + '\n[[sensing]]\ntx = "AP1"\nrx = "AP1"\nrho = 0.25\n')
+    assert load_config(folder).raw["sensing"][0]["rho"] == 0.25
+    p.write_text(p.read_text().replace('rx = "AP1"\nrho', 'rx = "AP7"\nrho'))
+    with _pytest.raises(ConfigError, match=r"sensing\[0\]\.rx: unknown device 'AP7'"):
+        load_config(folder)
