@@ -1,13 +1,26 @@
 """Grid tracing speed: the full 5 cm floor grid of the bundled lab against both APs.
 
-Traces the grid (8 x 6 m interior -> 160 x 120 = 19,200 points) in chunks after
-a warm-up, confirms that no chunk was truncated (``trace_grid`` splits/grows on
-truncation and records the retries; the mean path count per link is compared
-with one-receiver-per-call traces of a subsample), and as the baseline traces a
-subsample with one solver call per point and extrapolates to the whole grid.
-Prints the ratio. No assertions on time.
+Three parts, all in one process:
 
-    .venv/bin/python bench/bench_grid.py [--quick] [--scene DIR] [--spacing M]
+1. **Old vs new, interleaved** on the first ``--compare-points`` free points of
+   the grid (same chunks of the raster order the full grid uses): the old way
+   (``SolverCore(legacy=True)``: Sionna's ``Paths``, full-size candidate buffer,
+   Sionna's specular-chain hash table, 16 receivers per call) and the new way
+   (``trace_grid``'s defaults: :data:`DEFAULT_CHUNK_SIZE` receivers per call,
+   hash table of :data:`GRID_SPEC_TABLE_SIZE` entries per source) alternate per
+   block of points, so the load of a shared machine hits both alike. Prints
+   ms per point for each and the extrapolation to the whole grid.
+2. **Full grid, new way** (``trace_grid``), timed; its own verification
+   (random free points re-traced one per call: path-count deficit and missing
+   paths among the 24 strongest per link).
+3. Optional ``--full-old``: the full grid the old way as well (slow).
+
+Completeness of both ways is checked against one-receiver-per-call traces of
+a random subsample (``--verify-points``): missing paths among the 24 strongest
+per link and among all paths. No assertions on time.
+
+    .venv/bin/python bench/bench_grid.py [--quick] [--spacing M] [--chunk-size N]
+                                         [--compare-points N] [--full-old]
 """
 
 from __future__ import annotations
@@ -24,74 +37,133 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import engine  # noqa: E402,F401 - configures LLVM before mitsuba
 from engine.paths import bundled_scene_dir  # noqa: E402
-from engine.raytrace.grid import grid_summary, save_grid, trace_grid  # noqa: E402
+from engine.raytrace.base import device_poses, sionna_orientation  # noqa: E402
+from engine.raytrace.grid import (DEFAULT_CHUNK_SIZE, GRID_SPEC_TABLE_SIZE,  # noqa: E402
+                                  VERIFY_TOP_N, _top_missing, free_points, grid_points,
+                                  grid_summary, save_grid, trace_grid)
 from engine.raytrace.sionna import SolverCore  # noqa: E402
 from engine.scene import load_scene  # noqa: E402
+
+OLD_CHUNK = 16
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="20 cm grid, small subsample")
+    ap.add_argument("--quick", action="store_true", help="20 cm grid, small comparison")
     ap.add_argument("--scene", type=Path, default=bundled_scene_dir())
     ap.add_argument("--spacing", type=float, default=None)
     ap.add_argument("--margin", type=float, default=0.2,
                     help="m kept from the bounding box (the lab's walls are 0.2 m thick)")
     ap.add_argument("--chunk-size", type=int, default=None,
-                    help="receivers per solver call (default: trace_grid's)")
-    ap.add_argument("--baseline-points", type=int, default=None)
-    ap.add_argument("--out", type=Path, default=None, help="also save the grid NPZ")
+                    help=f"receivers per solver call, new way (default {DEFAULT_CHUNK_SIZE})")
+    ap.add_argument("--compare-points", type=int, default=None,
+                    help="free points traced both ways, interleaved (default 1024)")
+    ap.add_argument("--verify-points", type=int, default=None,
+                    help="points re-traced one per call to check completeness (default 24)")
+    ap.add_argument("--full-old", action="store_true", help="also trace the full grid the old way")
+    ap.add_argument("--skip-full", action="store_true", help="only the interleaved comparison")
+    ap.add_argument("--out", type=Path, default=None, help="also save the new grid NPZ")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     spacing = args.spacing or (0.2 if args.quick else 0.05)
-    n_base = args.baseline_points or (20 if args.quick else 60)
+    n_cmp = args.compare_points or (128 if args.quick else 1024)
+    n_ver = args.verify_points or (8 if args.quick else 24)
+    chunk = args.chunk_size or DEFAULT_CHUNK_SIZE
 
     scene = load_scene(args.scene)
     cfg = scene.config
+    cap = cfg.tracer.max_num_paths_per_src
     print(f"scene {cfg.scene.name}, tracer {cfg.tracer}")
-    trace_grid(scene, spacing=1.0, margin=args.margin, progress=False)  # warm-up
+    poses = device_poses(cfg)
+    tx_names = list(dict.fromkeys(lk.tx for lk in cfg.links))
+    src = np.array([poses[n].position for n in tx_names], float)
+    so = np.array([sionna_orientation(poses[n].orientation) for n in tx_names])
+    robots = [d for d in cfg.devices if d.kind == "robot"]
+    height = poses[robots[0].name].position[2]
+    origin, (nx, ny) = grid_points(scene.bounds_min, scene.bounds_max, spacing, args.margin)
+    ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+    points = np.stack([origin[0] + ix.ravel() * spacing, origin[1] + iy.ravel() * spacing,
+                       np.full(nx * ny, height)], axis=1)
+    todo = np.flatnonzero(free_points(scene.sionna, points))
+    print(f"grid {nx} x {ny} = {nx * ny} points at {spacing} m, {len(todo)} free, "
+          f"{len(tx_names)} APs")
 
+    # ------------------------------------------------------------ 1. interleaved
+    old = SolverCore(cfg.tracer, deterministic=False, legacy=True)
+    new = SolverCore(cfg.tracer, deterministic=False, spec_table_size=GRID_SPEC_TABLE_SIZE)
+    block = int(np.lcm(OLD_CHUNK, chunk))
+    n_cmp = max(block, (min(n_cmp, len(todo)) // block) * block)
+    sel = todo[:n_cmp]
+    for core, c in ((old, OLD_CHUNK), (new, chunk)):  # warm-up
+        core.solve_endpoints(scene.sionna, src, points[todo[-c:]], cap, so)
+    t_old = t_new = 0.0
+    res_old, res_new = {}, {}
+    for b0 in range(0, n_cmp, block):
+        blk = sel[b0:b0 + block]
+        for way in ((0, 1) if (b0 // block) % 2 == 0 else (1, 0)):
+            core, c, res = ((old, OLD_CHUNK, res_old), (new, chunk, res_new))[way]
+            t0 = time.perf_counter()
+            for c0 in range(0, len(blk), c):
+                raw = core.solve_endpoints(scene.sionna, src, points[blk[c0:c0 + c]], cap, so)
+                assert not raw.truncated
+                for r, i in enumerate(blk[c0:c0 + c]):
+                    res[int(i)] = [raw.link(r, s) for s in range(len(tx_names))]
+            dt = time.perf_counter() - t0
+            if way == 0:
+                t_old += dt
+            else:
+                t_new += dt
+    po, pn = t_old / n_cmp, t_new / n_cmp
+    print(f"1. interleaved on {n_cmp} free points:")
+    print(f"   old ({OLD_CHUNK}/call, Sionna's hash table, Paths): {po * 1e3:.2f} ms/point "
+          f"-> {po * len(todo):.0f} s extrapolated to the grid")
+    print(f"   new ({chunk}/call, table {GRID_SPEC_TABLE_SIZE} per source): {pn * 1e3:.2f} "
+          f"ms/point -> {pn * len(todo):.0f} s extrapolated; ratio old/new {po / pn:.2f}x")
+
+    # completeness vs one-receiver-per-call traces
+    rng = np.random.default_rng(0)
+    ver = rng.choice(sel, size=min(n_ver, len(sel)), replace=False)
+    tally = {"old": [0, 0, 0, 0], "new": [0, 0, 0, 0]}
+    for i in ver:
+        raw = new.solve_endpoints(scene.sionna, src, points[i:i + 1], cap, so)
+        for s in range(len(tx_names)):
+            ref = raw.link(0, s)
+            for way, res in (("old", res_old), ("new", res_new)):
+                m, c = _top_missing(ref, res[int(i)][s], VERIFY_TOP_N)
+                ma, ca = _top_missing(ref, res[int(i)][s], 10 ** 9)
+                t = tally[way]
+                t[0] += m
+                t[1] += c
+                t[2] += ma
+                t[3] += ca
+    for way, t in tally.items():
+        print(f"   {way}: vs one receiver per call at {len(ver)} points: "
+              f"{t[0]} of {t[1]} of the {VERIFY_TOP_N} strongest paths per link missing, "
+              f"{t[2]} of {t[3]} of all paths missing")
+
+    if args.skip_full:
+        return 0
+    # ------------------------------------------------------------ 2. full grid
     t0 = time.perf_counter()
-    g = trace_grid(scene, spacing=spacing, margin=args.margin, chunk_size=args.chunk_size)
+    g = trace_grid(scene, spacing=spacing, margin=args.margin, chunk_size=chunk)
     t_grid = time.perf_counter() - t0
     s = grid_summary(g)
-    free = np.flatnonzero(g.free)
-    print(f"grid {s['shape'][0]} x {s['shape'][1]} = {s['points']} points at {spacing} m "
-          f"({s['free']} in free space) x {len(g.tx_names)} APs: {t_grid:.1f} s, "
-          f"{t_grid / max(1, len(free)) * 1e3:.2f} ms per point; chunk size "
-          f"{g.meta['tracer']['chunk_size']}, truncation retries {s['truncation_retries']}, "
-          f"final cap {g.meta['tracer']['max_num_paths_per_src_used']}")
-    print(f"  paths per link: mean {s['mean_paths_per_link']:.1f}, max {s['max_paths_per_link']}")
+    print(f"2. full grid, new way: {t_grid:.1f} s ({t_grid / max(1, s['free']) * 1e3:.2f} ms per "
+          f"free point), chunk size {g.meta['tracer']['chunk_size']}, truncation retries "
+          f"{s['truncation_retries']}, paths per link mean {s['mean_paths_per_link']:.1f}, max "
+          f"{s['max_paths_per_link']}, buffer re-runs {new.buffer_regrows}")
+    print(f"   verification: {g.meta['verification']}")
     if args.out:
         save_grid(g, args.out)
-
-    # Baseline: one solver call per point on a subsample (same settings).
-    rng = np.random.default_rng(0)
-    sub = rng.choice(free, size=min(n_base, len(free)), replace=False)
-    core = SolverCore(cfg.tracer, deterministic=False)
-    src = g.tx_positions
-    from engine.raytrace.base import sionna_orientation
-    so = np.array([sionna_orientation(o) for o in g.tx_orientations])
-    core.solve_endpoints(scene.sionna, src, g.points[sub[:1]], cfg.tracer.max_num_paths_per_src,
-                         so)  # warm-up
-    counts = []
-    t0 = time.perf_counter()
-    for i in sub:
-        raw = core.solve_endpoints(scene.sionna, src, g.points[i:i + 1],
-                                   cfg.tracer.max_num_paths_per_src, so)
-        assert not raw.truncated
-        counts.append(raw.valid.sum(-1)[0])
-    t_single = (time.perf_counter() - t0) / len(sub)
-    counts = np.array(counts)  # [n, S]
-    grid_counts = g.num_paths[sub]
-    print(f"  subsample of {len(sub)} points, one solver call each: {t_single * 1e3:.1f} ms "
-          f"per point -> {t_single * len(free):.1f} s extrapolated to the grid")
-    lost = np.clip(counts - grid_counts, 0, None).sum()
-    print(f"  paths per link on the subsample: chunked grid {grid_counts.mean():.2f}, "
-          f"single-point calls {counts.mean():.2f}: {lost} of {counts.sum()} paths "
-          f"({100 * lost / max(1, counts.sum()):.2f} %) missing in the chunked grid "
-          f"(Sionna's per-call candidate de-duplication, see docs/tracers.md); "
-          f"trace_grid's own verification: {g.meta['verification']}")
-    print(f"ratio single-point / chunked grid: {t_single * len(free) / t_grid:.2f}x")
+    if args.full_old:
+        t0 = time.perf_counter()
+        go = trace_grid(scene, spacing=spacing, margin=args.margin, chunk_size=OLD_CHUNK,
+                        spec_table_size=None, legacy=True)
+        t_old_grid = time.perf_counter() - t0
+        print(f"3. full grid, old way: {t_old_grid:.1f} s; ratio old/new {t_old_grid / t_grid:.2f}x; "
+              f"verification {go.meta['verification']}")
+    print(f"ratio old/new (interleaved): {po / pn:.2f}x; full new grid {t_grid:.1f} s "
+          f"(goal <= 30 s)")
     return 0
 
 

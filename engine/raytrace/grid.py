@@ -12,14 +12,20 @@ if that is still not enough, :class:`~engine.raytrace.base.TruncationError`.
 Receivers per solver call. Besides the cap, Sionna's shoot-and-bounce
 generator de-duplicates specular chains through a hash table shared by all
 receivers of a call (``sb_candidate_generator.py``: "this can cause loss of
-candidates due to hash collisions"). Measured in the bundled lab: up to 2
+candidates due to hash collisions"); a chain whose slot is taken by another
+chain is dropped. Sionna sizes the table ``max(max_num_paths_per_src, 1e6)``
+entries per source. Measured in the bundled lab with that size: up to 2
 receivers per call give exactly the paths of one-receiver calls; 16 lose
-~1.3 % of the paths (weak second-order reflections, 20-40 dB below the
-strongest path), 64 lose ~3.5 %, ~900 lose ~19 %. This loss is invisible in
-the returned paths, so :func:`trace_grid` (a) uses small chunks
-(:data:`DEFAULT_CHUNK_SIZE`) and (b) *verifies*: it re-traces ``verify``
-random free points one per solver call and stores the path-count deficit in
-``meta["verification"]`` (and logs a warning when paths are missing).
+~1.3 % of the paths (also among the 24 strongest per link), 64 lose ~3.5 %,
+~900 lose ~19 %. :func:`trace_grid` therefore enlarges the table to
+:data:`GRID_SPEC_TABLE_SIZE` (2**24) entries per source (see
+``SolverCore.spec_table_size``), with which no path of one-receiver calls was
+missing at 16, 64 or 256 receivers per call, and *verifies*: it re-traces
+``verify`` random free points one per solver call and stores, in
+``meta["verification"]``, the path-count deficit and how many of the
+``verify_top`` (24) strongest paths per link are missing (and logs a warning
+when any are). The fingerprint database needs only the strongest paths;
+``keep_strongest`` stores only those.
 
 Grid points that are not in free space (inside furniture or walls, or
 outside the room) are found before tracing by casting one ray straight up and
@@ -76,7 +82,18 @@ _PATH_KEYS = ("valid", "a", "tau", "theta_t", "phi_t", "theta_r", "phi_r", "inte
               "vertices")
 
 #: Receivers per solver call (see the module doc for the accuracy trade-off).
-DEFAULT_CHUNK_SIZE = 16
+DEFAULT_CHUNK_SIZE = 64
+
+#: Entries per source of Sionna's specular-chain hash table in grid traces
+#: (Sionna's own size is ``max(max_num_paths_per_src, 1e6)``). The
+#: receivers-per-call loss described in the module doc is collisions in this
+#: table; with 2**24 entries none was measured up to 256 receivers per call.
+#: Memory: ``2 hashes x 4 B x sources`` per entry (2 APs: 256 MiB).
+GRID_SPEC_TABLE_SIZE = 1 << 24
+
+#: Strongest paths per point and transmitter whose presence the verification
+#: checks (the fingerprint database uses at most this many per AP).
+VERIFY_TOP_N = 24
 
 #: Deterministic mode: the candidate generator materializes
 #: ``num_sources * max_depth * samples_per_src * num_targets`` entries; chunks are
@@ -191,16 +208,30 @@ def free_points(sionna_scene, points: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- tracing
 
 
-def _sorted_chunk(raw) -> dict[str, np.ndarray]:
-    """RawPaths ``[R, T, P]`` -> dict of ``[R, T, P']`` sorted by delay, valid first."""
-    key = np.where(raw.valid, raw.tau, np.inf)
+def _sorted_chunk(raw, keep_strongest: int | None = None) -> dict[str, np.ndarray]:
+    """RawPaths ``[R, T, P]`` -> dict of ``[R, T, P']`` sorted by delay, valid first.
+
+    ``keep_strongest``: keep only that many paths (largest ``|a|``) per
+    receiver and transmitter.
+    """
+    valid = raw.valid
+    if keep_strongest is not None and valid.shape[-1] > keep_strongest:
+        mag = np.where(valid, np.abs(raw.a), -1.0)
+        rank = np.argsort(np.argsort(-mag, axis=-1, kind="stable"), axis=-1, kind="stable")
+        valid = valid & (rank < keep_strongest)
+    key = np.where(valid, raw.tau, np.inf)
     order = np.argsort(key, axis=-1, kind="stable")
     out = {}
     for k in _PATH_KEYS:
-        v = getattr(raw, k)
+        v = valid if k == "valid" else getattr(raw, k)
         idx = order.reshape(order.shape + (1,) * (v.ndim - 3))
         out[k] = np.take_along_axis(v, idx, axis=2)
     n = out["valid"].sum(-1)
+    if keep_strongest is not None:  # zero what was dropped
+        for k in _PATH_KEYS:
+            if k != "valid":
+                m = out["valid"].reshape(out["valid"].shape + (1,) * (out[k].ndim - 3))
+                out[k] = np.where(m, out[k], np.zeros((), out[k].dtype))
     p = int(n.max()) if n.size else 0
     out = {k: v[:, :, :p] for k, v in out.items()}
     out["num_paths"] = n.astype(np.int32)
@@ -216,15 +247,17 @@ def _pad(v: np.ndarray, p: int) -> np.ndarray:
 class _ChunkTracer:
     """Traces receiver chunks; splits / grows the cap on truncation."""
 
-    def __init__(self, core, sc, src, src_orient, cap: int, max_cap: int):
+    def __init__(self, core, sc, src, src_orient, cap: int, max_cap: int,
+                 keep_strongest: int | None = None):
         self.core, self.sc, self.src, self.src_orient = core, sc, src, src_orient
         self.cap, self.max_cap = cap, max_cap
+        self.keep_strongest = keep_strongest
         self.retries = 0
 
     def __call__(self, pts: np.ndarray) -> list[dict]:
         raw = self.core.solve_endpoints(self.sc, self.src, pts, self.cap, self.src_orient)
         if not raw.truncated:
-            return [_sorted_chunk(raw)]
+            return [_sorted_chunk(raw, self.keep_strongest)]
         self.retries += 1
         if len(pts) > 1:
             log.info("chunk of %d receivers reached max_num_paths_per_src=%d "
@@ -247,7 +280,10 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
                config: TracerConfig | None = None, chunk_size: int | None = None,
                deterministic: bool | None = None, max_cap: int | None = None,
                tx_poses: dict[str, DevicePose] | None = None, progress: bool = True,
-               verify: int = 8, out: str | Path | None = None) -> PathGrid:
+               verify: int = 8, verify_top: int = VERIFY_TOP_N,
+               keep_strongest: int | None = None,
+               spec_table_size: int | None = GRID_SPEC_TABLE_SIZE,
+               legacy: bool = False, out: str | Path | None = None) -> PathGrid:
     """Trace a floor grid of receiver positions against static transmitters.
 
     Args:
@@ -268,6 +304,19 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         progress: show a tqdm progress bar.
         verify: re-trace this many random free points one per solver call and
             record the path-count deficit in ``meta["verification"]``.
+        verify_top: the verification also checks that the ``verify_top``
+            strongest paths of each re-traced link are in the grid (same
+            interactions, delay within 1e-6 relative).
+        keep_strongest: store only this many paths (largest ``|a|``) per point
+            and transmitter, still sorted by delay (None: all paths).
+        spec_table_size: entries per source of Sionna's specular-chain hash
+            table (default :data:`GRID_SPEC_TABLE_SIZE`; None: Sionna's own
+            ``max(cap, 1e6)``, which loses candidates when many receivers share
+            a call).
+        legacy: trace with ``SolverCore(legacy=True)`` (Sionna's ``Paths``,
+            full-size candidate buffer; with ``spec_table_size=None`` and
+            ``chunk_size=16`` this is the code path before the optimization,
+            for benchmarks).
         out: write the NPZ there as well.
 
     Returns:
@@ -298,7 +347,11 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         height = poses[robots[0].name].position[2] if robots else 1.0
     height = float(height)
     det = False if deterministic is None else bool(deterministic)
-    core = SolverCore(config, deterministic=det)
+    if keep_strongest is not None and int(keep_strongest) < 1:
+        raise ValueError(f"keep_strongest: expected >= 1 or None, got {keep_strongest!r}")
+    keep_strongest = None if keep_strongest is None else int(keep_strongest)
+    core = SolverCore(config, deterministic=det, spec_table_size=spec_table_size,
+                      legacy=legacy)
     sc = scene.sionna
     src = np.array([poses[n].position for n in tx_names], float)
     src_orient_cfg = np.array([poses[n].orientation for n in tx_names], float)
@@ -319,7 +372,7 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
     if chunk_size < 1:
         raise ValueError(f"chunk_size: expected >= 1, got {chunk_size}")
     cap = config.max_num_paths_per_src
-    tracer = _ChunkTracer(core, sc, src, src_orient, cap, max_cap or 16 * cap)
+    tracer = _ChunkTracer(core, sc, src, src_orient, cap, max_cap or 16 * cap, keep_strongest)
     log.info("tracing %d x %d grid (%d free points) at z=%.3f m against %s",
              nx, ny, len(todo), height, ", ".join(tx_names))
     pieces: list[tuple[np.ndarray, dict]] = []
@@ -354,8 +407,8 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         for k in _PATH_KEYS:
             arrays[k][idx] = _pad(part[k], p).astype(arrays[k].dtype)
 
-    verification = _verify(core, sc, src, src_orient, points, arrays["num_paths"], todo,
-                           int(verify), config.seed, cap)
+    verification = _verify(core, sc, src, src_orient, points, arrays, todo,
+                           int(verify), config.seed, cap, int(verify_top), keep_strongest)
 
     import mitsuba as mi
     import sionna.rt
@@ -369,7 +422,8 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         "tx_names": tx_names, "num_free": int(free.sum()),
         "tracer": {**dataclasses.asdict(config), "deterministic": det,
                    "max_num_paths_per_src_used": tracer.cap, "chunk_size": chunk_size,
-                   "truncation_retries": tracer.retries},
+                   "truncation_retries": tracer.retries, "spec_table_size": spec_table_size,
+                   "keep_strongest": keep_strongest},
         "verification": verification,
         "sionna_version": sionna.rt.__version__ if hasattr(sionna.rt, "__version__")
         else _pkg_version("sionna-rt"),
@@ -382,25 +436,58 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
     return grid
 
 
-def _verify(core, sc, src, src_orient, points, num_paths, todo, n: int, seed: int,
-            cap: int) -> dict:
-    """Re-trace ``n`` random free points one per call; compare path counts."""
+def _top_missing(ref: dict, grid: dict, n: int) -> tuple[int, int]:
+    """Of ``ref``'s ``n`` strongest paths, how many are not in ``grid`` (same
+    interactions, delay within 1e-6 relative) -> (missing, checked)."""
+    order = np.argsort(-np.abs(ref["a"]), kind="stable")[:n]
+    missing = 0
+    for i in order:
+        t = ref["tau"][i]
+        cand = np.flatnonzero(np.abs(grid["tau"] - t) <= 1e-6 * abs(t))
+        if not any(np.array_equal(grid["interactions"][j], ref["interactions"][i])
+                   for j in cand):
+            missing += 1
+    return missing, len(order)
+
+
+def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
+            cap: int, top_n: int = VERIFY_TOP_N, keep_strongest: int | None = None) -> dict:
+    """Re-trace ``n`` random free points one per call; compare path counts and
+    the ``top_n`` strongest paths."""
     if n <= 0 or len(todo) == 0:
         return {"points": 0}
+    num_paths = arrays["num_paths"]
+    if keep_strongest is not None:
+        top_n = min(top_n, keep_strongest)
     rng = np.random.default_rng(seed)
     pick = rng.choice(todo, size=min(n, len(todo)), replace=False)
-    single = np.array([core.solve_endpoints(sc, src, points[i:i + 1], cap,
-                                            src_orient).valid.sum(-1)[0] for i in pick])
+    single, top_missing, top_checked = [], 0, 0
+    for i in pick:
+        raw = core.solve_endpoints(sc, src, points[i:i + 1], cap, src_orient)
+        single.append(raw.valid.sum(-1)[0])
+        for s in range(raw.valid.shape[1]):
+            k = int(num_paths[i, s])
+            stored = {"tau": arrays["tau"][i, s, :k],
+                      "interactions": arrays["interactions"][i, s, :k]}
+            m, c = _top_missing(raw.link(0, s), stored, top_n)
+            top_missing += m
+            top_checked += c
+    single = np.array(single)
+    if keep_strongest is not None:
+        single = np.minimum(single, keep_strongest)
     grid = num_paths[pick]
     missing = int(np.clip(single - grid, 0, None).sum())
     out = {"points": int(len(pick)), "indices": pick.tolist(),
            "paths_grid": int(grid.sum()), "paths_single_calls": int(single.sum()),
            "paths_missing": missing,
-           "links_differing": int((single != grid).sum()), "links": int(single.size)}
-    if missing:
-        log.warning("grid verification: %d of %d paths at %d re-traced points are missing "
-                    "in the chunked trace (Sionna de-duplicates candidates per call; use "
-                    "a smaller chunk_size for an exact grid)", missing, int(single.sum()),
+           "links_differing": int((single != grid).sum()), "links": int(single.size),
+           "top_n": int(top_n), "top_paths_checked": int(top_checked),
+           "top_paths_missing": int(top_missing)}
+    if missing or top_missing:
+        log.warning("grid verification: %d of %d paths (%d of the %d strongest per link) at "
+                    "%d re-traced points are missing in the chunked trace (Sionna "
+                    "de-duplicates candidates per call; use a smaller chunk_size or a larger "
+                    "spec_table_size)", missing, int(single.sum()), top_missing, top_checked,
                     len(pick))
     return out
 

@@ -19,6 +19,23 @@ runs: a source that stored exactly the cap may have lost candidates, and the
 trace is reported as truncated. Callers then retry with a larger cap (or fewer
 receivers) or raise :class:`~engine.raytrace.base.TruncationError`.
 
+Speed (see ``bench/bench_retrace.py``). :class:`SolverCore` runs the stages of
+``PathSolver.__call__`` itself (Sionna 2.2: candidate generator, image
+method, field calculator) and differs from it in two ways that do not change
+the result (bit-identical in deterministic mode; ``legacy=True`` runs the
+original code path for comparison):
+
+- it reads the flat ``PathsBuffer`` into numpy (:func:`_buffer_to_numpy`)
+  instead of building Sionna's ``Paths``, whose scatter kernels bake the path
+  count as a literal: every call with a new path count compiled three LLVM
+  kernels (~5 ms each) and ran ~25 extra kernels;
+- it allocates a candidate buffer sized from the candidates actually seen
+  (at least :data:`MIN_BUFFER_PER_SRC` per source, re-run with a larger one
+  if it overflows) rather than ``max_num_paths_per_src`` (10**6 per source by
+  default: ~800 MB of memset per call), while pinning the specular-chain hash
+  table to the size Sionna would use for the requested cap, so the candidates
+  are the same.
+
 Mitsuba variant: Sionna selects it on import (CUDA when available, else
 LLVM); nothing here forces one.
 """
@@ -26,8 +43,10 @@ LLVM); nothing here forces one.
 from __future__ import annotations
 
 import logging
+import threading
 import types
 from collections.abc import Iterable, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +60,38 @@ log = logging.getLogger(__name__)
 
 #: A truncated trace is retried with the cap doubled at most this many times.
 MAX_CAP_DOUBLINGS = 6
+
+#: Smallest candidate buffer per source that :class:`SolverCore` allocates
+#: (see "Buffer size" in :class:`SolverCore`).
+MIN_BUFFER_PER_SRC = 4096
+
+_TABLE_LOCK = threading.Lock()
+
+
+@contextmanager
+def _spec_table_size(size: int):
+    """Pin the size of Sionna's specular-chain hash table (per source).
+
+    Sionna sizes it ``max(max_num_paths_per_src, MIN_SPEC_COUNT_SIZE)``, read
+    from the class attribute ``SBCandidateGenerator.MIN_SPEC_COUNT_SIZE`` (both
+    generators). Raising that attribute for the duration of a call decouples
+    the table from the candidate buffer.
+    """
+    from sionna.rt.path_solvers.sb_candidate_generator import SBCandidateGenerator
+
+    with _TABLE_LOCK:
+        old = SBCandidateGenerator.MIN_SPEC_COUNT_SIZE
+        SBCandidateGenerator.MIN_SPEC_COUNT_SIZE = int(size)
+        try:
+            yield
+        finally:
+            SBCandidateGenerator.MIN_SPEC_COUNT_SIZE = old
+
+
+def _spec_table_default(cap: int) -> int:
+    from sionna.rt.path_solvers.sb_candidate_generator import SBCandidateGenerator
+
+    return max(int(cap), int(SBCandidateGenerator.MIN_SPEC_COUNT_SIZE))
 
 
 def _rt():
@@ -69,7 +120,10 @@ class _CountingGenerator:
         n = int(dr.minimum(dr.max(paths.paths_counter), paths.buffer_size)[0]) \
             if paths.buffer_size else 0
         num_src = dr.width(kw["src_positions"])
-        src = np.asarray(paths.source_indices.numpy()[:n], dtype=np.int64)
+        # Transfer only the stored candidates, not the whole buffer.
+        idx = dr.gather(type(paths.source_indices), paths.source_indices,
+                        dr.arange(type(paths.source_indices), n)) if n else None
+        src = np.asarray(idx.numpy(), dtype=np.int64) if n else np.zeros(0, np.int64)
         self.counts = np.bincount(src, minlength=num_src)
         self.cap = int(kw["max_num_paths_per_src"])
         return paths
@@ -153,6 +207,76 @@ def _paths_to_numpy(paths, num_rx: int, num_tx: int, depth: int,
         candidates_per_source=counts, cap=cap)
 
 
+def _buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
+                     depth: int, counts: np.ndarray, cap: int) -> RawPaths:
+    """Flat ``PathsBuffer`` (after ``discard_invalid``) -> :class:`RawPaths`.
+
+    Equivalent to building Sionna's ``Paths`` (synthetic single-element arrays)
+    and reading its tensors, without it: ``Paths`` scatters into
+    ``[depth, rx, tx, max_num_paths]`` tensors whose kernels bake the path
+    count as a literal (an LLVM compile, ~5 ms each, three per call whenever the
+    count changes) and costs a few ms of Python tracing. Here the per-path
+    quantities (angles and Doppler as in ``Paths._build_from_buffer``) are
+    evaluated in one ``dr.eval`` and arranged into ``[R, T, P]`` with numpy;
+    within a link, paths keep their buffer order. Invalid slots are zero.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    from sionna.rt.utils import theta_phi_from_unit_vec
+
+    d = max(1, depth)
+    n = int(buf.buffer_size) if buf.tau is not None else 0
+    if n == 0:
+        z = np.zeros((num_rx, num_tx, 0))
+        return RawPaths(valid=z.astype(bool), a=z.astype(complex), tau=z, doppler=z,
+                        theta_t=z, phi_t=z, theta_r=z, phi_r=z,
+                        interactions=np.zeros((num_rx, num_tx, 0, d), np.int32),
+                        vertices=np.zeros((num_rx, num_tx, 0, d, 3), np.float32),
+                        candidates_per_source=counts, cap=cap)
+    src_i, tgt_i = buf.source_indices, buf.target_indices
+    k_tx, k_rx = buf.k_tx, buf.k_rx
+    theta_t, phi_t = theta_phi_from_unit_vec(k_tx)
+    theta_r, phi_r = theta_phi_from_unit_vec(k_rx)
+    # Paths._finalize_doppler_shift_compute
+    v_tx = dr.gather(mi.Vector3f, src_vel, src_i)
+    v_rx = dr.gather(mi.Vector3f, tgt_vel, tgt_i)
+    doppler = buf.doppler + dr.dot(k_tx, v_tx) / wavelength - dr.dot(-k_rx, v_rx) / wavelength
+    a = buf.a[0][0]
+    out = [src_i, tgt_i, dr.real(a), dr.imag(a), buf.tau, doppler, theta_t, phi_t,
+           theta_r, phi_r, buf.interaction_types.array, buf.vertices_x.array,
+           buf.vertices_y.array, buf.vertices_z.array]
+    dr.eval(*out)
+    (src_i, tgt_i, ar, ai, tau, dop, tht, pht, thr, phr, inter, vx, vy, vz) = \
+        [x.numpy() for x in out]
+    pair = tgt_i.astype(np.int64) * num_tx + src_i.astype(np.int64)
+    order = np.argsort(pair, kind="stable")
+    per_pair = np.bincount(pair, minlength=num_rx * num_tx)
+    p = int(per_pair.max())
+    start = np.concatenate([[0], np.cumsum(per_pair)[:-1]])
+    slot = np.empty(n, np.int64)
+    slot[order] = np.arange(n) - start[pair[order]]
+    r, t = tgt_i.astype(np.int64), src_i.astype(np.int64)
+
+    def place(v, dtype):
+        o = np.zeros((num_rx, num_tx, p) + v.shape[1:], dtype)
+        o[r, t, slot] = v
+        return o
+
+    inter = inter.reshape(n, d).astype(np.int32)
+    vert = np.stack([vx, vy, vz], -1).reshape(n, d, 3).astype(np.float32)
+    vert[inter == 0] = 0.0  # Sionna leaves stale coordinates in unused slots
+    f64 = np.float64
+    return RawPaths(
+        valid=place(np.ones(n, bool), bool),
+        a=place(ar.astype(f64) + 1j * ai.astype(f64), np.complex128),
+        tau=place(tau, f64), doppler=place(dop, f64),
+        theta_t=place(tht, f64), phi_t=place(pht, f64),
+        theta_r=place(thr, f64), phi_r=place(phr, f64),
+        interactions=place(inter, np.int32), vertices=place(vert, np.float32),
+        candidates_per_source=counts, cap=cap)
+
+
 class SolverCore:
     """A Sionna ``PathSolver`` with truncation detection (callable helpers).
 
@@ -160,12 +284,34 @@ class SolverCore:
         config: the ``[tracer]`` settings (depth, samples, cap, mechanisms, seed,
             ``deterministic``).
         deterministic: override ``config.deterministic``.
+        legacy: run ``PathSolver.__call__`` / build Sionna's ``Paths`` (the
+            original, slower code path; for benchmarks and cross-checks).
+        spec_table_size: entries per source of Sionna's specular-chain hash
+            table (None: Sionna's ``max(cap, 1e6)``). Grids use a larger one.
+
+    Buffer size: the candidate buffer is ``max(MIN_BUFFER_PER_SRC, 4 x the
+    largest per-source count seen so far)`` (power of two, at most ``cap``);
+    a call that fills it is re-run with 8 x the buffer (``buffer_regrows``),
+    so the result equals a trace with ``max_num_paths_per_src=cap``.
+    Truncation at ``cap`` itself is reported as before.
     """
 
-    def __init__(self, config: TracerConfig, *, deterministic: bool | None = None):
+    def __init__(self, config: TracerConfig, *, deterministic: bool | None = None,
+                 legacy: bool = False, spec_table_size: int | None = None):
         rt = _rt()
         self.config = config
+        #: Specular-chain hash table entries per source (None: Sionna's own
+        #: choice, ``max(cap, 1e6)``). Larger tables lose fewer candidates to
+        #: collisions when many receivers share a call.
+        self.spec_table_size = spec_table_size
+        #: Largest per-source candidate count seen so far (sizes the buffer).
+        self.candidates_seen = 0
+        #: Calls re-run because the reduced buffer overflowed.
+        self.buffer_regrows = 0
         self.deterministic = config.deterministic if deterministic is None else deterministic
+        #: True: run ``PathSolver.__call__`` and read Sionna's ``Paths`` (the
+        #: pre-optimization code path, kept for benchmarks and cross-checks).
+        self.legacy = bool(legacy)
         self.solver = rt.PathSolver(deterministic=self.deterministic)
         self._counter = _CountingGenerator(self.solver._candidate_generator)
         # The one hook into Sionna internals: count candidates per source.
@@ -189,44 +335,130 @@ class SolverCore:
                     diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
                     diffraction=c.diffraction, seed=c.seed)
 
+    def _trace(self, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
+               src_patterns, tgt_patterns, cap: int) -> RawPaths:
+        """The stages of ``PathSolver.__call__`` (Sionna 2.2), then
+        :func:`_buffer_to_numpy` instead of building ``Paths``.
+
+        ``cap`` is the ``max_num_paths_per_src`` the result is equivalent to; the
+        buffer actually allocated is smaller (see the class doc)."""
+        import drjit as dr
+
+        dr.make_opaque(src, tgt, src_o, tgt_o)
+        table = self.spec_table_size or _spec_table_default(cap)
+        buf_cap = min(int(cap), max(MIN_BUFFER_PER_SRC,
+                                    1 << int(4 * max(1, self.candidates_seen) - 1).bit_length()))
+        while True:
+            with _spec_table_size(table):
+                raw = self._trace_once(mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                                       src_patterns, tgt_patterns, cap, buf_cap)
+            self.candidates_seen = max(self.candidates_seen, int(raw.candidates_per_source.max(
+                initial=0)))
+            if buf_cap >= cap or raw.candidates_per_source.max(initial=0) < buf_cap:
+                return raw
+            # The reduced buffer overflowed: not a truncation of the requested
+            # cap; re-run with a larger buffer (same hash table -> same result).
+            self.buffer_regrows += 1
+            buf_cap = min(int(cap), 8 * buf_cap)
+
+    def _trace_once(self, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                    src_patterns, tgt_patterns, cap: int, buf_cap: int) -> RawPaths:
+        import drjit as dr
+
+        kw = self.solver_kwargs(buf_cap)
+        s = self.solver
+        buf = s._candidate_generator(
+            mi_scene=mi_scene, src_positions=src, tgt_positions=tgt,
+            samples_per_src=kw["samples_per_src"],
+            max_num_paths_per_src=kw["max_num_paths_per_src"],
+            max_depth=kw["max_depth"], los=kw["los"],
+            specular_reflection=kw["specular_reflection"],
+            diffuse_reflection=kw["diffuse_reflection"], refraction=kw["refraction"],
+            diffraction=kw["diffraction"], edge_diffraction=False, seed=kw["seed"])
+        # (the counting wrapper has scheduled and evaluated the buffer)
+        buf.shrink()
+        buf.detach_geometry()
+        buf = s._image_method(scene=mi_scene, paths=buf, src_positions=src,
+                              tgt_positions=tgt, diffraction=kw["diffraction"],
+                              diffraction_lit_region=True)
+        buf = s._field_calculator(
+            wavelength=wavelength, paths=buf, samples_per_src=kw["samples_per_src"],
+            diffraction=kw["diffraction"], src_positions=src, tgt_positions=tgt,
+            src_orientations=src_o, tgt_orientations=tgt_o,
+            src_antenna_patterns=src_patterns, tgt_antenna_patterns=tgt_patterns)
+        buf.discard_invalid()
+        return _buffer_to_numpy(buf, v_tx, v_rx, wavelength, dr.width(tgt), dr.width(src),
+                                self.config.max_depth, self._counter.counts, cap)
+
     def solve_scene(self, sionna_scene, cap: int) -> RawPaths:
         """Trace the Sionna scene's own transmitters and receivers."""
-        paths = self.solver(sionna_scene, synthetic_array=True, **self.solver_kwargs(cap))
-        return _paths_to_numpy(paths, len(sionna_scene.receivers),
-                               len(sionna_scene.transmitters), self.config.max_depth,
-                               self._counter.counts, cap)
+        if self.legacy:
+            paths = self.solver(sionna_scene, synthetic_array=True,
+                                **self.solver_kwargs(cap))
+            return _paths_to_numpy(paths, len(sionna_scene.receivers),
+                                   len(sionna_scene.transmitters), self.config.max_depth,
+                                   self._counter.counts, cap)
+        sionna_scene.all_set(radio_map=False)
+        src, src_o, _, v_tx = sionna_scene.sources(True, True)
+        tgt, tgt_o, _, v_rx = sionna_scene.targets(True, True)
+        return self._trace(sionna_scene.mi_scene, sionna_scene.wavelength, src, tgt, src_o,
+                           tgt_o, v_tx, v_rx, sionna_scene.tx_array.antenna_pattern.patterns,
+                           sionna_scene.rx_array.antenna_pattern.patterns, cap)
 
     def solve_endpoints(self, sionna_scene, sources: np.ndarray, targets: np.ndarray,
-                        cap: int, source_orientations: np.ndarray | None = None) -> RawPaths:
-        """Trace static single-element endpoints given as arrays.
+                        cap: int, source_orientations: np.ndarray | None = None,
+                        source_velocities: np.ndarray | None = None,
+                        target_orientations: np.ndarray | None = None,
+                        target_velocities: np.ndarray | None = None) -> RawPaths:
+        """Trace single-element endpoints given as arrays.
 
-        Used for grids: thousands of ``Receiver`` objects would cost a Python
-        loop of scatters in ``Scene._endpoints``; here the positions go to the
-        solver stages directly (the same stages ``PathSolver.__call__`` runs).
+        Used for grids (thousands of ``Receiver`` objects would cost a Python
+        loop of scatters in ``Scene._endpoints``) and by :class:`SionnaTracer`:
+        the positions go to the solver stages as evaluated arrays, never as
+        literals (``Scene._endpoints`` scatters each device's position as a
+        literal into a kernel, so every new pose compiled a new kernel).
 
         Args:
             sionna_scene: the ``sionna.rt.Scene`` (geometry and materials only).
-            sources: ``[S, 3]`` m (velocity 0).
-            targets: ``[T, 3]`` m (orientation 0, velocity 0).
+            sources: ``[S, 3]`` m.
+            targets: ``[T, 3]`` m.
             cap: ``max_num_paths_per_src``.
-            source_orientations: ``[S, 3]`` Sionna ``[yaw, pitch, roll]`` rad (default 0).
+            source_orientations, target_orientations: ``[S|T, 3]`` Sionna
+                ``[yaw, pitch, roll]`` rad (default 0).
+            source_velocities, target_velocities: ``[S|T, 3]`` m/s (default 0).
         """
+        import drjit as dr
+        import mitsuba as mi
+
+        def arr(v, n, cls):
+            v = np.zeros((n, 3), np.float32) if v is None else \
+                np.asarray(v, np.float32).reshape(n, 3)
+            return cls(*(mi.Float(np.ascontiguousarray(v[:, i])) for i in range(3)))
+
+        sources = np.asarray(sources, np.float32).reshape(-1, 3)
+        targets = np.asarray(targets, np.float32).reshape(-1, 3)
+        ns, nt = len(sources), len(targets)
+        src, tgt = arr(sources, ns, mi.Point3f), arr(targets, nt, mi.Point3f)
+        src_o = arr(source_orientations, ns, mi.Point3f)
+        tgt_o = arr(target_orientations, nt, mi.Point3f)
+        v_tx = arr(source_velocities, ns, mi.Vector3f)
+        v_rx = arr(target_velocities, nt, mi.Vector3f)
+        if not self.legacy:
+            pattern = self.iso_array.antenna_pattern.patterns
+            return self._trace(sionna_scene.mi_scene, sionna_scene.wavelength, src, tgt,
+                               src_o, tgt_o, v_tx, v_rx, pattern, pattern, cap)
+        return self._solve_endpoints_legacy(sionna_scene, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                                            cap)
+
+    def _solve_endpoints_legacy(self, sionna_scene, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                                cap: int) -> RawPaths:
         import drjit as dr
         import mitsuba as mi
 
         from sionna.rt.path_solvers.paths import Paths
 
-        sources = np.asarray(sources, np.float32).reshape(-1, 3)
-        targets = np.asarray(targets, np.float32).reshape(-1, 3)
-        ns, nt = len(sources), len(targets)
-        src = mi.Point3f(*(mi.Float(sources[:, i]) for i in range(3)))
-        tgt = mi.Point3f(*(mi.Float(targets[:, i]) for i in range(3)))
-        so = (np.zeros((ns, 3), np.float32) if source_orientations is None
-              else np.asarray(source_orientations, np.float32).reshape(ns, 3))
-        src_o = mi.Point3f(*(mi.Float(so[:, i]) for i in range(3)))
-        tgt_o = dr.zeros(mi.Point3f, nt)
+        ns, nt = dr.width(src), dr.width(tgt)
         rel_tx, rel_rx = dr.zeros(mi.Point3f, ns), dr.zeros(mi.Point3f, nt)
-        v_tx, v_rx = dr.zeros(mi.Vector3f, ns), dr.zeros(mi.Vector3f, nt)
         pattern = self.iso_array.antenna_pattern.patterns
         dr.make_opaque(src, tgt, src_o, tgt_o)
         kw = self.solver_kwargs(cap)
@@ -278,12 +510,13 @@ class SionnaTracer:
         ``tracer(scene, poses, links=None) -> {(tx, rx): LinkPaths}``.
     """
 
-    def __init__(self, config: TracerConfig | None = None, *, on_truncation: str = "grow"):
+    def __init__(self, config: TracerConfig | None = None, *, on_truncation: str = "grow",
+                 legacy: bool = False):
         if on_truncation not in ("grow", "raise"):
             raise ValueError(f"on_truncation: expected 'grow' or 'raise', got {on_truncation!r}")
         self.config = config or TracerConfig()
         self.on_truncation = on_truncation
-        self.core = SolverCore(self.config)
+        self.core = SolverCore(self.config, legacy=legacy)
         self._tx: dict[str, object] = {}
         self._rx: dict[str, object] = {}
         self.last_raw: RawPaths | None = None
@@ -336,7 +569,18 @@ class SionnaTracer:
         self._sync_devices(sc, tx_names, rx_names, poses)
         cap = self.config.max_num_paths_per_src
         for attempt in range(MAX_CAP_DOUBLINGS + 1):
-            raw = self.core.solve_scene(sc, cap)
+            if self.core.legacy:
+                raw = self.core.solve_scene(sc, cap)
+            else:
+                raw = self.core.solve_endpoints(
+                    sc, [poses[n].position for n in tx_names],
+                    [poses[n].position for n in rx_names], cap,
+                    source_orientations=[sionna_orientation(poses[n].orientation)
+                                         for n in tx_names],
+                    source_velocities=[poses[n].velocity for n in tx_names],
+                    target_orientations=[sionna_orientation(poses[n].orientation)
+                                         for n in rx_names],
+                    target_velocities=[poses[n].velocity for n in rx_names])
             if not raw.truncated:
                 break
             msg = (f"Sionna stored the maximum of {cap} path candidates for a source "
