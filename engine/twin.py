@@ -26,12 +26,14 @@ from pathlib import Path
 import numpy as np
 
 from engine.bus import Bus
+from engine.msgs import Header
 from engine.phy.network import NetworkPHY
 from engine.raytrace import DevicePose, make_tracer
 from engine.robots import SensorOptions, build_robots
 from engine.robots.control import CirclePath, FigureEightPath, GoalReacher, PolylinePath, PurePursuit
 from engine.scene import TwinScene, load_scene
 from engine.state import Command, Edit, LinkState, RobotState, StepResult
+from engine.transport.twin_msgs import Csi
 
 log = logging.getLogger(__name__)
 
@@ -140,6 +142,10 @@ class Twin:
         self.bus = Bus()
         self.agents = build_robots(self.config, self.bus, self.scene, seed=self.seed,
                                    options=self.sensor_options)
+        for name, agent in self.agents.items():
+            # The robot's radio is a sensor too: the CSI of every link it receives.
+            agent.topics["csi"] = f"/{name}/csi"
+            agent.node.advertise(agent.topics["csi"], Csi)
         for name, ctl in self._controllers.items():
             if hasattr(ctl, "reset"):
                 ctl.reset()
@@ -315,6 +321,11 @@ class Twin:
                                          snr_db=sig.snr_db if sig else float("nan"),
                                          rate_bps=sig.rate_bps if sig else float("nan"))
         result.signals = signals
+        for (tx, rx), sig in signals.items():
+            agent = self.agents.get(rx)
+            if agent is not None:
+                agent.node.publish(agent.topics["csi"], Csi(
+                    header=Header(stamp=t_next, frame_id=rx), tx=tx, rx=rx, h=sig.h))
         for est in self.estimators:
             est(self, result)
         t4 = clock()

@@ -66,6 +66,12 @@ def test_step_produces_paths_rates_and_motion(lab):
     sig = last.signals[("AP1", "robot1")]
     assert sig.h.shape == (14, 1024, 2, 4)
     assert set(last.timings_s) == {"agents", "trace", "phy", "estimate", "control"}
+    # The robot's radio publishes the CSI of each link it receives, as a sensor.
+    sub = tw.bus.node("probe").subscribe("/robot1/csi", "isac_twin_msgs/msg/Csi")
+    nxt = tw.step()
+    csi = {m.tx: m for m in sub.drain()}
+    assert set(csi) == {"AP1", "AP2"} and csi["AP1"].header.stamp == pytest.approx(nxt.time_s)
+    np.testing.assert_array_equal(csi["AP1"].h, nxt.signals[("AP1", "robot1")].h)
     assert "steps/s" in tw.stats.table()
 
 
