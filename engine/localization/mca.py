@@ -153,11 +153,22 @@ class MCALocalizer:
             bins = bins[(bins >= 0) & (bins < self._nbins)]
             if bins.size:
                 ub += self._table[a, bins].sum(axis=0)
-        order = np.argsort(-ub, kind="stable")
         k = self.k
+        chunk = max(64, 4 * k)
+        n = len(ub)
+        if chunk < n:
+            # Fast path: the top `chunk` bounds by partial selection (no full sort);
+            # usually the k-th exact score already beats every other bound.
+            part = np.argpartition(-ub, chunk)
+            first = part[:chunk]
+            s = self.exact_scores(m, first)
+            keep = np.argsort(-s, kind="stable")[:k]
+            if ub[part[chunk]] <= s[keep[-1]] - 1e-6:
+                return self._estimate(first[keep], s[keep], chunk)
+        order = np.argsort(-ub, kind="stable")
         best_i = np.empty(0, dtype=np.int64)
         best_s = np.empty(0)
-        start, chunk = 0, max(64, 4 * k)
+        start = 0
         while start < len(order):
             idx = order[start:start + chunk]
             s = self.exact_scores(m, idx)
@@ -170,10 +181,13 @@ class MCALocalizer:
             if len(best_s) == k and start < len(order) and ub[order[start]] <= best_s[-1] - 1e-6:
                 break
             chunk *= 2
+        return self._estimate(best_i, best_s, min(start, len(order)))
+
+    def _estimate(self, best_i, best_s, scored: int) -> LocationEstimate:
         w = best_s
         if w.sum() > 0:
             pos = (w[:, None] * self.positions[best_i]).sum(0) / w.sum()
         else:
             pos = self.positions[best_i].mean(0)
         return LocationEstimate(position=pos, best_indices=best_i, best_scores=best_s,
-                                candidates_scored=min(start, len(order)))
+                                candidates_scored=int(scored))

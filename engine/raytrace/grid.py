@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import json
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -51,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.npzfile import read_npz, write_npz
 from engine.config import TracerConfig
 from engine.raytrace.base import (DevicePose, TruncationError, device_poses,
                                   sionna_orientation, validate_poses)
@@ -506,11 +506,7 @@ def _pkg_version(name: str) -> str:
 
 def save_grid(grid: PathGrid, path: str | Path, *, compress: bool = False) -> Path:
     """Write ``grid`` as NPZ (``meta`` is a JSON string, see ``docs/tracers.md``)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    save = np.savez_compressed if compress else np.savez
-    with open(path, "wb") as f:
-        save(f, meta=np.array(json.dumps(grid.meta)), **grid.arrays)
+    path = write_npz(path, grid.meta, grid.arrays, compress=compress)
     log.info("wrote %s (%d points, %d transmitters)", path, len(grid.arrays["points"]),
              len(grid.meta["tx_names"]))
     return path
@@ -522,26 +518,9 @@ def load_grid(path: str | Path) -> PathGrid:
     Raises:
         ValueError: not a grid file, unknown format version, or a missing array.
     """
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: no such grid file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as exc:  # noqa: BLE001 - zip/format errors of all kinds
-        raise ValueError(f"{path}: not a readable NPZ file: {exc}") from exc
-    if "meta" not in data:
-        raise ValueError(f"{path}: not an isac-twin path grid (no 'meta' entry)")
-    meta = json.loads(str(data.pop("meta")))
-    if meta.get("format") != GRID_FORMAT:
-        raise ValueError(f"{path}: format {meta.get('format')!r} is not {GRID_FORMAT!r}")
-    if meta.get("version") != GRID_FORMAT_VERSION:
-        raise ValueError(f"{path}: grid format version {meta.get('version')!r} is unknown "
-                         f"(this engine reads version {GRID_FORMAT_VERSION})")
-    missing = [k for k in GRID_ARRAYS if k not in data]
-    if missing:
-        raise ValueError(f"{path}: missing arrays {', '.join(missing)}")
-    return PathGrid(meta=meta, arrays=data, path=path)
+    meta, data = read_npz(path, fmt=GRID_FORMAT, version=GRID_FORMAT_VERSION,
+                          required=GRID_ARRAYS, what="path grid")
+    return PathGrid(meta=meta, arrays=data, path=Path(path))
 
 
 def grid_summary(grid: PathGrid) -> dict:

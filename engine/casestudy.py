@@ -1,0 +1,434 @@
+"""The paper's section IV case study: fingerprint database, localization, deployment loop.
+
+:func:`run_case_study` does everything ``python -m engine.demo`` shows after
+the export: the cached fingerprint database of the twin's room, the
+deployment loop in the paper's mode (MDP from the twin's tracer at the
+twin's robot position, odometry as ground truth) and a closed-loop run in
+the realistic mode (MDP from pilots received in a perturbed "real" room),
+a static comparison table of MCA and two baselines, figures, and
+``metrics.json``. Definitions: ``docs/casestudy.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from engine.localization.baselines import make_localizers
+from engine.localization.deployment import (Deployment, DeploymentSettings, errors,
+                                            perturb_scene, summarize)
+from engine.localization.fingerprints import FingerprintDB, cached_database
+from engine.localization.measurements import (FeatureSpec, PilotSettings, observe_pilots,
+                                              observe_tracer)
+from engine.phy.network import NetworkPHY
+from engine.raytrace import DevicePose, device_poses, make_tracer
+from engine.scene import load_scene
+
+log = logging.getLogger(__name__)
+
+#: The paper's reported numbers (section IV-B), m.
+PAPER_MAX_POSITIONING_M = 0.16
+PAPER_MAX_MODELLING_M = 0.08
+
+#: Keys of ``metrics.json`` (each error entry holds rmse, median, p90, max in m).
+METRICS_KEYS = ("paper_mode", "closed_loop", "table", "database", "paper_reference",
+                "timings_s", "rates")
+
+
+def disjoint_config(config):
+    """``config`` with the APs on disjoint OFDM symbols: the K symbols split into
+    consecutive equal blocks in AP order (2 APs, K = 14: [0, 7) and [7, 14))."""
+    import dataclasses
+
+    aps = [d for d in config.devices if d.kind == "access_point"]
+    k = config.ofdm.num_symbols
+    edges = np.linspace(0, k, len(aps) + 1).round().astype(int)
+    blocks = {d.name: (int(edges[i]), int(edges[i + 1])) for i, d in enumerate(aps)}
+    devs = tuple(dataclasses.replace(d, symbols=blocks[d.name]) if d.name in blocks else d
+                 for d in config.devices)
+    return dataclasses.replace(config, devices=devs)
+
+
+def shared_config(config):
+    """``config`` with every AP on every resource element (they interfere)."""
+    import dataclasses
+
+    o = config.ofdm
+    devs = tuple(dataclasses.replace(d, symbols=(0, o.num_symbols),
+                                     subcarriers=(0, o.num_subcarriers))
+                 if d.kind == "access_point" else d for d in config.devices)
+    return dataclasses.replace(config, devices=devs)
+
+
+def allocation(config) -> str:
+    """``"shared REs"`` if any two APs' resource sets overlap, else ``"disjoint"``."""
+    aps = [d for d in config.devices if d.kind == "access_point"]
+    for i, a in enumerate(aps):
+        for b in aps[i + 1:]:
+            if (max(a.symbols[0], b.symbols[0]) < min(a.symbols[1], b.symbols[1])
+                    and max(a.subcarriers[0], b.subcarriers[0])
+                    < min(a.subcarriers[1], b.subcarriers[1])):
+                return "shared REs"
+    return "disjoint"
+
+
+def circle_points(centre, radius: float, n: int, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` antenna positions ``[n, 3]`` m on a circle and tangent yaws ``[n]`` rad (ccw)."""
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False) + np.pi / (2 * n)
+    pts = np.stack([centre[0] + radius * np.cos(ang), centre[1] + radius * np.sin(ang),
+                    np.full(n, height)], axis=1)
+    return pts, ang + np.pi / 2
+
+
+# --------------------------------------------------------------------------- static table
+
+
+def static_table(folder, db: FingerprintDB, *, n_points: int = 12,
+                 snrs=(0.0, 10.0, 20.0, 30.0), seed: int = 0, centre=(4.0, 3.0),
+                 radius: float = 1.5, mca: dict | None = None) -> list[dict]:
+    """Localization errors of MCA, kNN-CSI and PDP at test points on the circle.
+
+    For the twin's own room and for the perturbed "real" room (the same
+    perturbation as :class:`Deployment` with this seed), each method gets the
+    tracer-mode observation and pilot-mode observations at each SNR.
+
+    Returns:
+        Rows ``{"method", "mode", "room", "median", "p90", "max", "errors"}`` (m).
+    """
+    twin_scene = load_scene(folder)
+    real_scene = load_scene(folder)
+    perturb_scene(real_scene, seed=seed + 1)
+    cfg = twin_scene.config
+    spec = FeatureSpec.from_config(cfg)
+    locs = make_localizers(db, spec, mca=mca)
+    robot = [d.name for d in cfg.devices if d.kind == "robot"][0]
+    pts, yaws = circle_points(centre, radius, n_points, db.height)
+    phy = NetworkPHY(cfg)
+    rows = []
+    for room, scene in (("twin", twin_scene), ("perturbed", real_scene)):
+        tracer = make_tracer(scene.config)
+        per_point = []
+        for p, yaw in zip(pts, yaws):
+            poses = dict(device_poses(scene.config))
+            poses[robot] = DevicePose(tuple(p), (0.0, 0.0, float(yaw)))
+            links = tracer(scene, poses)
+            lk = [links[(ap, robot)] for ap in db.ap_names]
+            per_point.append((lk, [phy.channel(x) for x in lk]))
+        modes = [("tracer", None)] + [(f"pilots {s:g} dB", s) for s in snrs]
+        for mode, snr in modes:
+            errs = {m: [] for m in locs}
+            rng = np.random.default_rng([seed, int(snr or 0) + 100])
+            for (lk, ch), p in zip(per_point, pts):
+                obs = observe_tracer(lk, spec) if snr is None else observe_pilots(
+                    lk, ch, spec, PilotSettings(snr_db=snr, seed=seed), rng=rng)
+                for m, loc in locs.items():
+                    errs[m].append(float(np.linalg.norm(np.asarray(loc(obs))[:2] - p[:2])))
+            for m, e in errs.items():
+                s = summarize(e)
+                rows.append({"method": m, "mode": mode, "room": room, "median": s["median"],
+                             "p90": s["p90"], "max": s["max"], "errors": e})
+            log.info("table: %s room, %s done", room, mode)
+    return rows
+
+
+def table_markdown(rows: list[dict]) -> str:
+    """Rows of :func:`static_table` as a markdown table (cm: median / P90 / max)."""
+    rooms = list(dict.fromkeys(r["room"] for r in rows))
+    keys = list(dict.fromkeys((r["method"], r["mode"]) for r in rows))
+    cell = {(r["method"], r["mode"], r["room"]): r for r in rows}
+    head = "| method | measured MDP / CSI | " + " | ".join(
+        f"{room} room: median / P90 / max (cm)" for room in rooms) + " |"
+    lines = [head, "|" + "---|" * (2 + len(rooms))]
+    for m, mode in keys:
+        vals = []
+        for room in rooms:
+            r = cell.get((m, mode, room))
+            vals.append("-" if r is None else
+                        f"{100 * r['median']:.1f} / {100 * r['p90']:.1f} / {100 * r['max']:.1f}")
+        lines.append(f"| {m} | {mode} | " + " | ".join(vals) + " |")
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def plot_run(dep: Deployment, out: Path, tag: str, title: str) -> list[Path]:
+    """Trajectories, errors over time and rates of a deployment run -> PNGs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    recs = dep.records
+    g = {k: np.array([getattr(r, k) for r in recs]) for k in
+         ("truth", "odometry", "twin", "estimate")}
+    t = np.array([r.time_s for r in recs])
+    err = errors(recs)
+    files = []
+
+    fig, ax = plt.subplots(figsize=(7, 5.6))
+    scene = dep.twin.scene
+    lo, hi = scene.bounds_min, scene.bounds_max
+    for name, o in scene.objects.items():
+        if name.startswith(("Lab_Wall", "Lab_Floor", "Lab_Ceiling")):
+            continue
+        ax.add_patch(plt.Rectangle(o.bounds_min[:2], o.bounds_max[0] - o.bounds_min[0],
+                                   o.bounds_max[1] - o.bounds_min[1], color="0.85", zorder=0))
+    for d in dep.twin.config.devices:
+        if d.kind == "access_point":
+            ax.plot(*d.position[:2], "k^", ms=9)
+            ax.annotate(d.name, d.position[:2], textcoords="offset points", xytext=(6, 6))
+    style = {"estimate": ("C3", ".", f"estimate ({dep.settings.method})", 0.5),
+             "twin": ("C2", "-", "twin", 1.6),
+             "odometry": ("C0", "-", "odometry (paper's ground truth)", 1.6),
+             "truth": ("k", "--", "truth (simulator)", 1.2)}
+    for k, (c, ls, lab, lw) in style.items():
+        if ls == ".":
+            ax.plot(g[k][:, 0], g[k][:, 1], ".", color=c, ms=4, label=lab)
+        else:
+            ax.plot(g[k][:, 0], g[k][:, 1], ls, color=c, lw=lw, label=lab)
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"Robot trajectories: {title}")
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    files.append(out / f"trajectories_{tag}.png")
+    fig.savefig(files[-1], dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    ax.plot(t, 100 * err["positioning"], color="C3", label="positioning: estimate vs odometry")
+    ax.plot(t, 100 * err["modelling"], color="C2", label="modelling: twin vs odometry")
+    ax.plot(t, 100 * err["estimate_vs_truth"], color="C3", ls=":", lw=1,
+            label="estimate vs truth")
+    ax.plot(t, 100 * err["odometry_vs_truth"], color="C0", ls=":", lw=1,
+            label="odometry vs truth (drift)")
+    ax.axhline(100 * PAPER_MAX_POSITIONING_M, color="C3", ls="--", lw=0.8)
+    ax.axhline(100 * PAPER_MAX_MODELLING_M, color="C2", ls="--", lw=0.8)
+    box = {"facecolor": "white", "alpha": 0.8, "lw": 0, "pad": 1}
+    ax.text(t[-1], 100 * PAPER_MAX_POSITIONING_M + 0.5, "paper: max positioning 16 cm",
+            color="C3", fontsize=8, ha="right", bbox=box)
+    ax.text(t[-1], 100 * PAPER_MAX_MODELLING_M + 0.5, "paper: modelling < 8 cm", color="C2",
+            fontsize=8, ha="right", bbox=box)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("error (cm)")
+    ax.set_title(f"Positioning and modelling errors: {title}")
+    top = max(100 * max(float(np.max(v)) for v in err.values()), 16.0)
+    ax.set_ylim(0, 1.45 * top)
+    ax.legend(fontsize=8, loc="upper left", ncol=2)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    files.append(out / f"errors_{tag}.png")
+    fig.savefig(files[-1], dpi=120)
+    plt.close(fig)
+
+    rates = {k: np.array([r.rates_bps.get(k, np.nan) for r in recs]) for k in recs[0].rates_bps}
+    fig, ax1 = plt.subplots(figsize=(8, 4.2))
+    ap_names = [d.name for d in dep.twin.config.devices if d.kind == "access_point"]
+    alloc = allocation(dep.twin.config)
+    for k, v in rates.items():
+        ok = np.isfinite(v)
+        if not ok.any():
+            continue
+        c = f"C{ap_names.index(k.split('->')[0]) if k.split('->')[0] in ap_names else 9}"
+        alt = "(" in k
+        ax1.plot(t[ok], v[ok] / 1e6, "--" if alt else "-", lw=1.0 if alt else 1.8, color=c,
+                 label=f"{k}" + ("" if alt else f" (as configured: {alloc})"))
+    ax1.set_ylim(bottom=0)
+    ax1.set_xlabel("time (s)")
+    ax1.set_ylabel("achievable rate (Mbit/s)")
+    ax2 = ax1.twinx()
+    for i, d in enumerate(d for d in dep.twin.config.devices if d.kind == "access_point"):
+        dist = np.linalg.norm(g["truth"] - np.asarray(d.position[:2]), axis=1)
+        ax2.plot(t, dist, ls=":", color=f"C{i}", lw=1, label=f"distance to {d.name}")
+    ax2.set_ylabel("horizontal distance to AP (m)")
+    h1, l1 = ax1.get_legend_handles_labels()
+    h2, l2 = ax2.get_legend_handles_labels()
+    ax1.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.15),
+               ncol=2)
+    ax1.set_title(f"Achievable rates along the path: {title}")
+    ax1.grid(alpha=0.3)
+    files.append(out / f"rates_{tag}.png")
+    fig.savefig(files[-1], dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return files
+
+
+def rate_observations(dep: Deployment) -> dict:
+    """Check "AP1 well above AP2, each rising as the robot nears its AP" on a run.
+
+    Returns per link the mean rate (Mbit/s) and the Spearman-like rank
+    correlation between rate and distance to the AP (negative: rises when nearer).
+    """
+    recs = dep.records
+    truth = np.array([r.truth for r in recs])
+    out = {}
+    aps = {d.name: d for d in dep.twin.config.devices if d.kind == "access_point"}
+    for k in recs[0].rates_bps:
+        d = aps.get(k.split("->")[0])
+        if d is None:
+            continue
+        v = np.array([r.rates_bps.get(k, np.nan) for r in recs])
+        ok = np.isfinite(v)
+        if ok.sum() < 3:
+            continue
+        dist = np.linalg.norm(truth[ok] - np.asarray(d.position[:2]), axis=1)
+        rv = np.argsort(np.argsort(v[ok]))
+        rd = np.argsort(np.argsort(dist))
+        corr = float(np.corrcoef(rv, rd)[0, 1])
+        out[k] = {"mean_mbps": float(v[ok].mean() / 1e6), "min_mbps": float(v[ok].min() / 1e6),
+                  "max_mbps": float(v[ok].max() / 1e6), "rank_corr_rate_vs_distance": corr}
+    return out
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def _run(folder, db, settings, steps, dt, seed, rate_every, label, extra_phy=None):
+    t0 = time.perf_counter()
+    dep = Deployment(folder, db, settings, seed=seed, dt=dt, rate_every=rate_every,
+                     extra_phy=extra_phy)
+    n = steps if steps is not None else dep.lap_steps()
+    dep.run(n)
+    wall = time.perf_counter() - t0
+    err = errors(dep.records)
+    res = {"settings": {k: v for k, v in asdict(settings).items() if k != "mca"},
+           "steps": n, "dt_s": dt, "wall_s": wall,
+           "errors": {k: summarize(v) for k, v in err.items()},
+           "perturbation": dep.perturbation["material"] if dep.perturbation else None,
+           "calibration_error": {"dxy_m": dep.calib[0].tolist(),
+                                 "dyaw_deg": math.degrees(dep.calib[1])}}
+    # How well the physical robot follows the intended circle (truth vs path).
+    c, rad = np.asarray(settings.path["centre"], float), float(settings.path["radius"])
+    truth = np.array([r.truth for r in dep.records])
+    res["rejected_estimates"] = dep.rejected
+    res["truth_off_path"] = summarize(np.abs(np.linalg.norm(truth - c, axis=1) - rad))
+    i = int(np.argmax(err["positioning"]))
+    r = dep.records[i]
+    res["worst_step"] = {"step": r.step, "positioning_m": float(err["positioning"][i]),
+                         "modelling_m": float(err["modelling"][i]),
+                         "estimate": r.estimate.tolist(), "odometry": r.odometry.tolist(),
+                         "twin": r.twin.tolist(),
+                         "twin_to_estimate_m": float(np.linalg.norm(r.estimate - r.twin))}
+    log.info("%s: %d steps in %.1f s", label, n, wall)
+    return dep, res
+
+
+def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.1, steps: int | None = None,
+                   dt: float = 0.25, seed: int = 0, cache_dir="out/cache", table_points: int = 12,
+                   snrs=(0.0, 10.0, 20.0, 30.0), closed_loop_steps: int | None = None,
+                   rate_every: int = 2, mca: dict | None = None,
+                   closed_loop_method: str = "PDP", closed_loop: bool = True,
+                   path: dict | None = None,
+                   report=print) -> dict:
+    """Run the whole case study on a scene folder; write figures, table.md, metrics.json.
+
+    Args:
+        folder: scene folder of the twin's room.
+        out_dir: output folder.
+        spacing: fingerprint grid spacing, m (5 cm is the paper's; the demo
+            default is 10 cm to keep the whole demo under 10 minutes on 2 cores).
+        steps: deployment steps (default: one lap of the circle).
+        dt: step, s.
+        table_points: test points on the circle for the static table.
+        closed_loop_steps: steps of the closed-loop realistic run (default ``steps``).
+        rate_every: PHY (rates) every this many steps.
+        mca: MCA parameters (eps, k, num_paths).
+        closed_loop_method: localizer of the closed-loop realistic run.
+        closed_loop: run it at all (``metrics["closed_loop"]`` is None otherwise).
+        path: the circle the robot follows (``{"kind": "circle", "centre", "radius"}``;
+            default the bundled lab's: centre (4, 3), radius 1.5 m).
+        report: where progress lines go (the CLI prints; pass a logger method).
+
+    Returns:
+        The metrics dictionary (also written to ``metrics.json``).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    mca = dict(mca or {"eps": 0.5, "k": 4, "num_paths": 9})
+    path = dict(path or {"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5})
+    if path.get("kind") != "circle":
+        raise ValueError(f"path: the case study drives a circle, got kind {path.get('kind')!r}")
+    timings = {}
+    t0 = time.perf_counter()
+    scene = load_scene(folder)
+    db = cached_database(scene, spacing=spacing, cache_dir=cache_dir)
+    timings["database"] = time.perf_counter() - t0
+    report(f"fingerprint database: {db.path} ({db.summary()['free']} free points, "
+           f"{spacing * 100:g} cm grid, {len(db.ap_names)} APs) in {timings['database']:.1f} s")
+
+    paper = DeploymentSettings(source="twin", mode="tracer", perturb=True, mca=mca, path=path,
+                               num_paths=mca.get("num_paths", 9))
+    # Rates as configured, and with the other allocation for comparison: APs on
+    # disjoint symbols if they share REs (then each link is interfered by the
+    # other AP), else all APs on all REs.
+    if allocation(scene.config) == "shared REs":
+        extra = {"disjoint symbols": NetworkPHY(disjoint_config(scene.config))}
+    else:
+        extra = {"shared REs": NetworkPHY(shared_config(scene.config))}
+    dep, res_paper = _run(folder, db, paper, steps, dt, seed, rate_every, "paper mode", extra)
+    timings["paper_mode"] = res_paper["wall_s"]
+    e = res_paper["errors"]
+    report(f"paper mode ({res_paper['steps']} steps, {res_paper['wall_s']:.1f} s): "
+           f"max positioning error {100 * e['positioning']['max']:.1f} cm "
+           f"(paper ~16 cm), RMSE {100 * e['positioning']['rmse']:.1f} cm; "
+           f"max modelling error {100 * e['modelling']['max']:.1f} cm (paper < 8 cm); "
+           f"estimate vs truth RMSE {100 * e['estimate_vs_truth']['rmse']:.1f} cm; "
+           f"truth off the circle: max {100 * res_paper['truth_off_path']['max']:.1f} cm")
+    files = plot_run(dep, out, "paper", "paper mode (twin tracer MDP, open loop)")
+    rates = rate_observations(dep)
+    for k, v in rates.items():
+        report(f"  rate {k}: mean {v['mean_mbps']:.1f} Mbit/s "
+               f"({v['min_mbps']:.1f}..{v['max_mbps']:.1f}), rank corr. with distance "
+               f"{v['rank_corr_rate_vs_distance']:+.2f}")
+
+    res_closed = None
+    if closed_loop:
+        # Closed loop in the realistic mode: pilots at 20 dB received in the perturbed
+        # room; PDP matching (the method that survives pilot estimation, see the table).
+        closed = DeploymentSettings(source="real", mode="pilots", snr_db=20.0, perturb=True,
+                                    closed_loop=True, method=closed_loop_method, mca=mca,
+                                    path=path, num_paths=mca.get("num_paths", 9))
+        n_cl = closed_loop_steps if closed_loop_steps is not None else steps
+        dep2, res_closed = _run(folder, db, closed, n_cl, dt, seed, 10 ** 9, "closed loop")
+        timings["closed_loop"] = res_closed["wall_s"]
+        e2 = res_closed["errors"]
+        report(f"closed loop, realistic mode ({closed_loop_method}, pilots 20 dB, perturbed room, "
+               f"{res_closed['steps']} steps, {res_closed['wall_s']:.1f} s): estimate vs truth "
+               f"RMSE {100 * e2['estimate_vs_truth']['rmse']:.1f} cm, max "
+               f"{100 * e2['estimate_vs_truth']['max']:.1f} cm; odometry drift max "
+               f"{100 * e2['odometry_vs_truth']['max']:.1f} cm; truth off the circle: max "
+               f"{100 * res_closed['truth_off_path']['max']:.1f} cm")
+        files += plot_run(dep2, out, "closed_loop",
+                          f"closed loop, {closed_loop_method}, pilots 20 dB, perturbed room")
+
+    t1 = time.perf_counter()
+    rows = static_table(folder, db, n_points=table_points, snrs=snrs, seed=seed, mca=mca,
+                        centre=path["centre"], radius=path["radius"])
+    timings["table"] = time.perf_counter() - t1
+    md = table_markdown(rows)
+    (out / "table.md").write_text(
+        f"Static localization error at {table_points} points on the circle "
+        f"(database: {spacing * 100:g} cm grid of the twin's room; cm):\n\n{md}\n")
+    report(md)
+
+    metrics = {
+        "paper_mode": res_paper, "closed_loop": res_closed,
+        "table": [{k: v for k, v in r.items() if k != "errors"} for r in rows],
+        "database": {**db.summary(), "path": str(db.path)},
+        "paper_reference": {"max_positioning_m": PAPER_MAX_POSITIONING_M,
+                            "max_modelling_m": PAPER_MAX_MODELLING_M},
+        "timings_s": timings, "rates": rates,
+        "figures": [str(f) for f in files],
+    }
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
+    return metrics

@@ -1,0 +1,206 @@
+"""Localizers over a :class:`~engine.localization.fingerprints.FingerprintDB`.
+
+Every localizer is a callable ``loc(obs: Observation) -> [3]`` position (m)
+with a ``name``:
+
+* :class:`MCA`: multipath component analysis on the MDP (the paper's method;
+  :class:`~engine.localization.mca.MCALocalizer` underneath).
+* :class:`KnnCsi`: weighted kNN on CSI amplitude: ``|H|^2`` in dB averaged
+  over the robot's antennas, at a decimated set of subcarriers and every AP
+  antenna; the database CSI is synthesized from the database paths with
+  :mod:`engine.phy` (robot array at yaw 0; the receive-antenna average
+  makes the feature nearly independent of the robot's heading).
+* :class:`PdpMatch`: weighted kNN on the power-delay profile in dB (what the
+  band resolves: paths convolved with the Dirichlet kernel of N subcarriers).
+
+kNN distances are Euclidean per AP divided by the AP's feature size, summed
+over APs (so a 32-antenna AP does not drown a single-antenna one); the
+estimate is the ``1/d``-weighted mean of the ``k`` nearest points.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from engine.localization.fingerprints import FingerprintDB
+from engine.localization.mca import MCALocalizer
+from engine.localization.measurements import FeatureSpec, Observation, csi_from_paths
+from engine.localization.measurements import db as to_db
+from engine.localization.measurements import pdp_from_paths
+
+log = logging.getLogger(__name__)
+
+
+class MCA:
+    """MCA on the ``num_paths`` strongest database paths per AP.
+
+    Args:
+        db: the database.
+        eps: matching radius, m.
+        k: k-best weighted refinement.
+        num_paths: strongest database paths per point and AP used as the fingerprint.
+        num_measured: strongest measured paths used (default ``num_paths``).
+        cluster_m: if > 0, the database fingerprint is band-limited like an
+            estimated MDP: of the ``max_paths`` stored paths, those closer than
+            ``cluster_m`` in length are merged (power-weighted mean length,
+            summed power) and the ``num_paths`` strongest clusters kept. Use it
+            for MDPs estimated from pilots (an 80 MHz band resolves clusters,
+            not the tracer's individual paths).
+    """
+
+    name = "MCA"
+
+    def __init__(self, db: FingerprintDB, *, eps: float = 0.5, k: int = 4, num_paths: int = 9,
+                 num_measured: int | None = None, cluster_m: float = 0.0) -> None:
+        free = db.free_indices
+        self.db = db
+        self.free = free
+        self.num_paths = int(num_paths)
+        self.num_measured = int(num_measured or num_paths)
+        lengths = db.lengths[free]
+        if cluster_m > 0:
+            lengths = cluster_lengths(lengths, db.power[free], cluster_m, self.num_paths)
+        self.loc = MCALocalizer(db.points[free], lengths[:, :, :self.num_paths], eps=eps, k=k)
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        return self.loc(obs.lengths[:, :self.num_measured]).position
+
+
+def cluster_lengths(lengths, power, cluster_m: float, keep: int) -> np.ndarray:
+    """Merge paths closer than ``cluster_m`` (m) in length, per point and AP.
+
+    Args:
+        lengths, power: ``[P, A, L]`` (NaN / 0 pads).
+        keep: clusters kept per point and AP (strongest first).
+
+    Returns:
+        ``[P, A, keep]`` cluster lengths (power-weighted means), NaN pads.
+    """
+    P, A, L = lengths.shape
+    order = np.argsort(np.where(np.isfinite(lengths), lengths, np.inf), axis=2)
+    d = np.take_along_axis(lengths, order, axis=2)
+    p = np.take_along_axis(np.where(np.isfinite(lengths), power, 0.0), order, axis=2)
+    gap = np.diff(d, axis=2)
+    new = np.concatenate([np.ones((P, A, 1), bool), ~(gap < cluster_m)], axis=2)
+    cid = np.cumsum(new, axis=2) - 1  # [P, A, L] cluster index per path
+    ok = np.isfinite(d)
+    flat = (np.arange(P * A)[:, None] * L + cid.reshape(P * A, L))[ok.reshape(P * A, L)]
+    w = p[ok]
+    psum = np.bincount(flat, weights=w, minlength=P * A * L).reshape(P, A, L)
+    dsum = np.bincount(flat, weights=w * d[ok], minlength=P * A * L).reshape(P, A, L)
+    cnt = np.bincount(flat, minlength=P * A * L).reshape(P, A, L)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cl = np.where(cnt > 0, dsum / np.where(psum > 0, psum, 1.0), np.nan)
+    cl = np.where((cnt > 0) & (psum <= 0), np.nan, cl)
+    strongest = np.argsort(-np.where(np.isfinite(cl), psum, -1.0), axis=2)[:, :, :keep]
+    return np.take_along_axis(cl, strongest, axis=2)
+
+
+def _weighted_knn(dist: np.ndarray, pos: np.ndarray, k: int) -> np.ndarray:
+    k = min(k, len(dist))
+    idx = np.argpartition(dist, k - 1)[:k]
+    w = 1.0 / np.maximum(np.sqrt(dist[idx]), 1e-9)
+    return (w[:, None] * pos[idx]).sum(0) / w.sum()
+
+
+class KnnCsi:
+    """Weighted kNN on CSI amplitude (see the module doc).
+
+    Args:
+        db: the database (must keep the path angles and coefficients).
+        spec: the :class:`FeatureSpec` shared with the measurements.
+        k: neighbours.
+        chunk: points synthesized at once (memory bound).
+    """
+
+    name = "kNN-CSI"
+
+    def __init__(self, db: FingerprintDB, spec: FeatureSpec, *, k: int = 4,
+                 chunk: int = 512) -> None:
+        self.spec, self.k = spec, int(k)
+        self.free = db.free_indices
+        self.pos = db.points[self.free]
+        rx = _robot_name(db, spec)
+        freqs = spec.knn_frequencies
+        self.features = []
+        for a, ap in enumerate(db.ap_names):
+            tx_arr = spec.arrays[ap]
+            out = np.empty((len(self.free), len(freqs), tx_arr.num_ant), np.float32)
+            for s in range(0, len(self.free), chunk):
+                for j, i in enumerate(self.free[s:s + chunk]):
+                    n = int(db.num_paths[i, a])
+                    h = csi_from_paths(db.a[i, a, :n], db.lengths[i, a, :n] / 299_792_458.0,
+                                       db.theta_t[i, a, :n], db.phi_t[i, a, :n],
+                                       db.theta_r[i, a, :n], db.phi_r[i, a, :n],
+                                       db.frequency_hz, freqs, spec.arrays[rx], tx_arr)
+                    out[s + j] = to_db(np.mean(np.abs(h) ** 2, axis=1))
+            self.features.append(out.reshape(len(self.free), -1))
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        d = np.zeros(len(self.pos))
+        for f, m in zip(self.features, obs.csi_db):
+            m = np.asarray(m, np.float32).reshape(-1)
+            d += np.sum((f - m) ** 2, axis=1) / f.shape[1]
+        return _weighted_knn(d, self.pos, self.k)
+
+
+class PdpMatch:
+    """Weighted kNN on the PDP in dB (see the module doc)."""
+
+    name = "PDP"
+
+    def __init__(self, db: FingerprintDB, spec: FeatureSpec, *, k: int = 4,
+                 chunk: int = 2048) -> None:
+        self.spec, self.k = spec, int(k)
+        self.free = db.free_indices
+        self.pos = db.points[self.free]
+        feats = []
+        for s in range(0, len(self.free), chunk):
+            idx = self.free[s:s + chunk]
+            feats.append(to_db(pdp_from_paths(db.lengths[idx], db.power[idx], spec.pdp_bins_m,
+                                           spec.grid)).astype(np.float32))
+        self.features = np.concatenate(feats)  # [F, A, B]
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        m = np.asarray(obs.pdp_db, np.float32)
+        d = np.sum(np.mean((self.features - m[None]) ** 2, axis=2), axis=1)
+        return _weighted_knn(d, self.pos, self.k)
+
+
+def _robot_name(db: FingerprintDB, spec: FeatureSpec) -> str:
+    rx = [n for n in spec.arrays if n not in db.ap_names]
+    if not rx:
+        raise ValueError("no receiver array in the feature spec")
+    return rx[0]
+
+
+def make_localizers(db: FingerprintDB, spec: FeatureSpec, *, mca: dict | None = None,
+                    knn_k: int = 4, pdp_k: int = 4) -> dict:
+    """``{"MCA": MCA, "kNN-CSI": KnnCsi, "PDP": PdpMatch}`` over ``db``."""
+    return {"MCA": MCA(db, **(mca or {})), "kNN-CSI": KnnCsi(db, spec, k=knn_k),
+            "PDP": PdpMatch(db, spec, k=pdp_k)}
+
+
+def observe_database_point(db: FingerprintDB, i: int, spec: FeatureSpec,
+                           num_paths: int = 9) -> Observation:
+    """The tracer-mode observation of database point ``i`` from its stored paths
+    (robot array at yaw 0, as the database features): a noise-free check."""
+    A = len(db.ap_names)
+    rx = _robot_name(db, spec)
+    lengths = np.full((A, num_paths), np.nan)
+    powers = np.zeros((A, num_paths))
+    csi, pdp = [], []
+    for a, ap in enumerate(db.ap_names):
+        n = int(db.num_paths[i, a])
+        j = min(n, num_paths)
+        lengths[a, :j], powers[a, :j] = db.lengths[i, a, :j], db.power[i, a, :j]
+        h = csi_from_paths(db.a[i, a, :n], db.lengths[i, a, :n] / 299_792_458.0,
+                           db.theta_t[i, a, :n], db.phi_t[i, a, :n], db.theta_r[i, a, :n],
+                           db.phi_r[i, a, :n], db.frequency_hz, spec.knn_frequencies,
+                           spec.arrays[rx], spec.arrays[ap])
+        csi.append(to_db(np.mean(np.abs(h) ** 2, axis=1)))
+        pdp.append(to_db(pdp_from_paths(db.lengths[i, a, :n], db.power[i, a, :n],
+                                        spec.pdp_bins_m, spec.grid)))
+    return Observation(lengths, powers, csi, np.array(pdp))

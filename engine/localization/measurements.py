@@ -1,0 +1,264 @@
+"""What a robot measures from one step's links: MDPs, CSI amplitudes, PDPs.
+
+Two measurement modes (``docs/casestudy.md``):
+
+* ``"tracer"`` (the paper's mode, on purpose a stress test of the twin): the
+  MDP is the tracer's path lengths ``c * tau`` and powers, strongest first;
+  CSI and PDP features are synthesized from all traced paths.
+* ``"pilots"`` (realistic): the eq.-4 channel of the link
+  (:meth:`engine.phy.network.NetworkPHY.channel`) carries comb pilots
+  (:class:`~engine.phy.estimation.PilotPattern`, one port per AP antenna,
+  stride ``max(min_stride, ports)``) received with white Gaussian noise at a
+  given SNR; :class:`~engine.phy.estimation.LSChannelEstimator` estimates the
+  CSI; the MDP comes from :class:`~engine.phy.estimation.MdpEstimator`
+  (TLS-ESPRIT + least squares) on the raw LS values at each port's pilot
+  comb, averaged over the 14 symbols, with every (port, receive antenna) as a
+  snapshot. The APs' pilots are assumed orthogonal to each other.
+
+SNR in pilot mode is the mean pilot SNR per resource element and receive
+antenna: ``mean |H|^2 |x|^2 / sigma^2`` over the link's antenna pairs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from engine.phy.arrays import PlanarArray
+from engine.phy.channel import baseband_gains
+from engine.phy.estimation import LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp
+from engine.phy.ofdm import ResourceGrid, ResourceSet
+from engine.raytrace.base import SPEED_OF_LIGHT, sionna_orientation
+
+#: Decimation of the subcarriers used as kNN features (1024 / 64 = 16 subcarriers).
+KNN_SUBCARRIER_STEP = 64
+#: PDP sampling: path-length bins, m.
+PDP_BINS_M = np.arange(0.0, 40.0, 0.5)
+#: Floor of the dB features, relative to nothing (absolute |.|^2 in dB).
+FEATURE_FLOOR_DB = -160.0
+
+
+@dataclass
+class FeatureSpec:
+    """Shared settings of the features (database and measurements must agree).
+
+    Attributes:
+        grid: the OFDM grid (N subcarriers, delta_f).
+        frequency_hz: carrier, Hz.
+        arrays: device name -> :class:`PlanarArray`.
+        knn_subcarriers: subcarrier indices of the kNN features ``[S]``.
+        pdp_bins_m: path-length bins of the PDP ``[B]``, m.
+    """
+
+    grid: ResourceGrid
+    frequency_hz: float
+    arrays: dict
+    knn_subcarriers: np.ndarray
+    pdp_bins_m: np.ndarray = field(default_factory=lambda: PDP_BINS_M.copy())
+
+    @classmethod
+    def from_config(cls, config, knn_step: int = KNN_SUBCARRIER_STEP) -> FeatureSpec:
+        o = config.ofdm
+        grid = ResourceGrid(o.num_subcarriers, o.subcarrier_spacing_hz, o.num_symbols,
+                            o.cyclic_prefix_samples)
+        arrays = {d.name: PlanarArray(d.array.rows, d.array.cols, d.array.vertical_spacing,
+                                      d.array.horizontal_spacing) for d in config.devices}
+        sc = np.arange(knn_step // 2, o.num_subcarriers, knn_step)
+        return cls(grid, config.scene.frequency_hz, arrays, sc)
+
+    @property
+    def knn_frequencies(self) -> np.ndarray:
+        """Centred offsets of the kNN subcarriers ``[S]``, Hz."""
+        return self.grid.subcarrier_frequencies[self.knn_subcarriers]
+
+
+@dataclass
+class Observation:
+    """One measurement of all APs at one position.
+
+    Attributes:
+        lengths: ``[A, J]`` measured path lengths, m, strongest first (NaN pad).
+        powers: ``[A, J]`` their powers (linear, 0 pad).
+        csi_db: per AP ``[S, Nt]``: ``10 log10`` of ``|H|^2`` averaged over the
+            receive antennas at the kNN subcarriers.
+        pdp_db: ``[A, B]`` power-delay profile in dB at :attr:`FeatureSpec.pdp_bins_m`.
+    """
+
+    lengths: np.ndarray
+    powers: np.ndarray
+    csi_db: list
+    pdp_db: np.ndarray
+
+
+# --------------------------------------------------------------------------- features
+
+
+def csi_from_paths(a, tau, theta_t, phi_t, theta_r, phi_r, frequency_hz: float,
+                   freqs_hz, rx_array: PlanarArray, tx_array: PlanarArray,
+                   rx_orientation=(0.0, 0.0, 0.0), tx_orientation=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Eq.-4 CSI of one link at selected subcarriers (one symbol, no Doppler).
+
+    Args:
+        a, tau, theta_*, phi_*: ``[L]`` path parameters (passband ``a``, s, rad).
+        freqs_hz: ``[S]`` centred subcarrier offsets, Hz.
+        rx_orientation, tx_orientation: ``[yaw, pitch, roll]`` rad (Sionna order).
+
+    Returns:
+        ``[S, Nr, Nt]`` complex128.
+    """
+    tau = np.asarray(tau, float)
+    if tau.size == 0:
+        return np.zeros((len(freqs_hz), rx_array.num_ant, tx_array.num_ant), complex)
+    b = baseband_gains(np.asarray(a, complex), tau, frequency_hz)
+    arx = rx_array.steering_vectors(np.asarray(theta_r, float), np.asarray(phi_r, float),
+                                    rx_orientation)
+    atx = tx_array.steering_vectors(np.asarray(theta_t, float), np.asarray(phi_t, float),
+                                    tx_orientation)
+    ph = np.exp(-2j * np.pi * np.mod(np.outer(freqs_hz, tau), 1.0)) * b  # [S, L]
+    return np.einsum("sl,lr,lt->srt", ph, arx, atx, optimize=True)
+
+
+def db(x) -> np.ndarray:
+    """``10 log10`` with a floor at :data:`FEATURE_FLOOR_DB`."""
+    return np.maximum(10 * np.log10(np.maximum(np.asarray(x, float), 1e-300)), FEATURE_FLOOR_DB)
+
+
+def pdp_from_paths(lengths, powers, bins_m, grid: ResourceGrid) -> np.ndarray:
+    """PDP of paths as the receiver's band sees it: ``sum_l p_l |D_N(d - d_l)|^2``.
+
+    ``D_N`` is the normalised Dirichlet kernel of N subcarriers at delta_f
+    (resolution ``c / (N delta_f)`` = 3.75 m at 80 MHz).
+
+    Args:
+        lengths, powers: ``[..., L]`` (NaN lengths are ignored).
+        bins_m: ``[B]`` m.
+
+    Returns:
+        ``[..., B]`` linear power.
+    """
+    lengths = np.asarray(lengths, float)
+    p = np.where(np.isfinite(lengths), np.asarray(powers, float), 0.0)
+    d = np.where(np.isfinite(lengths), lengths, 0.0)
+    n, df = grid.num_subcarriers, grid.subcarrier_spacing_hz
+    x = (np.asarray(bins_m)[None, :] - d[..., :, None]) / SPEED_OF_LIGHT * df  # [..., L, B]
+    num = np.sin(np.pi * n * x)
+    den = n * np.sin(np.pi * x)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        k = np.where(np.abs(den) < 1e-12, 1.0, num / den) ** 2
+    return np.einsum("...l,...lb->...b", p, k)
+
+
+def pdp_from_csi(h, bins_m, grid: ResourceGrid) -> np.ndarray:
+    """PDP from CSI ``[N, M]`` (all subcarriers, M antenna pairs): mean over
+    pairs of ``|(1/N) sum_n H[n] exp(+j 2 pi f_n d / c)|^2`` -> ``[B]``."""
+    f = grid.subcarrier_frequencies
+    e = np.exp(2j * np.pi * np.outer(np.asarray(bins_m) / SPEED_OF_LIGHT, f)) / len(f)  # [B, N]
+    return np.mean(np.abs(e @ h) ** 2, axis=1)
+
+
+# --------------------------------------------------------------------------- observations
+
+
+def observe_tracer(links: list, spec: FeatureSpec, num_paths: int = 9) -> Observation:
+    """Paper's mode: features straight from the traced paths of each AP's link.
+
+    Args:
+        links: per AP (database order) the :class:`~engine.raytrace.base.LinkPaths`.
+        num_paths: strongest paths in the MDP (J).
+    """
+    A = len(links)
+    lengths = np.full((A, num_paths), np.nan)
+    powers = np.zeros((A, num_paths))
+    csi, pdp = [], []
+    for i, lp in enumerate(links):
+        m = ideal_mdp(lp.tau, lp.a, max_paths=num_paths)
+        lengths[i, :len(m)], powers[i, :len(m)] = m.distances_m, m.powers
+        h = csi_from_paths(lp.a, lp.tau, lp.theta_t, lp.phi_t, lp.theta_r, lp.phi_r,
+                           lp.frequency_hz, spec.knn_frequencies, spec.arrays[lp.rx],
+                           spec.arrays[lp.tx], sionna_orientation(lp.rx_orientation),
+                           sionna_orientation(lp.tx_orientation))
+        csi.append(db(np.mean(np.abs(h) ** 2, axis=1)))
+        pdp.append(db(pdp_from_paths(SPEED_OF_LIGHT * lp.tau, np.abs(lp.a) ** 2,
+                                     spec.pdp_bins_m, spec.grid)))
+    return Observation(lengths, powers, csi, np.array(pdp))
+
+
+@dataclass
+class PilotSettings:
+    """Pilot-mode settings.
+
+    Attributes:
+        snr_db: mean pilot SNR per RE and receive antenna, dB.
+        min_stride: smallest comb stride (subcarriers); the stride is
+            ``max(min_stride, ports)`` so every port keeps its own comb.
+        max_paths: MdpEstimator model-order cap (paths returned).
+        seed: noise seed.
+    """
+
+    snr_db: float = 20.0
+    min_stride: int = 8
+    max_paths: int = 9
+    seed: int = 0
+
+
+def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: PilotSettings,
+                   num_paths: int = 9, rng: np.random.Generator | None = None,
+                   features=("mdp", "csi", "pdp")) -> Observation:
+    """Realistic mode: features estimated from noisy received pilots.
+
+    Args:
+        links: per AP the :class:`LinkPaths` (only ``tx``/``rx`` names are read).
+        channels: per AP the channel ``[K, N, Nr, Nt]`` (``NetworkPHY.channel``).
+        settings: :class:`PilotSettings`.
+        num_paths: MDP entries kept (J).
+        rng: noise generator (default from ``settings.seed``).
+        features: which of ``"mdp"``, ``"csi"``, ``"pdp"`` to estimate (the MDP's
+            super-resolution is the costly one); the others stay NaN / empty.
+    """
+    rng = rng if rng is not None else np.random.default_rng(settings.seed)
+    grid = spec.grid
+    A = len(links)
+    lengths = np.full((A, num_paths), np.nan)
+    powers = np.zeros((A, num_paths))
+    csi, pdp = [], []
+    for i, (lp, h) in enumerate(zip(links, channels)):
+        k_, n_, nr, nt = h.shape
+        rs = ResourceSet(grid, None, None, name=lp.tx)
+        pat = PilotPattern(rs, "comb", num_ports=nt,
+                           subcarrier_stride=max(settings.min_stride, nt), seed=settings.seed)
+        x = pat.symbols  # [P, K, N]
+        sig = np.mean(np.abs(h) ** 2)
+        sigma2 = sig * pat.pilot_power / 10 ** (settings.snr_db / 10) if sig > 0 else 1e-30
+        y = np.einsum("knrp,pkn->knr", h, x)
+        y = y + np.sqrt(sigma2 / 2) * (rng.standard_normal(y.shape)
+                                       + 1j * rng.standard_normal(y.shape))
+        hh = LSChannelEstimator(pat)(y)  # [K, N, Nr, P]
+        hmean = hh.mean(axis=0)  # [N, Nr, P] (noise / K)
+        csi.append(db(np.mean(np.abs(hmean[spec.knn_subcarriers]) ** 2, axis=1))
+                   if "csi" in features else np.full((len(spec.knn_subcarriers), nt), np.nan))
+        pdp.append(db(pdp_from_csi(hmean.reshape(n_, -1), spec.pdp_bins_m, grid))
+                   if "pdp" in features else np.full(len(spec.pdp_bins_m), np.nan))
+        if "mdp" not in features:
+            continue
+        # MDP: raw LS at each port's comb, snapshots = (rx, port).
+        snaps, sc0 = [], None
+        for p in range(nt):
+            _, sc = pat.positions(p)
+            if sc0 is None:
+                sc0 = sc
+            m = min(len(sc), len(sc0))
+            snaps.append(hmean[sc[:m], :, p])
+        ncomb = min(s.shape[0] for s in snaps)
+        snap = np.concatenate([s[:ncomb] for s in snaps], axis=1)  # [Nc, Nr*P]
+        stride = max(settings.min_stride, nt)
+        # ESPRIT needs 2k <= M - 1 (window M): widen the window for short combs.
+        sub = min(ncomb - 2, max(ncomb // 2, 2 * settings.max_paths + 2))
+        est = MdpEstimator(stride * grid.subcarrier_spacing_hz, max_paths=settings.max_paths,
+                           subband=sub,
+                           max_distance_m=SPEED_OF_LIGHT / (stride * grid.subcarrier_spacing_hz)
+                           * 0.9)
+        mdp = est(snap)
+        j = min(len(mdp), num_paths)
+        lengths[i, :j], powers[i, :j] = mdp.distances_m[:j], mdp.powers[:j]
+    return Observation(lengths, powers, csi, np.array(pdp))

@@ -1,0 +1,96 @@
+"""engine/localization/fingerprints.py: build, round trip, refusal, off-grid, staleness."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from engine.localization.fingerprints import (DB_ARRAYS, DatabaseMismatchError, attach,
+                                              cache_path, cached_database, load_database,
+                                              save_database)
+from engine.scene import load_scene
+from engine.state import Edit
+
+pytestmark = pytest.mark.slow
+
+
+def test_database_contents(lab_db):
+    db = lab_db
+    assert set(DB_ARRAYS) <= set(db.arrays)
+    n, a, L = db.lengths.shape
+    assert a == 2 and L == 16 and db.ap_names == ["AP1", "AP2"]
+    free = db.free
+    assert free.sum() > 20 and (~free).sum() > 0  # the cabinet's footprint is not free
+    # strongest first, and the shortest path at a free point is at least the LOS distance
+    i = db.free_indices[0]
+    p = db.power[i, 0, : db.num_paths[i, 0]]
+    assert np.all(np.diff(p) <= 1e-12)
+    los = np.linalg.norm(db.points[i] - np.array([0.1, 2.0, 2.0]))
+    assert np.nanmin(db.lengths[i, 0]) == pytest.approx(los, abs=1e-3)
+    assert db.height == pytest.approx(0.25)
+    assert db.meta["tracer"]["max_depth"] == 2
+
+
+def test_round_trip_and_cache(lab, lab_db, tmp_path):
+    scene = load_scene(lab)
+    p = save_database(lab_db, tmp_path / "db.npz").path
+    back = load_database(p, scene=scene)
+    for k in DB_ARRAYS:
+        np.testing.assert_array_equal(back.arrays[k], lab_db.arrays[k])
+    assert back.meta == lab_db.meta
+    # the cache holds it under the scene hash, frequency and spacing
+    assert lab_db.path == cache_path(scene, 0.4, lab_db.path.parent)
+    again = cached_database(scene, spacing=0.4, cache_dir=lab_db.path.parent, max_paths=16)
+    assert again.path == lab_db.path
+
+
+def test_refuses_other_frequency(lab_db, tmp_path, make_lab):
+    other = load_scene(make_lab(tmp_path / "f", frequency_hz=3.5e9), load_sionna=False)
+    with pytest.raises(DatabaseMismatchError, match="2.4 GHz, the scene is at 3.5 GHz"):
+        load_database(lab_db.path, scene=other)
+
+
+def test_refuses_edited_room_and_twin_flags_it_stale(lab, lab_db):
+    from engine.twin import Twin
+
+    twin = Twin.from_scene(lab, phy=False)
+    attach(twin, lab_db)
+    assert twin.stale_databases() == []
+    twin.apply_edit(Edit("move", "table", position=(1.0, 3.0, 0.375)))
+    twin._apply_pending()
+    assert twin.stale_databases() == [lab_db.name]
+    with pytest.raises(DatabaseMismatchError, match="room was edited"):
+        lab_db.check(twin.scene)
+
+
+def test_refuses_moved_access_point(lab, lab_db):
+    scene = load_scene(lab, load_sionna=False)
+    with pytest.raises(DatabaseMismatchError, match="access point 'AP2'"):
+        lab_db.check(scene, tx_positions={"AP2": (2.0, 0.1, 2.0)})
+
+
+def test_off_grid_positions(lab_db):
+    db = lab_db
+    i = db.locate(db.points[db.free_indices[3], :2] + 0.05)
+    assert i == db.free_indices[3]
+    with pytest.raises(ValueError, match="outside the fingerprint grid"):
+        db.locate((10.0, 2.0))
+    j = db.locate((10.0, 2.0), outside="nearest")
+    assert db.free[j] and db.points[j, 0] > 4.0
+    # inside the cabinet: the nearest free point
+    k = db.locate((4.5, 0.5))
+    assert db.free[k]
+    with pytest.raises(ValueError, match="finite"):
+        db.locate((np.nan, 1.0))
+
+
+def test_bad_files(tmp_path, lab_db):
+    with pytest.raises(ValueError, match="no such"):
+        load_database(tmp_path / "nope.npz")
+    (tmp_path / "x.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="not a readable"):
+        load_database(tmp_path / "x.npz")
+    bad = dataclasses.replace(lab_db, meta={**lab_db.meta, "version": 99})
+    save_database(bad, tmp_path / "v.npz")
+    with pytest.raises(ValueError, match="version 99"):
+        load_database(tmp_path / "v.npz")
