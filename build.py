@@ -101,7 +101,9 @@ def run(py: Path, *args: str, **kw) -> int:
 
 
 def cmd_test(py: Path, extra: list[str]) -> int:
-    return run(py, "-m", "pytest", "tests", *extra)
+    # Arguments go to pytest; the whole tests/ folder unless a path is given.
+    paths = [a for a in extra if not a.startswith("-") and (ROOT / a.split("::")[0]).exists()]
+    return run(py, "-m", "pytest", *([] if paths else ["tests"]), *extra)
 
 
 def cmd_demo(py: Path, extra: list[str]) -> int:
