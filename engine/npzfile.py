@@ -8,9 +8,31 @@ same clear messages.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class NpzRecord:
+    """A database held as metadata plus named arrays; arrays read as attributes.
+
+    Attributes:
+        meta: the metadata dictionary (``format``, ``version``, ...).
+        arrays: name -> numpy array.
+        path: the file it was loaded from or saved to (None when fresh).
+    """
+
+    meta: dict
+    arrays: dict
+    path: Path | None = None
+
+    def __getattr__(self, name):
+        arrays = self.__dict__.get("arrays", {})
+        if name in arrays:
+            return arrays[name]
+        raise AttributeError(name)
 
 
 def write_npz(path: str | Path, meta: dict, arrays: dict, *, compress: bool = False) -> Path:

@@ -120,13 +120,20 @@ def write_scene_folder(folder: str | Path, objects: list[SyntheticObject],
     return folder
 
 
-def box_room(folder: str | Path, size=(6.0, 4.0, 3.0), *, material: str = "concrete",
-             devices: list[SyntheticDevice] | None = None,
-             links: list[tuple[str, str]] | None = None, **kw) -> Path:
-    """A closed room ``[0, sx] x [0, sy] x [0, sz]`` made of six separate slabs.
+ROBOT_EXTRA = {"model": "burger", "antenna_offset": [0.0, 0.0, 0.25]}
 
-    Each wall is a thin box (0.1 m) just outside the room volume, so its inner
-    face lies exactly on the room boundary.
+
+def room_objects(size=(6.0, 4.0, 3.0), furniture=None, *, material: str = "concrete",
+                 thickness: float = 0.2) -> list[SyntheticObject]:
+    """A closed room ``[0, sx] x [0, sy] x [0, sz]`` as six slabs, plus furniture.
+
+    Each slab is a 0.1 m box just outside the room volume, so its inner face lies
+    exactly on the room boundary.
+
+    Args:
+        size: room extent ``(sx, sy, sz)``, m.
+        furniture: ``name -> (lo [3], hi [3])`` boxes (wood, 5 cm), or
+            ``name -> (lo, hi, material, thickness)``.
     """
     sx, sy, sz = size
     w = 0.1
@@ -135,11 +142,40 @@ def box_room(folder: str | Path, size=(6.0, 4.0, 3.0), *, material: str = "concr
         "wall_xmin": ((-w, 0, 0), (0, sy, sz)), "wall_xmax": ((sx, 0, 0), (sx + w, sy, sz)),
         "wall_ymin": ((0, -w, 0), (sx, 0, sz)), "wall_ymax": ((0, sy, 0), (sx, sy + w, sz)),
     }
-    objects = [SyntheticObject(n, *box_mesh(lo, hi), material=material)
-               for n, (lo, hi) in slabs.items()]
+    objs = [SyntheticObject(n, *box_mesh(lo, hi), material=material, thickness=thickness)
+            for n, (lo, hi) in slabs.items()]
+    for n, spec in (furniture or {}).items():
+        lo, hi, mat, th = (*spec, "wood", 0.05) if len(spec) == 2 else spec
+        objs.append(SyntheticObject(n, *box_mesh(lo, hi), material=mat, thickness=th))
+    return objs
+
+
+def two_ap_lab(folder: str | Path, *, size=(6.0, 4.0, 3.0), furniture=None,
+               ap1=(0.1, 2.0, 2.0), ap2=(3.0, 0.1, 2.0), robot=(4.0, 2.0, 0.0),
+               **kw) -> Path:
+    """The bundled lab in miniature: a furnished room, AP1 (2x2) on OFDM symbols
+    0-6 and AP2 (1x1, facing +y) on 7-13, a Burger with two antennas facing +y,
+    links AP1->robot1 and AP2->robot1. Keyword arguments go to
+    :func:`write_scene_folder` (e.g. ``tracer``, ``frequency_hz``)."""
+    devs = [SyntheticDevice("AP1", "access_point", "tx", ap1, rows=2, cols=2,
+                            extra={"symbols": [0, 7]}),
+            SyntheticDevice("AP2", "access_point", "tx", ap2, orientation=(0.0, 0.0, 1.5708),
+                            extra={"symbols": [7, 14]}),
+            SyntheticDevice("robot1", "robot", "rx", robot, cols=2,
+                            orientation=(0.0, 0.0, 1.5708), extra=dict(ROBOT_EXTRA))]
+    return write_scene_folder(folder, room_objects(size, furniture), devs,
+                              [("AP1", "robot1"), ("AP2", "robot1")], **kw)
+
+
+def box_room(folder: str | Path, size=(6.0, 4.0, 3.0), *, material: str = "concrete",
+             devices: list[SyntheticDevice] | None = None,
+             links: list[tuple[str, str]] | None = None, **kw) -> Path:
+    """An empty closed room (:func:`room_objects`) with AP1 (2x2) and a robot."""
+    sx, sy, _ = size
     if devices is None:
         devices = [SyntheticDevice("AP1", "access_point", "tx", (1.0, 1.0, 2.0), rows=2, cols=2),
                    SyntheticDevice("robot1", "robot", "rx", (sx / 2, sy / 2, 0.0), cols=2,
-                                   extra={"model": "burger", "antenna_offset": [0.0, 0.0, 0.25]})]
+                                   extra=dict(ROBOT_EXTRA))]
         links = [("AP1", "robot1")]
-    return write_scene_folder(folder, objects, devices, links or [], **kw)
+    return write_scene_folder(folder, room_objects(size, material=material), devices,
+                              links or [], **kw)

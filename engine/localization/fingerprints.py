@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.npzfile import read_npz, write_npz
+from engine.npzfile import NpzRecord, read_npz, write_npz
 from engine.raytrace.base import SPEED_OF_LIGHT
 
 log = logging.getLogger(__name__)
@@ -69,7 +69,7 @@ class DatabaseMismatchError(ValueError):
 
 
 @dataclass(frozen=True, eq=False)
-class FingerprintDB:
+class FingerprintDB(NpzRecord):
     """A fingerprint database (see the module doc and :data:`DB_ARRAYS`).
 
     Attributes:
@@ -80,15 +80,6 @@ class FingerprintDB:
         path: the file it was loaded from or saved to (None when fresh).
     """
 
-    meta: dict
-    arrays: dict
-    path: Path | None = None
-
-    def __getattr__(self, name):
-        arrays = self.__dict__.get("arrays", {})
-        if name in arrays:
-            return arrays[name]
-        raise AttributeError(name)
 
     # ------------------------------------------------------------ properties
 

@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.npzfile import read_npz, write_npz
+from engine.npzfile import NpzRecord, read_npz, write_npz
 from engine.config import TracerConfig
 from engine.raytrace.base import (DevicePose, TruncationError, device_poses,
                                   sionna_orientation, validate_poses)
@@ -102,7 +102,7 @@ DETERMINISTIC_BUDGET = 200_000_000
 
 
 @dataclass(frozen=True, eq=False)
-class PathGrid:
+class PathGrid(NpzRecord):
     """A traced floor grid (``N = nx * ny`` points, ``S`` transmitters,
     ``P`` path slots, ``D`` interaction slots). Point ``i = ix * ny + iy`` sits at
     ``origin + (ix, iy) * spacing`` and ``z = height``.
@@ -113,15 +113,6 @@ class PathGrid:
         path: the file it was loaded from (None when fresh).
     """
 
-    meta: dict
-    arrays: dict
-    path: Path | None = None
-
-    def __getattr__(self, name):
-        arrays = self.__dict__.get("arrays", {})
-        if name in arrays:
-            return arrays[name]
-        raise AttributeError(name)
 
     @property
     def tx_names(self) -> list[str]:

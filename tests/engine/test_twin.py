@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from engine.state import Command, Edit
-from engine.synthetic import SyntheticDevice, SyntheticObject, box_mesh, write_scene_folder
+from engine.synthetic import two_ap_lab
 from engine.twin import Twin
 
 pytestmark = pytest.mark.slow
@@ -14,25 +14,9 @@ pytestmark = pytest.mark.slow
 
 def _lab(folder):
     """A 6 x 4 x 3 m room with a metal cabinet, AP1 (2x2) and AP2 (1x1) on disjoint symbols."""
-    sx, sy, sz = 6.0, 4.0, 3.0
-    w = 0.1
-    slabs = {
-        "floor": ((0, 0, -w), (sx, sy, 0)), "ceiling": ((0, 0, sz), (sx, sy, sz + w)),
-        "wall_xmin": ((-w, 0, 0), (0, sy, sz)), "wall_xmax": ((sx, 0, 0), (sx + w, sy, sz)),
-        "wall_ymin": ((0, -w, 0), (sx, 0, sz)), "wall_ymax": ((0, sy, 0), (sx, sy + w, sz)),
-    }
-    objs = [SyntheticObject(n, *box_mesh(lo, hi)) for n, (lo, hi) in slabs.items()]
-    objs.append(SyntheticObject("cabinet", *box_mesh((4.5, 0.2, 0), (5.1, 0.8, 1.8)),
-                                material="metal", thickness=0.01))
-    devs = [SyntheticDevice("AP1", "access_point", "tx", (0.1, 2.0, 2.0), rows=2, cols=2,
-                            extra={"symbols": [0, 7]}),
-            SyntheticDevice("AP2", "access_point", "tx", (3.0, 0.1, 2.0),
-                            orientation=(0.0, 0.0, 1.5708), extra={"symbols": [7, 14]}),
-            SyntheticDevice("robot1", "robot", "rx", (4.0, 2.0, 0.0), cols=2,
-                            orientation=(0.0, 0.0, 1.5708),
-                            extra={"model": "burger", "antenna_offset": [0.0, 0.0, 0.25]})]
-    return write_scene_folder(folder, objs, devs, [("AP1", "robot1"), ("AP2", "robot1")],
-                              tracer={"samples_per_src": 20000, "max_depth": 2})
+    return two_ap_lab(folder, furniture={"cabinet": ((4.5, 0.2, 0), (5.1, 0.8, 1.8), "metal",
+                                                     0.01)},
+                      tracer={"samples_per_src": 20000, "max_depth": 2})
 
 
 @pytest.fixture(scope="module")

@@ -3,34 +3,17 @@
 import numpy as np
 import pytest
 
-from engine.synthetic import SyntheticDevice, SyntheticObject, box_mesh, write_scene_folder
+from engine.synthetic import two_ap_lab
 
 
 def small_lab(folder, frequency_hz: float = 2.4e9):
     """A 5 x 4 x 2.5 m room with a metal cabinet and a wooden table, AP1 (2x2) and
-    AP2 (1x1) on disjoint symbols, a burger robot with 2 antennas at (2.5, 2)."""
-    sx, sy, sz = 5.0, 4.0, 2.5
-    w = 0.1
-    slabs = {
-        "floor": ((0, 0, -w), (sx, sy, 0)), "ceiling": ((0, 0, sz), (sx, sy, sz + w)),
-        "wall_xmin": ((-w, 0, 0), (0, sy, sz)), "wall_xmax": ((sx, 0, 0), (sx + w, sy, sz)),
-        "wall_ymin": ((0, -w, 0), (sx, 0, sz)), "wall_ymax": ((0, sy, 0), (sx, sy + w, sz)),
-    }
-    objs = [SyntheticObject(n, *box_mesh(lo, hi)) for n, (lo, hi) in slabs.items()]
-    objs.append(SyntheticObject("cabinet", *box_mesh((4.2, 0.2, 0), (4.8, 0.8, 1.8)),
-                                material="metal", thickness=0.01))
-    objs.append(SyntheticObject("table", *box_mesh((0.3, 3.0, 0), (1.3, 3.7, 0.75)),
-                                material="wood", thickness=0.03))
-    devs = [SyntheticDevice("AP1", "access_point", "tx", (0.1, 2.0, 2.0), rows=2, cols=2,
-                            extra={"symbols": [0, 7]}),
-            SyntheticDevice("AP2", "access_point", "tx", (2.5, 0.1, 2.0),
-                            orientation=(0.0, 0.0, 1.5708), extra={"symbols": [7, 14]}),
-            SyntheticDevice("robot1", "robot", "rx", (3.3, 2.0, 0.0), cols=2,
-                            orientation=(0.0, 0.0, 1.5708),
-                            extra={"model": "burger", "antenna_offset": [0.0, 0.0, 0.25]})]
-    return write_scene_folder(folder, objs, devs, [("AP1", "robot1"), ("AP2", "robot1")],
-                              frequency_hz=frequency_hz,
-                              tracer={"samples_per_src": 10000, "max_depth": 2})
+    AP2 (1x1) on disjoint symbols, a burger robot with 2 antennas at (3.3, 2)."""
+    furniture = {"cabinet": ((4.2, 0.2, 0), (4.8, 0.8, 1.8), "metal", 0.01),
+                 "table": ((0.3, 3.0, 0), (1.3, 3.7, 0.75), "wood", 0.03)}
+    return two_ap_lab(folder, size=(5.0, 4.0, 2.5), furniture=furniture, ap2=(2.5, 0.1, 2.0),
+                      robot=(3.3, 2.0, 0.0), frequency_hz=frequency_hz,
+                      tracer={"samples_per_src": 10000, "max_depth": 2})
 
 
 @pytest.fixture(scope="session")

@@ -5,25 +5,8 @@ from __future__ import annotations
 import pytest
 
 import engine  # noqa: F401 - sets DRJIT_LIBLLVM_PATH before mitsuba loads
-from engine.synthetic import SyntheticDevice, SyntheticObject, box_mesh, quad_mesh, \
-    write_scene_folder
-
-ROBOT_EXTRA = {"model": "burger", "antenna_offset": [0.0, 0.0, 0.25]}
-
-
-def room_objects(size, furniture=None, material="concrete"):
-    """Six wall slabs of a closed room plus furniture boxes ``name -> (lo, hi)``."""
-    sx, sy, sz = size
-    w = 0.1
-    slabs = {
-        "floor": ((0, 0, -w), (sx, sy, 0)), "ceiling": ((0, 0, sz), (sx, sy, sz + w)),
-        "wall_xmin": ((-w, 0, 0), (0, sy, sz)), "wall_xmax": ((sx, 0, 0), (sx + w, sy, sz)),
-        "wall_ymin": ((0, -w, 0), (sx, 0, sz)), "wall_ymax": ((0, sy, 0), (sx, sy + w, sz)),
-    }
-    objs = [SyntheticObject(n, *box_mesh(lo, hi), material=material) for n, (lo, hi) in slabs.items()]
-    for n, (lo, hi) in (furniture or {}).items():
-        objs.append(SyntheticObject(n, *box_mesh(lo, hi), material="wood", thickness=0.05))
-    return objs
+from engine.synthetic import (ROBOT_EXTRA, SyntheticDevice, SyntheticObject, box_mesh,
+                              quad_mesh, room_objects, write_scene_folder)
 
 
 def furnished_room(folder, *, size=(4.0, 3.0, 3.0), tracer=None, robot=(2.1, 1.5, 0.0),
