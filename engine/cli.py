@@ -212,6 +212,33 @@ def cmd_run(args) -> int:
     return 0
 
 
+def _fingerprint_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--spacing", type=float, default=0.05, help="grid spacing, m (default 0.05)")
+    p.add_argument("--cache-dir", type=Path, default=Path("out/cache"),
+                   help="where databases are cached (default out/cache)")
+    p.add_argument("--rebuild", action="store_true", help="trace again even if cached")
+
+
+@command("fingerprints", "build (or find in the cache) the fingerprint database of a scene: "
+         "the multipath delay profile of every AP on a floor grid", _fingerprint_args)
+def cmd_fingerprints(args) -> int:
+    from engine.localization.fingerprints import cached_database
+    from engine.scene import load_scene
+
+    if not args.spacing > 0:
+        print(f"isac-twin: error: --spacing {args.spacing}: expected a positive size in m",
+              file=sys.stderr)
+        return 2
+    scene = load_scene(scene_path(args))
+    db = cached_database(scene, spacing=args.spacing, cache_dir=args.cache_dir,
+                         rebuild=args.rebuild)
+    free = int(db.arrays["free"].sum())
+    print(f"{db.path}: {free} free points of a {args.spacing:g} m grid, APs "
+          f"{', '.join(db.ap_names)}, scene hash {db.scene_hash[:16]}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="isac-twin", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="count", default=0,

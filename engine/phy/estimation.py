@@ -267,7 +267,7 @@ class MdpEstimator:
         the smoothed covariance of ``h [N, S]``."""
         n = h.shape[0]
         msub = self.subband or n // 2
-        msub = max(min(msub, n - 1), kmax + 1)
+        msub = max(min(msub, n - 1), 2 * kmax + 1)  # TLS-ESPRIT needs M - 1 >= 2k
         win = np.lib.stride_tricks.sliding_window_view(h, msub, axis=0)  # [J, S, M]
         # Many snapshots (e.g. 2 x 32 antennas) already decorrelate the paths:
         # thin the windows so the covariance costs O(M^2 * 2048), not O(M^2 J S).

@@ -232,3 +232,15 @@ def test_mdp_with_64_antenna_snapshots_uses_them_all():
     crb = _crb_distance(d, amps, n0)
     err = np.array([np.min(np.abs(mdp.distances_m - x)) for x in d])
     assert np.all(err <= 5 * crb + 0.005), (err, crb)
+
+
+def test_mdp_small_subband_is_widened_not_crashed():
+    """A subband shorter than 2k+1 used to crash TLS-ESPRIT (LinAlgError)."""
+    from engine.phy.estimation import MdpEstimator
+
+    df, n = 78125.0, 64
+    f = (np.arange(n) - n // 2) * df
+    d_true = np.array([4.0, 9.0, 17.0])
+    h = np.exp(-2j * np.pi * np.outer(f, d_true / 299792458.0)).sum(axis=1)
+    mdp = MdpEstimator(df, max_paths=6, subband=8)(h)
+    assert np.min(np.abs(mdp.distances_m[:, None] - d_true), axis=0).max() < 0.5
