@@ -402,7 +402,8 @@ class TrajectoryReplay:
         from engine.msgs import Header, Pose
         from engine.robots.kinematics import RobotState
 
-        def step(t: float, dt: float) -> dict:
+        def step(t: float, dt: float, *, control: bool = True) -> dict:
+            # Same signature as RobotAgent.step; replayed robots have no controller.
             pose, v, w = traj.at(t)
             agent.robot.state = RobotState(pose=pose, v=v, w=w, t=t)
             st = agent.robot.state

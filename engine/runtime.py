@@ -68,6 +68,7 @@ import numpy as np
 from engine.bus import Bus
 from engine.msgs import (BatteryState, Header, Imu, LaserScan, Odometry, Pose, PoseStamped, Twist,
                          quaternion_to_yaw, yaw_to_quaternion)
+from engine.robots.control import controller_from_spec
 from engine.transport.clock import ClockResponder
 from engine.transport.twin_msgs import Fingerprint, PathCommand
 from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
@@ -240,26 +241,6 @@ class PoseEstimator:
 
 
 # ---------------------------------------------------------------- control
-
-def controller_from_spec(spec: dict, model: str, lookahead: float = 0.25):
-    """A path controller from a twin path spec (the subset of
-    :func:`engine.twin.path_from_spec` that needs no room bounds)."""
-    from engine.robots.control import (CirclePath, FigureEightPath, GoalReacher, PolylinePath,
-                                       PurePursuit)
-
-    kind = spec.get("kind")
-    if kind == "goal":
-        return GoalReacher(spec["goal"], model)
-    if kind == "circle":
-        path = CirclePath(spec["centre"], spec["radius"], spec.get("direction", "ccw"))
-    elif kind == "polyline":
-        path = PolylinePath(spec["waypoints"], closed=spec.get("closed", False))
-    elif kind == "figure_eight":
-        path = FigureEightPath(spec["centre"], spec["size"])
-    else:
-        raise ValueError(f"path spec: unknown kind {kind!r}")
-    return PurePursuit(path, model, speed=spec.get("speed"), lookahead=lookahead)
-
 
 def box_room_scan_source(get_pose, room=(6.0, 4.0)):
     """A LiDAR scan source for the emulated RPLIDAR: ranges (m) from the robot's
@@ -438,7 +419,7 @@ class RobotRuntime:
     def _on_path(self, msg: PathCommand) -> None:
         spec = msg.to_spec()
         try:
-            ctl = controller_from_spec(spec, self.config.model, self.config.lookahead) \
+            ctl = controller_from_spec(spec, self.config.model, lookahead=self.config.lookahead) \
                 if spec else None
         except (ValueError, KeyError) as exc:
             log.warning("%s: rejected path %s: %s", self.config.name, spec, exc)

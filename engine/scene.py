@@ -86,6 +86,7 @@ class TwinScene:
     object_poses: dict[str, np.ndarray] = field(default_factory=dict)
     #: incremented by every edit; consumers re-derive cached geometry when it changes
     revision: int = 0
+    _hash: tuple[int, str] | None = field(default=None, repr=False)
 
     @property
     def sionna(self):
@@ -105,6 +106,8 @@ class TwinScene:
         rotated, added or removed object, or a changed material, changes it.
         The carrier frequency is kept separately in databases' metadata.
         """
+        if self._hash is not None and self._hash[0] == self.revision:
+            return self._hash[1]  # every step and every grid lookup asks; edits bump revision
         h = hashlib.sha256()
         for name in sorted(self.objects):
             o = self.objects[name]
@@ -112,7 +115,8 @@ class TwinScene:
             pose = self.object_poses.get(name)
             if pose is not None:
                 h.update(np.asarray(pose, np.float64).round(9).tobytes())
-        return h.hexdigest()
+        self._hash = (self.revision, h.hexdigest())
+        return self._hash[1]
 
     # ------------------------------------------------------------------ edits
 

@@ -26,11 +26,11 @@ from pathlib import Path
 import numpy as np
 
 from engine.bus import Bus
-from engine.msgs import Header
+from engine.msgs import Header, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
 from engine.raytrace import DevicePose, make_tracer
 from engine.robots import SensorOptions, build_robots
-from engine.robots.control import CirclePath, FigureEightPath, GoalReacher, PolylinePath, PurePursuit
+from engine.robots.control import controller_from_spec
 from engine.scene import TwinScene, load_scene
 from engine.state import Command, Edit, LinkState, RobotState, StepResult
 from engine.transport.twin_msgs import Csi
@@ -70,24 +70,6 @@ class RunStats:
             lines.append(f"  {s:<10} {1e3 * self.stage_s[s] / n:9.2f} "
                          f"{100 * self.stage_s[s] / total:5.1f}%")
         return "\n".join(lines)
-
-
-def path_from_spec(spec: dict, model: str, bounds=None):
-    """A controller from a path spec ``{"kind": "circle", ...}`` (see :class:`Command`)."""
-    kind = spec.get("kind")
-    speed = spec.get("speed")
-    if kind == "goal":
-        return GoalReacher(spec["goal"], model, bounds=bounds)
-    if kind == "circle":
-        path = CirclePath(spec["centre"], spec["radius"], spec.get("direction", "ccw"))
-    elif kind == "polyline":
-        path = PolylinePath(spec["waypoints"], closed=spec.get("closed", False))
-    elif kind == "figure_eight":
-        path = FigureEightPath(spec["centre"], spec["size"])
-    else:
-        raise ValueError(f"path spec: unknown kind {kind!r} "
-                         "(expected circle, polyline, figure_eight or goal)")
-    return PurePursuit(path, model, speed=speed, bounds=bounds)
 
 
 class Twin:
@@ -174,7 +156,7 @@ class Twin:
         if agent is None:
             raise KeyError(f"no robot named {robot!r} (robots: {', '.join(self.agents)})")
         bounds = (self.scene.bounds_min[:2], self.scene.bounds_max[:2])
-        self.set_controller(robot, path_from_spec(spec, agent.spec, bounds=bounds))
+        self.set_controller(robot, controller_from_spec(spec, agent.spec, bounds=bounds))
 
     # ------------------------------------------------------------------ edits
 
@@ -292,7 +274,7 @@ class Twin:
         t0 = clock()
         t_next = self.time_s + self.dt
         for agent in self.agents.values():
-            _step_without_control(agent, t_next, self.dt)
+            agent.step(t_next, self.dt, control=False)
         t1 = clock()
         timings["agents"] = t1 - t0
         paths = self.tracer(self.scene, self.device_poses())
@@ -309,8 +291,6 @@ class Twin:
             odo = agent.last.get("odom")
             odom = None
             if odo is not None:
-                from engine.msgs import quaternion_to_yaw
-
                 odom = np.array([odo.pose.position[0], odo.pose.position[1],
                                  quaternion_to_yaw(odo.pose.orientation)])
             result.robots[name] = RobotState(name=name, pose=st.pose.copy(),
@@ -331,8 +311,7 @@ class Twin:
         t4 = clock()
         timings["estimate"] = t4 - t3
         for agent in self.agents.values():
-            if agent.controller is not None:
-                agent._ctl_node.publish(agent.topics["cmd_vel"], agent.controller(agent.state))
+            agent.control()
         timings["control"] = clock() - t4
         result.timings_s = timings
         for k, v in timings.items():
@@ -375,12 +354,3 @@ class Twin:
                     deadline += period
         self.stats.wall_s += time.perf_counter() - start
 
-
-def _step_without_control(agent, t: float, dt: float) -> None:
-    """Stages 1 and 4 for one agent; its controller runs later, after estimation."""
-    ctl = agent.controller
-    agent.controller = None
-    try:
-        agent.step(t, dt)
-    finally:
-        agent.controller = ctl

@@ -46,7 +46,8 @@ from engine.phy.network import NetworkPHY
 from engine.raytrace import DevicePose, device_poses
 from engine.robots import SensorOptions
 from engine.scene import TwinScene, load_scene
-from engine.twin import Twin, path_from_spec
+from engine.robots.control import controller_from_spec
+from engine.twin import Twin
 
 log = logging.getLogger(__name__)
 
@@ -212,7 +213,7 @@ class Deployment:
         self.start = np.array([st.x, st.y, st.yaw])
         agent = self.reality.agents[self.robot]
         bounds = (real_scene.bounds_min[:2], real_scene.bounds_max[:2])
-        self._ctl = path_from_spec(s.path, agent.spec, bounds=bounds)
+        self._ctl = controller_from_spec(s.path, agent.spec, bounds=bounds)
         self.nav = self.start.copy()  # the pose the controller steers on [x, y, yaw]
         self._last_odom = self.start.copy()
         self.reality.set_controller(self.robot, self._control)

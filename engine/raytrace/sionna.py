@@ -177,6 +177,17 @@ class RawPaths:
                          "interactions", "vertices")}
         return out
 
+    @classmethod
+    def empty(cls, num_rx: int, num_tx: int, depth: int, counts: np.ndarray,
+              cap: int) -> "RawPaths":
+        """No path for any pair (``P = 0``)."""
+        z = np.zeros((num_rx, num_tx, 0))
+        return cls(valid=z.astype(bool), a=z.astype(complex), tau=z, doppler=z, theta_t=z,
+                   phi_t=z, theta_r=z, phi_r=z,
+                   interactions=np.zeros((num_rx, num_tx, 0, depth), np.int32),
+                   vertices=np.zeros((num_rx, num_tx, 0, depth, 3), np.float32),
+                   candidates_per_source=counts, cap=cap)
+
 
 def _paths_to_numpy(paths, num_rx: int, num_tx: int, depth: int,
                     counts: np.ndarray, cap: int) -> RawPaths:
@@ -184,12 +195,7 @@ def _paths_to_numpy(paths, num_rx: int, num_tx: int, depth: int,
     p = tau.shape[-1]
     d = max(1, depth)
     if p == 0:
-        z = np.zeros((num_rx, num_tx, 0))
-        return RawPaths(valid=z.astype(bool), a=z.astype(complex), tau=z, doppler=z,
-                        theta_t=z, phi_t=z, theta_r=z, phi_r=z,
-                        interactions=np.zeros((num_rx, num_tx, 0, d), np.int32),
-                        vertices=np.zeros((num_rx, num_tx, 0, d, 3), np.float32),
-                        candidates_per_source=counts, cap=cap)
+        return RawPaths.empty(num_rx, num_tx, d, counts, cap)
     ar, ai = paths.a
     a = (np.asarray(ar.numpy(), np.float64) + 1j * np.asarray(ai.numpy(), np.float64))
     f = lambda x: np.asarray(x.numpy(), np.float64).reshape(num_rx, num_tx, p)  # noqa: E731
@@ -228,12 +234,7 @@ def _buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int
     d = max(1, depth)
     n = int(buf.buffer_size) if buf.tau is not None else 0
     if n == 0:
-        z = np.zeros((num_rx, num_tx, 0))
-        return RawPaths(valid=z.astype(bool), a=z.astype(complex), tau=z, doppler=z,
-                        theta_t=z, phi_t=z, theta_r=z, phi_r=z,
-                        interactions=np.zeros((num_rx, num_tx, 0, d), np.int32),
-                        vertices=np.zeros((num_rx, num_tx, 0, d, 3), np.float32),
-                        candidates_per_source=counts, cap=cap)
+        return RawPaths.empty(num_rx, num_tx, d, counts, cap)
     src_i, tgt_i = buf.source_indices, buf.target_indices
     k_tx, k_rx = buf.k_tx, buf.k_rx
     theta_t, phi_t = theta_phi_from_unit_vec(k_tx)

@@ -133,12 +133,16 @@ class RobotAgent:
     def state(self):
         return self.robot.state
 
-    def step(self, t: float, dt: float) -> dict[str, object]:
+    def step(self, t: float, dt: float, *, control: bool = True) -> dict[str, object]:
         """Advance to time ``t`` (s) by ``dt`` (s) and publish what is due.
 
         Order: take the newest ``cmd_vel`` (``u_{t-1}``), apply ``f``, sample the
         due sensors and publish them, then let the controller (if any) publish
         the next command from the new state.
+
+        Args:
+            control: run the controller at the end; the twin passes False and
+                runs it itself after its estimators (Algorithm 1, stage 6).
 
         Returns:
             ``topic key -> message`` of what was published this step.
@@ -165,9 +169,14 @@ class RobotAgent:
         for key, msg in out.items():
             self.node.publish(self.topics[key], msg)
         self.last.update(out)
-        if self.controller is not None:
-            self._ctl_node.publish(self.topics["cmd_vel"], self.controller(st))
+        if control:
+            self.control()
         return out
+
+    def control(self) -> None:
+        """Publish the controller's next command from the current state (if driven)."""
+        if self.controller is not None:
+            self._ctl_node.publish(self.topics["cmd_vel"], self.controller(self.robot.state))
 
 
 class OpenCRStep:

@@ -561,3 +561,35 @@ class GoalReacher:
         if w != 0:
             v = min(v, _speed_for_curvature(spec, v, w / max(v, 1e-9)))
         return v, w
+
+
+def controller_from_spec(spec: dict, model: RobotSpec | str = "burger", *, bounds=None,
+                         lookahead: float = 0.25):
+    """A controller from a path spec, the form ``twin.toml``'s ``[devices.path]``,
+    live-link commands and network path messages share.
+
+    Args:
+        spec: ``{"kind": "circle", "centre": [x, y], "radius": r, "direction": "ccw"}``,
+            ``{"kind": "polyline", "waypoints": [[x, y], ...], "closed": false}``,
+            ``{"kind": "figure_eight", "centre": [x, y], "size": s}`` or
+            ``{"kind": "goal", "goal": [x, y]}``; optional ``"speed"`` (m/s).
+        model: robot model (:class:`RobotSpec` or name).
+        bounds: room bounds ``(lo, hi)`` the path must stay inside, or None.
+        lookahead: pure-pursuit lookahead, m.
+
+    Raises:
+        ValueError: unknown kind; :class:`PathError` for unreachable or out-of-room paths.
+    """
+    kind = spec.get("kind")
+    if kind == "goal":
+        return GoalReacher(spec["goal"], model, bounds=bounds)
+    if kind == "circle":
+        path = CirclePath(spec["centre"], spec["radius"], spec.get("direction", "ccw"))
+    elif kind == "polyline":
+        path = PolylinePath(spec["waypoints"], closed=spec.get("closed", False))
+    elif kind == "figure_eight":
+        path = FigureEightPath(spec["centre"], spec["size"])
+    else:
+        raise ValueError(f"path spec: unknown kind {kind!r} "
+                         "(expected circle, polyline, figure_eight or goal)")
+    return PurePursuit(path, model, speed=spec.get("speed"), bounds=bounds, lookahead=lookahead)

@@ -81,7 +81,7 @@ float32[] real           # [K * N * Nr * Nt]
 float32[] imag
 """,
     "isac_twin_msgs/msg/PathCommand": """\
-# A path for a robot to follow (the twin's path spec, see engine.twin.path_from_spec).
+# A path for a robot to follow (the twin's path spec, see engine.robots.control.controller_from_spec).
 std_msgs/Header header
 string kind              # circle | polyline | figure_eight | goal | stop
 float64[] waypoints      # polyline: [x0, y0, x1, y1, ...] m; goal: [x, y]
@@ -194,7 +194,7 @@ class PathCommand:
                    speed=float(spec.get("speed") or 0.0))
 
     def to_spec(self) -> dict | None:
-        """The path spec dict for :func:`engine.twin.path_from_spec` (None for ``stop``)."""
+        """The path spec dict for :func:`engine.robots.control.controller_from_spec` (None for ``stop``)."""
         k = self.kind
         spec: dict = {"kind": k}
         if k == "stop":

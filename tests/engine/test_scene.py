@@ -102,3 +102,14 @@ def test_device_outside_room(tmp_path):
     folder = box_room(tmp_path / "r", devices=devs, links=[])
     with pytest.raises(ConfigError, match=r"devices\[0\] \(AP1\)\.position: \[7\.5, 1\.0, 2\.0\] lies outside the room"):
         load_scene(folder, load_sionna=False)
+
+
+def test_content_hash_is_cached_until_an_edit(tmp_path):
+    scene = load_scene(box_room(tmp_path / "r"))
+    h0 = scene.content_hash()
+    assert scene.content_hash() is h0  # cached: same object, no rehash per step
+    scene.move_object("floor", position=(3.0, 2.0, -0.04))
+    h1 = scene.content_hash()
+    assert h1 != h0
+    scene.set_material("floor", "brick")
+    assert scene.content_hash() not in (h0, h1)
