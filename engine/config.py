@@ -21,6 +21,7 @@ ROLES = ("tx", "rx", "txrx")
 ROBOT_MODELS = ("burger", "waffle")
 PATTERNS = ("iso", "dipole", "hw_dipole", "tr38901")
 POLARIZATIONS = ("V", "H", "VH", "cross")
+TRACER_METHODS = ("auto", "chains", "sbr")
 TRACER_BACKENDS = ("sionna", "grid")
 
 
@@ -80,6 +81,18 @@ class TracerConfig:
     seed: int = 42
     deterministic: bool = True
     grid_file: str = ""  #: backend "grid": the grid NPZ, relative to twin.toml
+    #: "auto" (chain reuse when only specular reflection/refraction are on),
+    #: "chains" (shoot-and-bounce at probe points, image method per receiver;
+    #: see engine/raytrace/chains.py) or "sbr" (shoot-and-bounce per call)
+    method: str = "auto"
+    probe_spacing: float = 0.5  #: m, lattice of the probe points ("chains")
+
+    @property
+    def uses_chains(self) -> bool:
+        """Whether the Sionna backend reuses specular chains (``method``)."""
+        if self.method == "auto":
+            return not (self.diffuse_reflection or self.diffraction)
+        return self.method == "chains"
 
 
 @dataclass(frozen=True)
@@ -394,7 +407,12 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
         seed=r.integer(t, "seed", "tracer.", d.seed, minimum=0),
         deterministic=r.boolean(t, "deterministic", "tracer.", d.deterministic),
         grid_file=r.get(t, "grid_file", "tracer.", d.grid_file),
+        method=r.string(t, "method", "tracer.", d.method, choices=TRACER_METHODS),
+        probe_spacing=r.number(t, "probe_spacing", "tracer.", d.probe_spacing, positive=True),
     )
+    if tracer.method == "chains" and (tracer.diffuse_reflection or tracer.diffraction):
+        raise r.fail("tracer.method", '"chains" reuses specular chains only; with '
+                     'diffuse_reflection or diffraction on use "sbr" (or "auto")')
     if not isinstance(tracer.grid_file, str):
         raise r.fail("tracer.grid_file", f"expected a file name, got {tracer.grid_file!r}")
     if tracer.backend == "grid" and not tracer.grid_file:

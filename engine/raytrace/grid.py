@@ -84,6 +84,9 @@ _PATH_KEYS = ("valid", "a", "tau", "theta_t", "phi_t", "theta_r", "phi_r", "inte
 #: Receivers per solver call (see the module doc for the accuracy trade-off).
 DEFAULT_CHUNK_SIZE = 64
 
+#: Receivers per :class:`~engine.raytrace.chains.ChainTracer` call (chain reuse).
+CHAIN_CHUNK_SIZE = 1024
+
 #: Entries per source of Sionna's specular-chain hash table in grid traces
 #: (Sionna's own size is ``max(max_num_paths_per_src, 1e6)``). The
 #: receivers-per-call loss described in the module doc is collisions in this
@@ -274,6 +277,7 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
                verify: int = 8, verify_top: int = VERIFY_TOP_N,
                keep_strongest: int | None = None,
                spec_table_size: int | None = GRID_SPEC_TABLE_SIZE,
+               method: str | None = None, probe_spacing: float | None = None,
                legacy: bool = False, out: str | Path | None = None) -> PathGrid:
     """Trace a floor grid of receiver positions against static transmitters.
 
@@ -286,9 +290,11 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         config: tracer settings (default ``scene.config.tracer``).
         chunk_size: receivers per solver call (default :data:`DEFAULT_CHUNK_SIZE`;
             in deterministic mode at most what :data:`DETERMINISTIC_BUDGET` allows).
-        deterministic: override ``config.deterministic`` (default for grids:
-            False, because Sionna's deterministic generator needs memory
-            proportional to samples x receivers; see ``docs/tracers.md``).
+        deterministic: override ``config.deterministic`` for ``"sbr"`` and the
+            verification (default for grids: False, because Sionna's
+            deterministic generator needs memory proportional to samples x
+            receivers; see ``docs/tracers.md``). Chain reuse always traces its
+            probes with the deterministic generator.
         max_cap: largest ``max_num_paths_per_src`` tried on truncation
             (default 16 x the configured cap).
         tx_poses: transmitter poses (default: from the config).
@@ -304,6 +310,13 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
             table (default :data:`GRID_SPEC_TABLE_SIZE`; None: Sionna's own
             ``max(cap, 1e6)``, which loses candidates when many receivers share
             a call).
+        method: ``"chains"`` (reuse the specular chains of a probe lattice, see
+            :mod:`engine.raytrace.chains`), ``"sbr"`` (shoot-and-bounce for
+            every receiver, in chunks) or ``"auto"`` (default: ``config.method``,
+            whose ``"auto"`` means chains when only specular reflection and
+            refraction are enabled).
+        probe_spacing: lattice spacing of the probes, m (default
+            ``config.probe_spacing``).
         legacy: trace with ``SolverCore(legacy=True)`` (Sionna's ``Paths``,
             full-size candidate buffer; with ``spec_table_size=None`` and
             ``chunk_size=16`` this is the code path before the optimization,
@@ -337,6 +350,13 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         robots = [d for d in cfg.devices if d.kind == "robot"]
         height = poses[robots[0].name].position[2] if robots else 1.0
     height = float(height)
+    if method in (None, "auto"):
+        use_chains = config.uses_chains
+    elif method in ("chains", "sbr"):
+        use_chains = method == "chains"
+    else:
+        raise ValueError(f"method: expected 'auto', 'chains' or 'sbr', got {method!r}")
+    use_chains = use_chains and not legacy
     det = False if deterministic is None else bool(deterministic)
     if keep_strongest is not None and int(keep_strongest) < 1:
         raise ValueError(f"keep_strongest: expected >= 1 or None, got {keep_strongest!r}")
@@ -363,19 +383,38 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
     if chunk_size < 1:
         raise ValueError(f"chunk_size: expected >= 1, got {chunk_size}")
     cap = config.max_num_paths_per_src
+    spacing_p = float(probe_spacing or config.probe_spacing)
     tracer = _ChunkTracer(core, sc, src, src_orient, cap, max_cap or 16 * cap, keep_strongest)
-    log.info("tracing %d x %d grid (%d free points) at z=%.3f m against %s",
-             nx, ny, len(todo), height, ", ".join(tx_names))
+    log.info("tracing %d x %d grid (%d free points) at z=%.3f m against %s (%s)",
+             nx, ny, len(todo), height, ", ".join(tx_names),
+             f"chains, probes every {spacing_p} m" if use_chains else "shoot-and-bounce")
     pieces: list[tuple[np.ndarray, dict]] = []
-    with tqdm(total=len(todo), unit="pt", desc="grid", disable=not progress) as bar:
-        for start in range(0, len(todo), chunk_size):
-            idx = todo[start:start + chunk_size]
-            offs = 0
-            for part in tracer(points[idx]):
-                n = part["num_paths"].shape[0]
-                pieces.append((idx[offs:offs + n], part))
-                offs += n
-            bar.update(len(idx))
+    chain_stats = None
+    if use_chains:
+        from engine.raytrace.chains import ChainTracer
+
+        ct = ChainTracer(core, spacing_p, max_cap=max_cap)
+        chunk_size = CHAIN_CHUNK_SIZE
+        ct.prepare(sc, src, points[todo])  # every probe, PROBES_PER_CALL per call
+        with tqdm(total=len(todo), unit="pt", desc="grid", disable=not progress) as bar:
+            for start in range(0, len(todo), chunk_size):
+                idx = todo[start:start + chunk_size]
+                raw = ct.trace(sc, src, points[idx], source_orientations=src_orient)
+                pieces.append((idx, _sorted_chunk(raw, keep_strongest)))
+                bar.update(len(idx))
+        chain_stats = {"probe_spacing": spacing_p, "probes_traced": ct.probes_traced,
+                       "chains": len(ct.store)}
+        tracer.cap, tracer.retries = ct.cap, ct.truncation_retries
+    else:
+        with tqdm(total=len(todo), unit="pt", desc="grid", disable=not progress) as bar:
+            for start in range(0, len(todo), chunk_size):
+                idx = todo[start:start + chunk_size]
+                offs = 0
+                for part in tracer(points[idx]):
+                    n = part["num_paths"].shape[0]
+                    pieces.append((idx[offs:offs + n], part))
+                    offs += n
+                bar.update(len(idx))
 
     s = len(tx_names)
     p = max([part["valid"].shape[2] for _, part in pieces], default=0)
@@ -414,7 +453,8 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         "tracer": {**dataclasses.asdict(config), "deterministic": det,
                    "max_num_paths_per_src_used": tracer.cap, "chunk_size": chunk_size,
                    "truncation_retries": tracer.retries, "spec_table_size": spec_table_size,
-                   "keep_strongest": keep_strongest},
+                   "keep_strongest": keep_strongest,
+                   "method": "chains" if use_chains else "sbr", "chains": chain_stats},
         "verification": verification,
         "sionna_version": sionna.rt.__version__ if hasattr(sionna.rt, "__version__")
         else _pkg_version("sionna-rt"),

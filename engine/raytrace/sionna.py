@@ -189,6 +189,35 @@ class RawPaths:
                    candidates_per_source=counts, cap=cap)
 
 
+def concat_paths(parts: list[RawPaths], depth: int) -> RawPaths:
+    """Join :class:`RawPaths` of the same receivers and transmitters along the
+    path axis (``P``), padding the interaction axis to ``depth``."""
+    d = max(1, depth)
+
+    def pad_d(v):
+        if v.shape[3] == d:
+            return v
+        width = [(0, 0)] * v.ndim
+        width[3] = (0, d - v.shape[3])
+        return np.pad(v, width)
+
+    first = parts[0]
+    kw = {k: np.concatenate([getattr(p, k) for p in parts], axis=2)
+          for k in ("valid", "a", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r")}
+    kw["interactions"] = np.concatenate([pad_d(p.interactions) for p in parts], axis=2)
+    kw["vertices"] = np.concatenate([pad_d(p.vertices) for p in parts], axis=2)
+    counts = np.sum([p.candidates_per_source for p in parts], axis=0)
+    return RawPaths(**kw, candidates_per_source=counts, cap=max(p.cap for p in parts))
+
+
+def _points(v, n: int, cls):
+    """``[n, 3]`` numpy (None: zeros) -> Mitsuba ``Point3f``/``Vector3f``."""
+    import mitsuba as mi
+
+    v = np.zeros((n, 3), np.float32) if v is None else np.asarray(v, np.float32).reshape(n, 3)
+    return cls(*(mi.Float(np.ascontiguousarray(v[:, i])) for i in range(3)))
+
+
 def _paths_to_numpy(paths, num_rx: int, num_tx: int, depth: int,
                     counts: np.ndarray, cap: int) -> RawPaths:
     tau = np.asarray(paths.tau.numpy(), np.float64).reshape(num_rx, num_tx, -1)
@@ -364,20 +393,54 @@ class SolverCore:
 
     def _trace_once(self, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
                     src_patterns, tgt_patterns, cap: int, buf_cap: int) -> RawPaths:
-        import drjit as dr
+        buf = self.generate(mi_scene, src, tgt, buf_cap)
+        # (the counting wrapper has scheduled and evaluated the buffer)
+        return self.evaluate(buf, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                             src_patterns, tgt_patterns, self._counter.counts, cap)
 
+    def generate(self, mi_scene, src, tgt, buf_cap: int, *, max_depth: int | None = None,
+                 los: bool | None = None):
+        """Sionna's candidate generator (shoot-and-bounce) -> shrunk ``PathsBuffer``.
+
+        Candidates per source are counted (:attr:`last_counts`, truncation).
+        ``max_depth=0`` runs only the line-of-sight test; ``los=False`` skips it.
+        """
         kw = self.solver_kwargs(buf_cap)
-        s = self.solver
-        buf = s._candidate_generator(
+        buf = self.solver._candidate_generator(
             mi_scene=mi_scene, src_positions=src, tgt_positions=tgt,
             samples_per_src=kw["samples_per_src"],
             max_num_paths_per_src=kw["max_num_paths_per_src"],
-            max_depth=kw["max_depth"], los=kw["los"],
+            max_depth=kw["max_depth"] if max_depth is None else int(max_depth),
+            los=kw["los"] if los is None else bool(los),
             specular_reflection=kw["specular_reflection"],
             diffuse_reflection=kw["diffuse_reflection"], refraction=kw["refraction"],
             diffraction=kw["diffraction"], edge_diffraction=False, seed=kw["seed"])
-        # (the counting wrapper has scheduled and evaluated the buffer)
         buf.shrink()
+        return buf
+
+    @property
+    def candidate_generator(self):
+        """Sionna's candidate generator (unwrapped)."""
+        return self._counter.inner
+
+    @property
+    def last_counts(self) -> np.ndarray:
+        """Candidates per source that the last :meth:`generate` stored ``[S]``."""
+        return self._counter.counts
+
+    def evaluate(self, buf, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                 src_patterns, tgt_patterns, counts: np.ndarray, cap: int,
+                 depth: int | None = None) -> RawPaths:
+        """Image method and field calculator on candidates -> :class:`RawPaths`.
+
+        ``buf``: candidates whose ``valid`` flag is False (valid entries, e.g.
+        line-of-sight paths, skip the image method); ``depth``: the buffer's
+        max depth (default the configured one).
+        """
+        import drjit as dr
+
+        kw = self.solver_kwargs(cap)
+        s = self.solver
         buf.detach_geometry()
         buf = s._image_method(scene=mi_scene, paths=buf, src_positions=src,
                               tgt_positions=tgt, diffraction=kw["diffraction"],
@@ -389,7 +452,8 @@ class SolverCore:
             src_antenna_patterns=src_patterns, tgt_antenna_patterns=tgt_patterns)
         buf.discard_invalid()
         return _buffer_to_numpy(buf, v_tx, v_rx, wavelength, dr.width(tgt), dr.width(src),
-                                self.config.max_depth, self._counter.counts, cap)
+                                self.config.max_depth if depth is None else depth,
+                                counts, cap)
 
     def solve_scene(self, sionna_scene, cap: int) -> RawPaths:
         """Trace the Sionna scene's own transmitters and receivers."""
@@ -431,11 +495,7 @@ class SolverCore:
         import drjit as dr
         import mitsuba as mi
 
-        def arr(v, n, cls):
-            v = np.zeros((n, 3), np.float32) if v is None else \
-                np.asarray(v, np.float32).reshape(n, 3)
-            return cls(*(mi.Float(np.ascontiguousarray(v[:, i])) for i in range(3)))
-
+        arr = _points
         sources = np.asarray(sources, np.float32).reshape(-1, 3)
         targets = np.asarray(targets, np.float32).reshape(-1, 3)
         ns, nt = len(sources), len(targets)
@@ -518,6 +578,17 @@ class SionnaTracer:
         self.config = config or TracerConfig()
         self.on_truncation = on_truncation
         self.core = SolverCore(self.config, legacy=legacy)
+        #: Chain reuse (``tracer.method``; see :mod:`engine.raytrace.chains`),
+        #: None when tracing directly.
+        self.chains = None
+        if self.config.uses_chains and not legacy:
+            from engine.raytrace.chains import ChainTracer
+
+            cap = self.config.max_num_paths_per_src
+            self.chains = ChainTracer(self.core, self.config.probe_spacing,
+                                      max_cap=cap if on_truncation == "raise"
+                                      else cap << MAX_CAP_DOUBLINGS)
+        self._last_sources: np.ndarray | None = None
         self._tx: dict[str, object] = {}
         self._rx: dict[str, object] = {}
         self.last_raw: RawPaths | None = None
@@ -569,28 +640,45 @@ class SionnaTracer:
         sc = scene.sionna
         self._sync_devices(sc, tx_names, rx_names, poses)
         cap = self.config.max_num_paths_per_src
-        for attempt in range(MAX_CAP_DOUBLINGS + 1):
-            if self.core.legacy:
-                raw = self.core.solve_scene(sc, cap)
-            else:
-                raw = self.core.solve_endpoints(
-                    sc, [poses[n].position for n in tx_names],
-                    [poses[n].position for n in rx_names], cap,
-                    source_orientations=[sionna_orientation(poses[n].orientation)
-                                         for n in tx_names],
-                    source_velocities=[poses[n].velocity for n in tx_names],
-                    target_orientations=[sionna_orientation(poses[n].orientation)
-                                         for n in rx_names],
-                    target_velocities=[poses[n].velocity for n in rx_names])
-            if not raw.truncated:
-                break
-            msg = (f"Sionna stored the maximum of {cap} path candidates for a source "
-                   f"(candidates per transmitter {dict(zip(tx_names, raw.candidates_per_source.tolist()))}); "
-                   "paths would be dropped")
-            if self.on_truncation == "raise" or attempt == MAX_CAP_DOUBLINGS:
-                raise TruncationError(msg + "; raise tracer.max_num_paths_per_src")
-            log.warning("%s: retrying with max_num_paths_per_src=%d", msg, 2 * cap)
-            cap *= 2
+        sources = np.array([poses[n].position for n in tx_names], float)
+        moved = self._last_sources is not None and (
+            self._last_sources.shape != sources.shape or not np.array_equal(self._last_sources,
+                                                                            sources))
+        self._last_sources = sources
+        raw = None
+        if self.chains is not None and not moved:
+            # Transmitters that moved since the last call are traced directly
+            # (the chains of the probes belong to the source positions).
+            raw = self.chains.trace(
+                sc, sources, [poses[n].position for n in rx_names],
+                source_orientations=[sionna_orientation(poses[n].orientation) for n in tx_names],
+                source_velocities=[poses[n].velocity for n in tx_names],
+                target_orientations=[sionna_orientation(poses[n].orientation) for n in rx_names],
+                target_velocities=[poses[n].velocity for n in rx_names],
+                context=(id(scene), scene.revision))
+        if raw is None:
+            for attempt in range(MAX_CAP_DOUBLINGS + 1):
+                if self.core.legacy:
+                    raw = self.core.solve_scene(sc, cap)
+                else:
+                    raw = self.core.solve_endpoints(
+                        sc, [poses[n].position for n in tx_names],
+                        [poses[n].position for n in rx_names], cap,
+                        source_orientations=[sionna_orientation(poses[n].orientation)
+                                             for n in tx_names],
+                        source_velocities=[poses[n].velocity for n in tx_names],
+                        target_orientations=[sionna_orientation(poses[n].orientation)
+                                             for n in rx_names],
+                        target_velocities=[poses[n].velocity for n in rx_names])
+                if not raw.truncated:
+                    break
+                msg = (f"Sionna stored the maximum of {cap} path candidates for a source "
+                       f"(candidates per transmitter {dict(zip(tx_names, raw.candidates_per_source.tolist()))}); "
+                       "paths would be dropped")
+                if self.on_truncation == "raise" or attempt == MAX_CAP_DOUBLINGS:
+                    raise TruncationError(msg + "; raise tracer.max_num_paths_per_src")
+                log.warning("%s: retrying with max_num_paths_per_src=%d", msg, 2 * cap)
+                cap *= 2
         self.last_raw = raw
         f = scene.config.scene.frequency_hz
         out: dict[Link, LinkPaths] = {}

@@ -92,14 +92,19 @@ def test_save_load_roundtrip_and_version(room_grid, tmp_path):
 
 
 @pytest.mark.slow
-def test_truncation_detected_and_split(room_scene, caplog):
-    """A tiny cap is detected: chunks are split and the cap grown, no path is lost."""
+@pytest.mark.parametrize("method", ["sbr", "chains"])
+def test_truncation_detected_and_split(room_scene, caplog, method):
+    """A tiny cap is detected: chunks (probe calls) are split and the cap grown,
+    no path is lost."""
     cfg = room_scene.config.tracer
-    ref = trace_grid(room_scene, spacing=1.4, progress=False, config=cfg)
+    ref = trace_grid(room_scene, spacing=1.4, progress=False, config=cfg, method=method)
     tiny = replace(cfg, max_num_paths_per_src=150)  # one receiver needs ~200 per source
-    g = trace_grid(room_scene, spacing=1.4, progress=False, config=tiny, max_cap=1000)
+    g = trace_grid(room_scene, spacing=1.4, progress=False, config=tiny, max_cap=1000,
+                   method=method)
     assert g.meta["tracer"]["truncation_retries"] > 0
+    assert g.meta["tracer"]["method"] == method
     np.testing.assert_array_equal(g.num_paths, ref.num_paths)
     from engine.raytrace.base import TruncationError
     with pytest.raises(TruncationError, match="single receiver"):
-        trace_grid(room_scene, spacing=1.4, progress=False, config=tiny, max_cap=150)
+        trace_grid(room_scene, spacing=1.4, progress=False, config=tiny, max_cap=150,
+                   method=method)

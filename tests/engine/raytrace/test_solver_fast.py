@@ -15,7 +15,7 @@ FIELDS = ("a", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r", "intera
 
 
 def test_fast_path_bit_identical_to_legacy(room_scene):
-    cfg = room_scene.config.tracer  # deterministic
+    cfg = replace(room_scene.config.tracer, method="sbr")  # deterministic
     new, old = SionnaTracer(cfg), SionnaTracer(cfg, legacy=True)
     poses = device_poses(room_scene.config)
     for pos, vel in [((2.1, 1.5, 0.25), (0.0, 0.0, 0.0)), ((2.37, 1.21, 0.25), (0.5, -0.2, 0.0))]:
@@ -30,7 +30,7 @@ def test_fast_path_bit_identical_to_legacy(room_scene):
 def test_small_buffer_regrows_to_same_result(room_scene, monkeypatch):
     import engine.raytrace.sionna as S
 
-    cfg = room_scene.config.tracer
+    cfg = replace(room_scene.config.tracer, method="sbr")
     poses = device_poses(room_scene.config)
     ref = SionnaTracer(cfg)(room_scene, poses)
     monkeypatch.setattr(S, "MIN_BUFFER_PER_SRC", 8)  # far below the ~200 candidates needed

@@ -1,0 +1,142 @@
+"""Chain reuse (engine/raytrace/chains.py) against Sionna's own direct trace."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from engine.config import ConfigError, load_config
+from engine.raytrace.base import DevicePose, device_poses
+from engine.raytrace.chains import ChainTracer
+from engine.raytrace.grid import trace_grid
+from engine.raytrace.sionna import SionnaTracer, SolverCore
+from engine.scene import load_scene
+
+from .conftest import furnished_room
+
+POSITIONS = [(2.1, 1.5, 0.25), (1.05, 0.62, 0.25), (3.3, 2.6, 0.25)]
+
+
+def _key(lp):
+    """Paths of a link as {(interactions, rounded delay): gain}."""
+    return {(tuple(map(tuple, lp.interactions[i:i + 1].reshape(1, -1))), round(lp.tau[i] * 1e15)):
+            lp.a[i] for i in range(lp.num_paths)}
+
+
+@pytest.mark.slow
+def test_chains_hold_sionna_direct_paths_with_identical_values(room_scene):
+    """Every path of Sionna's direct shoot-and-bounce trace among the 24 strongest
+    is found by chain reuse, with the same gain and delay (same image method and
+    field calculator); chain reuse finds at least as many paths."""
+    cfg = room_scene.config.tracer
+    direct = SionnaTracer(replace(cfg, method="sbr"))
+    chains = SionnaTracer(replace(cfg, method="chains"))
+    assert chains.chains is not None and direct.chains is None
+    poses = device_poses(room_scene.config)
+    for pos in POSITIONS:
+        p = dict(poses, robot1=DevicePose(pos))
+        a, b = direct(room_scene, p), chains(room_scene, p)
+        for lk in a:
+            ref, got = _key(a[lk]), _key(b[lk])
+            assert b[lk].num_paths >= a[lk].num_paths - 1
+            strongest = sorted(ref, key=lambda k: -abs(ref[k]))[:24]
+            missing = [k for k in strongest if k not in got]
+            assert not missing, (pos, lk, missing)
+            for k in strongest:
+                assert got[k] == pytest.approx(ref[k], rel=1e-6, abs=1e-12)
+
+
+def test_result_depends_on_position_only(room_scene):
+    """A point traced alone, after others, or in a batch gives the same paths
+    (to float32 rounding)."""
+    cfg = room_scene.config.tracer
+    poses = device_poses(room_scene.config)
+    src = np.array([poses["AP1"].position, poses["AP2"].position])
+    q = np.array([[2.13, 1.47, 0.25]])
+    others = np.array([[0.9, 0.7, 0.25], [3.2, 2.4, 0.25]])
+
+    def links(raw, r):
+        return [raw.link(r, t) for t in range(raw.valid.shape[1])]
+
+    alone = ChainTracer(SolverCore(cfg)).trace(room_scene.sionna, src, q)
+    ct = ChainTracer(SolverCore(cfg))
+    ct.trace(room_scene.sionna, src, others)
+    after = ct.trace(room_scene.sionna, src, q)
+    batch = ChainTracer(SolverCore(cfg)).trace(room_scene.sionna, src, np.vstack([others, q]))
+    for other in (links(after, 0), links(batch, 2)):
+        for x, y in zip(links(alone, 0), other):
+            assert len(x["tau"]) == len(y["tau"]) > 5
+            np.testing.assert_array_equal(x["interactions"], y["interactions"])
+            # float32 kernels: the same chain may carry another probe's ray data
+            np.testing.assert_allclose(x["tau"], y["tau"], rtol=1e-6)
+            np.testing.assert_allclose(x["a"], y["a"], rtol=1e-5)
+
+
+def test_probes_are_reproducible_with_a_nondeterministic_core(room_scene):
+    cfg = room_scene.config.tracer
+    src = np.array([[0.5, 0.5, 2.5], [3.5, 2.5, 2.5]])
+    pts = np.array([[x, 1.5, 0.25] for x in (0.6, 1.3, 2.2, 3.1)])
+    stores = []
+    for _ in range(2):
+        ct = ChainTracer(SolverCore(cfg, deterministic=False))
+        ct.prepare(room_scene.sionna, src, pts)
+        stores.append(ct.store.columns())
+    for k in ("src", "types", "shapes", "prims"):
+        np.testing.assert_array_equal(stores[0][k], stores[1][k])
+
+
+def test_scene_edit_and_moved_transmitter(tmp_path):
+    """An edit drops the chain cache (the result equals a fresh tracer's); a
+    transmitter that moved since the last call is traced directly."""
+    scene = load_scene(furnished_room(tmp_path))
+    cfg = scene.config.tracer
+    poses = device_poses(scene.config)
+    tr = SionnaTracer(cfg)
+    tr(scene, poses)
+    assert tr.chains.probes_traced > 0
+    scene.move_object("table", position=(0.0, -1.2, 0.0))
+    edited = tr(scene, poses)
+    fresh = SionnaTracer(cfg)(scene, poses)
+    for lk in fresh:
+        np.testing.assert_array_equal(edited[lk].tau, fresh[lk].tau)
+    moved = dict(poses, AP1=DevicePose((0.8, 0.6, 2.5)))
+    probes = tr.chains.probes_traced
+    got = tr(scene, moved)
+    assert tr.chains.probes_traced == probes  # no probe: traced directly
+    ref = SionnaTracer(replace(cfg, method="sbr"))(scene, moved)
+    for lk in ref:
+        np.testing.assert_array_equal(got[lk].tau, ref[lk].tau)
+
+
+def test_grid_point_equals_live_chain_trace(room_grid, room_scene):
+    """Grid and live tracer share the probe lattice: the same paths at a grid point."""
+    g = room_grid
+    assert g.meta["tracer"]["method"] == "chains"
+    i = int(np.flatnonzero(g.free)[len(np.flatnonzero(g.free)) // 3])
+    poses = device_poses(room_scene.config)
+    poses["robot1"] = replace(poses["robot1"], position=tuple(g.points[i]))
+    res = SionnaTracer(room_scene.config.tracer)(room_scene, poses)
+    for s, tx in enumerate(g.tx_names):
+        lp, d = res[(tx, "robot1")], g.paths(i, s)
+        assert lp.num_paths == len(d["tau"]) > 5
+        np.testing.assert_allclose(d["tau"], lp.tau, rtol=1e-12)
+        np.testing.assert_allclose(d["a"], lp.a.astype(np.complex64), rtol=1e-6)
+
+
+def test_config_method_errors(tmp_path):
+    folder = furnished_room(tmp_path, tracer={"method": "chains", "diffuse_reflection": True})
+    with pytest.raises(ConfigError, match="tracer.method"):
+        load_config(folder / "twin.toml")
+    folder = furnished_room(tmp_path / "b", tracer={"method": "magic"})
+    with pytest.raises(ConfigError, match="tracer.method"):
+        load_config(folder / "twin.toml")
+    folder = furnished_room(tmp_path / "c", tracer={"probe_spacing": -0.5})
+    with pytest.raises(ConfigError, match="tracer.probe_spacing"):
+        load_config(folder / "twin.toml")
+    cfg = load_config(furnished_room(tmp_path / "d", tracer={"diffuse_reflection": True})
+                      / "twin.toml").tracer
+    assert cfg.method == "auto" and not cfg.uses_chains
+    with pytest.raises(ValueError, match="specular chains only"):
+        ChainTracer(SolverCore(cfg))
