@@ -8,8 +8,13 @@ a shared machine hits both alike):
   directly and sizes the candidate buffer from what it finds);
 - ``legacy``: ``SionnaTracer(legacy=True)``, i.e. ``PathSolver.__call__`` and
   Sionna's ``Paths`` (the code path before the optimization);
+- ``chains``: chain reuse (``tracer.method = "chains"``, the default; see
+  ``engine/raytrace/chains.py``): probes of the 0.5 m lattice are traced when
+  the robot enters a new cell, every step runs only Sionna's image method and
+  field calculator. Its mean includes the probe steps.
 
-and checks that both give identical paths at every step. Per step it also
+and checks that ``new`` and ``legacy`` give identical paths at every step and
+that chain reuse finds the 24 strongest paths per link of the direct trace. Per step it also
 records Dr.Jit's kernel history: kernels launched, kernels compiled (cache
 misses), kernel execution time and LLVM compile time; the rest of the wall time
 is Python-side tracing of Sionna's solver and the numpy conversion.
@@ -143,34 +148,59 @@ def main(argv=None) -> int:
           f"deterministic={t.deterministic}, samples_per_src={t.samples_per_src}, "
           f"max_depth={t.max_depth}, max_num_paths_per_src={t.max_num_paths_per_src}")
 
-    tracers = {"new": SionnaTracer(t), "legacy": SionnaTracer(t, legacy=True)}
+    tracers = {"chains": SionnaTracer(replace(t, method="chains")),
+               "new": SionnaTracer(replace(t, method="sbr")),
+               "legacy": SionnaTracer(replace(t, method="sbr"), legacy=True)}
     for i in range(3):  # warm-up: kernel compilation
         for tr in tracers.values():
             tr(scene, {**poses, robot: track[i]})
     rows = {k: [] for k in tracers}
-    identical, npaths = 0, []
+    identical, npaths, npaths_c = 0, [], []
+    probe_steps = []
+    found = [0, 0]
     for i in range(steps):
         p = {**poses, robot: track[3 + i]}
         res = {}
         for k, tr in (tracers.items() if i % 2 else reversed(tracers.items())):
+            before = tr.chains.probes_traced if tr.chains else 0
             with KernelStats() as ks:
                 res[k] = tr(scene, p)
             rows[k].append(ks)
+            if tr.chains and tr.chains.probes_traced > before:
+                probe_steps.append(i)
         identical += same_paths(res["new"], res["legacy"])
         npaths.append(sum(lp.num_paths for lp in res["new"].values()))
+        npaths_c.append(sum(lp.num_paths for lp in res["chains"].values()))
+        for k in res["new"]:
+            f, c = top_found(res["new"][k], res["chains"][k], TOP_N)
+            found[0] += f
+            found[1] += c
     print(f"retrace, {steps} steps interleaved ({statistics.mean(npaths):.1f} paths per step "
-          f"over {len(cfg.links)} links; new == legacy bit for bit at {identical}/{steps} steps):")
-    for k in ("legacy", "new"):
+          f"over {len(cfg.links)} links by direct shoot-and-bounce, "
+          f"{statistics.mean(npaths_c):.1f} by chain reuse; "
+          f"new == legacy bit for bit at {identical}/{steps} steps):")
+    for k in ("legacy", "new", "chains"):
         print(summary(k, rows[k]))
-    new_ms = statistics.median([r.wall_ms for r in rows["new"]])
-    old_ms = statistics.median([r.wall_ms for r in rows["legacy"]])
-    print(f"ratio legacy / new: {old_ms / new_ms:.2f}x "
-          f"(goal: retrace <= 50 ms per step; measured {new_ms:.1f} ms)")
+    ms = {k: [r.wall_ms for r in v] for k, v in rows.items()}
+    med = {k: statistics.median(v) for k, v in ms.items()}
+    mean_c = statistics.mean(ms["chains"])
+    print(f"  chains: mean {mean_c:.1f} ms/step; {len(probe_steps)} of {steps} steps traced new "
+          f"probes (robot entered a new lattice cell; max {max(ms['chains']):.1f} ms); "
+          f"{tracers['chains'].chains.probes_traced} probes, "
+          f"{len(tracers['chains'].chains.store)} chains so far")
+    print(f"  chains vs direct: {found[0]}/{found[1]} of the {TOP_N} strongest paths per link "
+          "of the direct trace found (same gain and delay)")
+    print(f"ratio legacy / chains: {med['legacy'] / med['chains']:.2f}x, "
+          f"direct (new) / chains: {med['new'] / med['chains']:.2f}x, "
+          f"legacy / new: {med['legacy'] / med['new']:.2f}x (medians)")
+    print(f"goal: retrace <= 50 ms per step; measured chains median {med['chains']:.1f} ms, "
+          f"mean {mean_c:.1f} ms (direct: {med['new']:.1f} ms)")
     print(f"  new: buffer re-runs {tracers['new'].core.buffer_regrows}, "
           f"largest candidate count per source {tracers['new'].core.candidates_seen}")
 
     if args.samples:
         ref_tr = tracers["new"]
+        t = replace(t, method="sbr")
         others = {int(s): SionnaTracer(replace(t, samples_per_src=int(s)))
                   for s in args.samples.split(",") if s}
         for tr in others.values():
@@ -205,9 +235,10 @@ def main(argv=None) -> int:
 
     def fresh(i):
         sc = load_scene(args.scene)
-        SionnaTracer(t)(sc, {**poses, robot: track[i]})
+        SionnaTracer(replace(t, method="sbr"))(sc, {**poses, robot: track[i]})
 
     fresh(0)  # warm-up (kernels are cached across scenes)
+    new_ms = med["new"]
     ms = []
     for i in range(base_steps):
         t0 = time.perf_counter()
@@ -215,7 +246,8 @@ def main(argv=None) -> int:
         ms.append((time.perf_counter() - t0) * 1e3)
     base = statistics.median(ms)
     print(f"baseline: fresh scene + devices + solver every step: median {base:.1f} ms "
-          f"({base_steps} steps); ratio baseline / new retrace {base / new_ms:.2f}x")
+          f"({base_steps} steps); ratio baseline / new retrace {base / new_ms:.2f}x, "
+          f"baseline / chains {base / med['chains']:.2f}x")
     return 0
 
 

@@ -138,7 +138,14 @@ def _grid_args(p: argparse.ArgumentParser) -> None:
                    help="distance kept from the room's bounding box, m")
     p.add_argument("--tx", action="append", default=None,
                    help="transmitter to trace (repeatable; default: all link transmitters)")
-    p.add_argument("--chunk-size", type=int, default=None, help="receivers per solver call")
+    p.add_argument("--chunk-size", type=int, default=None,
+                   help="receivers per solver call (method sbr)")
+    p.add_argument("--method", choices=("auto", "chains", "sbr"), default=None,
+                   help="chains: shoot-and-bounce at probe points, image method for every "
+                        "point; sbr: shoot-and-bounce for every point (default: "
+                        "tracer.method of twin.toml)")
+    p.add_argument("--probe-spacing", type=float, default=None,
+                   help="probe lattice spacing, m (default: tracer.probe_spacing)")
     p.add_argument("--deterministic", action="store_true",
                    help="use Sionna's deterministic generator (needs much more memory)")
     p.add_argument("--verify", type=int, default=8,
@@ -160,6 +167,7 @@ def cmd_grid(args) -> int:
     try:
         g = trace_grid(scene, args.tx, spacing=args.spacing, height=args.height,
                        margin=args.margin, chunk_size=args.chunk_size,
+                       method=args.method, probe_spacing=args.probe_spacing,
                        deterministic=True if args.deterministic else None,
                        verify=args.verify)
     except (ValueError, TruncationError) as exc:

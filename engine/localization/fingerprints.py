@@ -314,11 +314,18 @@ def cached_database(scene, *, spacing: float = DEFAULT_SPACING,
     if path.is_file() and not rebuild:
         try:
             db = load_database(path, scene=scene)
-            if int(db.meta["max_paths"]) >= max_paths:
+            tc = kw.get("tracer_config") or scene.config.tracer
+            want = "chains" if tc.uses_chains else "sbr"
+            have = db.meta.get("tracer", {}).get("method", "sbr")
+            if int(db.meta["max_paths"]) >= max_paths and have == want:
                 log.info("fingerprint database: using cache %s", path)
                 return db
-            log.info("%s keeps %s paths, %d requested: rebuilding", path,
-                     db.meta["max_paths"], max_paths)
+            if have != want:
+                log.info("%s was traced with method %r, %r requested: rebuilding", path,
+                         have, want)
+            else:
+                log.info("%s keeps %s paths, %d requested: rebuilding", path,
+                         db.meta["max_paths"], max_paths)
         except ValueError as exc:
             log.warning("%s: %s; rebuilding", path, exc)
     log.info("fingerprint database: tracing a %.3g m grid of %s (cache %s)", spacing,

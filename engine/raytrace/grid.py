@@ -383,7 +383,7 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
     if chunk_size < 1:
         raise ValueError(f"chunk_size: expected >= 1, got {chunk_size}")
     cap = config.max_num_paths_per_src
-    spacing_p = float(probe_spacing or config.probe_spacing)
+    spacing_p = config.probe_spacing if probe_spacing is None else float(probe_spacing)
     tracer = _ChunkTracer(core, sc, src, src_orient, cap, max_cap or 16 * cap, keep_strongest)
     log.info("tracing %d x %d grid (%d free points) at z=%.3f m against %s (%s)",
              nx, ny, len(todo), height, ", ".join(tx_names),

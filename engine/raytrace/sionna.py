@@ -189,27 +189,6 @@ class RawPaths:
                    candidates_per_source=counts, cap=cap)
 
 
-def concat_paths(parts: list[RawPaths], depth: int) -> RawPaths:
-    """Join :class:`RawPaths` of the same receivers and transmitters along the
-    path axis (``P``), padding the interaction axis to ``depth``."""
-    d = max(1, depth)
-
-    def pad_d(v):
-        if v.shape[3] == d:
-            return v
-        width = [(0, 0)] * v.ndim
-        width[3] = (0, d - v.shape[3])
-        return np.pad(v, width)
-
-    first = parts[0]
-    kw = {k: np.concatenate([getattr(p, k) for p in parts], axis=2)
-          for k in ("valid", "a", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r")}
-    kw["interactions"] = np.concatenate([pad_d(p.interactions) for p in parts], axis=2)
-    kw["vertices"] = np.concatenate([pad_d(p.vertices) for p in parts], axis=2)
-    counts = np.sum([p.candidates_per_source for p in parts], axis=0)
-    return RawPaths(**kw, candidates_per_source=counts, cap=max(p.cap for p in parts))
-
-
 def _points(v, n: int, cls):
     """``[n, 3]`` numpy (None: zeros) -> Mitsuba ``Point3f``/``Vector3f``."""
     import mitsuba as mi
@@ -492,7 +471,6 @@ class SolverCore:
                 ``[yaw, pitch, roll]`` rad (default 0).
             source_velocities, target_velocities: ``[S|T, 3]`` m/s (default 0).
         """
-        import drjit as dr
         import mitsuba as mi
 
         arr = _points

@@ -42,6 +42,19 @@ def test_round_trip_and_cache(lab, lab_db, tmp_path):
     assert lab_db.path == cache_path(scene, 0.4, lab_db.path.parent)
     again = cached_database(scene, spacing=0.4, cache_dir=lab_db.path.parent, max_paths=16)
     assert again.path == lab_db.path
+    assert again.meta == lab_db.meta  # read, not rebuilt (``created`` would differ)
+
+
+def test_cache_traced_by_another_method_is_rebuilt(lab, lab_db, tmp_path):
+    scene = load_scene(lab)
+    assert lab_db.meta["tracer"]["method"] == "chains"
+    old = dataclasses.replace(lab_db, meta={**lab_db.meta,
+                                            "tracer": {**lab_db.meta["tracer"], "method": "sbr"}})
+    save_database(old, cache_path(scene, 0.4, tmp_path))
+    db = cached_database(scene, spacing=0.4, cache_dir=tmp_path, max_paths=16, verify=0)
+    assert db.meta["tracer"]["method"] == "chains"
+    assert db.meta["created"] >= lab_db.meta["created"]
+    np.testing.assert_array_equal(db.arrays["num_paths"], lab_db.arrays["num_paths"])
 
 
 def test_refuses_other_frequency(lab_db, tmp_path, make_lab):

@@ -10,7 +10,6 @@ import pytest
 from engine.config import ConfigError, load_config
 from engine.raytrace.base import DevicePose, device_poses
 from engine.raytrace.chains import ChainTracer
-from engine.raytrace.grid import trace_grid
 from engine.raytrace.sionna import SionnaTracer, SolverCore
 from engine.scene import load_scene
 

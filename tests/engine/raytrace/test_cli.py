@@ -33,4 +33,12 @@ def test_grid(tmp_path, capsys):
     assert "points in free space" in capsys.readouterr().out
     g = load_grid(out)
     assert g.spacing == 0.7 and g.tx_names == ["AP1", "AP2"]
+    assert g.meta["tracer"]["method"] == "chains"
     assert main(["grid", str(folder), "--spacing", "-1", "--out", str(out)]) == 2
+    assert main(["grid", str(folder), "--spacing", "0.7", "--probe-spacing", "0",
+                 "--out", str(tmp_path / "bad.npz")]) == 2
+    assert "probe_spacing" in capsys.readouterr().err
+    assert not (tmp_path / "bad.npz").exists()
+    assert main(["grid", str(folder), "--spacing", "0.7", "--method", "sbr",
+                 "--out", str(tmp_path / "s.npz")]) == 0
+    assert load_grid(tmp_path / "s.npz").meta["tracer"]["method"] == "sbr"
