@@ -95,8 +95,7 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true",
                     help="20 cm database grid, 40 steps, 6 table points (a smoke run)")
     ap.add_argument("--spacing", type=float, default=None,
-                    help="database grid spacing in m (default 0.10; 5 cm is the paper's and "
-                         "the isac-twin default, ~4x slower to build)")
+                    help="database grid spacing in m (default 0.05, the paper's)")
     ap.add_argument("--cache", default="out/cache", help="database cache folder")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--skip-export", action="store_true",
@@ -122,7 +121,7 @@ def main(argv=None) -> int:
 
     from engine.casestudy import run_case_study
 
-    spacing = a.spacing or (0.2 if a.quick else 0.1)
+    spacing = a.spacing or (0.2 if a.quick else 0.05)
     steps = a.steps if a.steps is not None else (40 if a.quick else None)
     print(f"[3/3] case study (section IV) on {folder}, database grid {spacing * 100:g} cm")
     run_case_study(folder, out, spacing=spacing, steps=steps, seed=a.seed, cache_dir=a.cache,
