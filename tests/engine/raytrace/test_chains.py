@@ -139,3 +139,17 @@ def test_config_method_errors(tmp_path):
     assert cfg.method == "auto" and not cfg.uses_chains
     with pytest.raises(ValueError, match="specular chains only"):
         ChainTracer(SolverCore(cfg))
+
+
+def test_corner_inside_furniture_is_replaced_by_a_probe_in_the_cell(room_scene):
+    """The cabinet (x 3.0-3.6, y 0.2-0.8 m) holds the lattice node (3.5, 0.5):
+    the cell next to it gets a substitute probe, and its chains join the cell's."""
+    cfg = room_scene.config.tracer
+    src = np.array([[0.5, 0.5, 2.5], [3.5, 2.5, 2.5]])
+    ct = ChainTracer(SolverCore(cfg))
+    (ids,) = ct.prepare(room_scene.sionna, src, np.array([[3.7, 0.95, 0.25]]))
+    assert ct._probes[(7, 1, 250)] is None  # the node inside the cabinet
+    sub = ct._probes[("sub", 7, 1, 250, 0, 0)]
+    assert sub is not None and len(sub) > 100
+    assert np.isin(sub, ids).all()
+    assert ct.probes_traced == 4  # three free corners and the substitute
