@@ -315,8 +315,13 @@ def cached_database(scene, *, spacing: float = DEFAULT_SPACING,
         try:
             db = load_database(path, scene=scene)
             tc = kw.get("tracer_config") or scene.config.tracer
-            want = "chains" if tc.uses_chains else "sbr"
-            have = db.meta.get("tracer", {}).get("method", "sbr")
+            from engine.raytrace.chains import CHAIN_REUSE_VERSION
+
+            want = f"chains v{CHAIN_REUSE_VERSION}" if tc.uses_chains else "sbr"
+            t = db.meta.get("tracer", {})
+            have = t.get("method", "sbr")
+            if have == "chains":
+                have = f"chains v{(t.get('chains') or {}).get('version', 0)}"
             if int(db.meta["max_paths"]) >= max_paths and have == want:
                 log.info("fingerprint database: using cache %s", path)
                 return db

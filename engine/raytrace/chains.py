@@ -52,6 +52,10 @@ from engine.raytrace.base import TruncationError
 
 log = logging.getLogger(__name__)
 
+#: Bumped whenever a change of this module changes which paths are found;
+#: stored in grid metadata so that caches traced by another version are rebuilt.
+CHAIN_REUSE_VERSION = 1
+
 #: Default spacing of the probe lattice, m.
 DEFAULT_PROBE_SPACING = 0.5
 

@@ -397,7 +397,7 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
     pieces: list[tuple[np.ndarray, dict]] = []
     chain_stats = None
     if use_chains:
-        from engine.raytrace.chains import ChainTracer
+        from engine.raytrace.chains import CHAIN_REUSE_VERSION, ChainTracer
 
         ct = ChainTracer(core, spacing_p, max_cap=max_cap)
         chunk_size = CHAIN_CHUNK_SIZE
@@ -408,8 +408,8 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
                 raw = ct.trace(sc, src, points[idx], source_orientations=src_orient)
                 pieces.append((idx, _sorted_chunk(raw, keep_strongest)))
                 bar.update(len(idx))
-        chain_stats = {"probe_spacing": spacing_p, "probes_traced": ct.probes_traced,
-                       "chains": len(ct.store)}
+        chain_stats = {"version": CHAIN_REUSE_VERSION, "probe_spacing": spacing_p,
+                       "probes_traced": ct.probes_traced, "chains": len(ct.store)}
         tracer.cap, tracer.retries = ct.cap, ct.truncation_retries
     else:
         with tqdm(total=len(todo), unit="pt", desc="grid", disable=not progress) as bar:

@@ -46,15 +46,23 @@ def test_round_trip_and_cache(lab, lab_db, tmp_path):
     assert lab_db.path.stat().st_mtime_ns == stamp  # read, not rebuilt
 
 
-def test_cache_traced_by_another_method_is_rebuilt(lab, lab_db, tmp_path):
+@pytest.mark.parametrize("tracer", [{"method": "sbr", "chains": None},
+                                    {"chains": {"version": 0}}],
+                         ids=["shoot-and-bounce", "older-chain-reuse"])
+def test_cache_traced_another_way_is_rebuilt(lab, lab_db, tmp_path, tracer):
+    from engine.raytrace.chains import CHAIN_REUSE_VERSION
+
     scene = load_scene(lab)
     assert lab_db.meta["tracer"]["method"] == "chains"
+    assert lab_db.meta["tracer"]["chains"]["version"] == CHAIN_REUSE_VERSION
     old = dataclasses.replace(lab_db, meta={**lab_db.meta,
-                                            "tracer": {**lab_db.meta["tracer"], "method": "sbr"}})
-    save_database(old, cache_path(scene, 0.4, tmp_path))
+                                            "tracer": {**lab_db.meta["tracer"], **tracer}})
+    path = save_database(old, cache_path(scene, 0.4, tmp_path)).path
+    stamp = path.stat().st_mtime_ns
     db = cached_database(scene, spacing=0.4, cache_dir=tmp_path, max_paths=16, verify=0)
+    assert path.stat().st_mtime_ns != stamp  # rebuilt and rewritten
     assert db.meta["tracer"]["method"] == "chains"
-    assert db.meta["created"] >= lab_db.meta["created"]
+    assert db.meta["tracer"]["chains"]["version"] == CHAIN_REUSE_VERSION
     np.testing.assert_array_equal(db.arrays["num_paths"], lab_db.arrays["num_paths"])
 
 
