@@ -567,6 +567,9 @@ class SionnaTracer:
                                       max_cap=cap if on_truncation == "raise"
                                       else cap << MAX_CAP_DOUBLINGS)
         self._last_sources: np.ndarray | None = None
+        #: Calls traced by shoot-and-bounce (all of them without chain reuse;
+        #: with it, calls whose transmitters had moved).
+        self.direct_calls = 0
         self._tx: dict[str, object] = {}
         self._rx: dict[str, object] = {}
         self.last_raw: RawPaths | None = None
@@ -618,23 +621,38 @@ class SionnaTracer:
         sc = scene.sionna
         self._sync_devices(sc, tx_names, rx_names, poses)
         cap = self.config.max_num_paths_per_src
-        sources = np.array([poses[n].position for n in tx_names], float)
-        moved = self._last_sources is not None and (
-            self._last_sources.shape != sources.shape or not np.array_equal(self._last_sources,
-                                                                            sources))
-        self._last_sources = sources
         raw = None
-        if self.chains is not None and not moved:
-            # Transmitters that moved since the last call are traced directly
-            # (the chains of the probes belong to the source positions).
-            raw = self.chains.trace(
-                sc, sources, [poses[n].position for n in rx_names],
-                source_orientations=[sionna_orientation(poses[n].orientation) for n in tx_names],
-                source_velocities=[poses[n].velocity for n in tx_names],
-                target_orientations=[sionna_orientation(poses[n].orientation) for n in rx_names],
-                target_velocities=[poses[n].velocity for n in rx_names],
-                context=(id(scene), scene.revision))
+        src_names, tgt_names, flipped = tx_names, rx_names, set()
+        if self.chains is not None:
+            # Reciprocity: an uplink (robot -> access point) is traced as the
+            # downlink and reversed, so that the sources, whose chains the
+            # probes cache, stay the static access points.
+            kinds = {d.name: d.kind for d in scene.config.devices}
+            flipped = {(tx, rx) for tx, rx in links
+                       if kinds.get(rx) == "access_point" and kinds.get(tx) != "access_point"}
+            oriented = [(rx, tx) if (tx, rx) in flipped else (tx, rx) for tx, rx in links]
+            c_src = list(dict.fromkeys(t for t, _ in oriented))
+            c_tgt = list(dict.fromkeys(r for _, r in oriented))
+            sources = np.array([poses[n].position for n in c_src], float)
+            moved = self._last_sources is not None and (
+                self._last_sources.shape != sources.shape
+                or not np.array_equal(self._last_sources, sources))
+            self._last_sources = sources
+            if moved:  # the probes' chains belong to the source positions
+                flipped = set()
+            else:
+                raw = self.chains.trace(
+                    sc, sources, [poses[n].position for n in c_tgt],
+                    source_orientations=[sionna_orientation(poses[n].orientation)
+                                         for n in c_src],
+                    source_velocities=[poses[n].velocity for n in c_src],
+                    target_orientations=[sionna_orientation(poses[n].orientation)
+                                         for n in c_tgt],
+                    target_velocities=[poses[n].velocity for n in c_tgt],
+                    context=(id(scene), scene.revision))
+                src_names, tgt_names = c_src, c_tgt
         if raw is None:
+            self.direct_calls += 1
             for attempt in range(MAX_CAP_DOUBLINGS + 1):
                 if self.core.legacy:
                     raw = self.core.solve_scene(sc, cap)
@@ -661,18 +679,21 @@ class SionnaTracer:
         f = scene.config.scene.frequency_hz
         out: dict[Link, LinkPaths] = {}
         for tx, rx in links:
-            t, r = tx_names.index(tx), rx_names.index(rx)
-            pt, pr = poses[tx], poses[rx]
+            src, tgt = (rx, tx) if (tx, rx) in flipped else (tx, rx)
+            t, r = src_names.index(src), tgt_names.index(tgt)
+            pt, pr = poses[src], poses[tgt]
             d = raw.link(r, t)
             if d["tau"].size == 0:
-                out[(tx, rx)] = empty_link(tx, rx, pt, pr, f, raw.interactions.shape[-1])
+                out[(tx, rx)] = empty_link(tx, rx, poses[tx], poses[rx], f,
+                                           raw.interactions.shape[-1])
                 continue
-            out[(tx, rx)] = LinkPaths(
-                tx=tx, rx=rx, tx_position=np.asarray(pt.position),
+            lp = LinkPaths(
+                tx=src, rx=tgt, tx_position=np.asarray(pt.position),
                 rx_position=np.asarray(pr.position),
                 tx_orientation=np.asarray(pt.orientation),
                 rx_orientation=np.asarray(pr.orientation), frequency_hz=f,
                 vertices=d["vertices"].astype(np.float64),
                 **{k: d[k] for k in ("a", "tau", "doppler", "theta_t", "phi_t", "theta_r",
                                      "phi_r", "interactions")})
+            out[(tx, rx)] = lp.reversed() if (tx, rx) in flipped else lp
         return out
