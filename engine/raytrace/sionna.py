@@ -190,11 +190,19 @@ class RawPaths:
 
 
 def _points(v, n: int, cls):
-    """``[n, 3]`` numpy (None: zeros) -> Mitsuba ``Point3f``/``Vector3f``."""
+    """``[n, 3]`` numpy (None: zeros) -> Mitsuba ``Point3f``/``Vector3f``.
+
+    The components are copied into Dr.Jit's own (64-byte aligned) memory:
+    kernels that read numpy's memory directly record its alignment in their
+    IR, so a differently aligned array compiled the same kernel again (seen on
+    about one live retrace in five)."""
+    import drjit as dr
     import mitsuba as mi
 
     v = np.zeros((n, 3), np.float32) if v is None else np.asarray(v, np.float32).reshape(n, 3)
-    return cls(*(mi.Float(np.ascontiguousarray(v[:, i])) for i in range(3)))
+    comps = [dr.copy(mi.Float(np.ascontiguousarray(v[:, i]))) for i in range(3)]
+    dr.eval(*comps)
+    return cls(*comps)
 
 
 def _paths_to_numpy(paths, num_rx: int, num_tx: int, depth: int,
