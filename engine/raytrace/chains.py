@@ -535,16 +535,11 @@ class ChainTracer:
 
 def _concat_targets(parts):
     """Join :class:`RawPaths` of consecutive target groups (pads the path axis)."""
+    from engine.raytrace.grid import _pad
     from engine.raytrace.sionna import RawPaths
 
     p = max(r.valid.shape[2] for r in parts)
-
-    def pad(v):
-        w = [(0, 0)] * v.ndim
-        w[2] = (0, p - v.shape[2])
-        return np.pad(v, w)
-
-    kw = {k: np.concatenate([pad(getattr(r, k)) for r in parts], axis=0)
+    kw = {k: np.concatenate([_pad(getattr(r, k), p) for r in parts], axis=0)
           for k in ("valid", "a", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r",
                     "interactions", "vertices")}
     return RawPaths(**kw, candidates_per_source=parts[0].candidates_per_source,

@@ -184,3 +184,22 @@ def test_uplink_traced_as_reversed_downlink(room_scene):
             np.testing.assert_allclose(g.doppler[los], r.doppler[r.num_interactions == 0],
                                        rtol=1e-5)
     assert tr.direct_calls == 0 and direct.direct_calls == 2
+
+
+def test_pairs_split_over_several_image_method_calls(room_scene):
+    """Targets whose (chain, target) pairs exceed max_pairs are evaluated in
+    groups; the joined result equals one call's."""
+    cfg = room_scene.config.tracer
+    src = np.array([[0.5, 0.5, 2.5], [3.5, 2.5, 2.5]])
+    pts = np.array([[x, y, 0.25] for x in (0.7, 1.6, 2.4) for y in (1.1, 1.9)])
+    one = ChainTracer(SolverCore(cfg)).trace(room_scene.sionna, src, pts)
+    ct = ChainTracer(SolverCore(cfg), max_pairs=1000)  # ~500 chains per target: 6 calls
+    many = ct.trace(room_scene.sionna, src, pts)
+    assert many.valid.shape[:2] == one.valid.shape[:2] == (6, 2)
+    for r in range(6):
+        for t in range(2):
+            a, b = one.link(r, t), many.link(r, t)
+            assert len(a["tau"]) > 5
+            np.testing.assert_array_equal(a["interactions"], b["interactions"])
+            np.testing.assert_allclose(a["tau"], b["tau"], rtol=1e-6)
+            np.testing.assert_allclose(a["a"], b["a"], rtol=1e-5)
