@@ -314,14 +314,10 @@ def cached_database(scene, *, spacing: float = DEFAULT_SPACING,
     if path.is_file() and not rebuild:
         try:
             db = load_database(path, scene=scene)
-            tc = kw.get("tracer_config") or scene.config.tracer
-            from engine.raytrace.chains import CHAIN_REUSE_VERSION
+            from engine.raytrace.chains import config_method_tag, method_tag
 
-            want = f"chains v{CHAIN_REUSE_VERSION}" if tc.uses_chains else "sbr"
-            t = db.meta.get("tracer", {})
-            have = t.get("method", "sbr")
-            if have == "chains":
-                have = f"chains v{(t.get('chains') or {}).get('version', 0)}"
+            want = config_method_tag(kw.get("tracer_config") or scene.config.tracer)
+            have = method_tag(db.meta.get("tracer", {}))
             if int(db.meta["max_paths"]) >= max_paths and have == want:
                 log.info("fingerprint database: using cache %s", path)
                 return db

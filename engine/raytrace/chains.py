@@ -78,6 +78,19 @@ SUBSTITUTE_STEPS = (0.25, 0.5, 0.75)
 PROBE_SPEC_TABLE_SIZE = 1 << 24
 
 
+def method_tag(tracer_meta: dict) -> str:
+    """How a grid was traced, from its ``meta["tracer"]``: ``"sbr"`` or
+    ``"chains v<CHAIN_REUSE_VERSION>"`` (``v0``: before versions were stored)."""
+    if tracer_meta.get("method", "sbr") != "chains":
+        return "sbr"
+    return f"chains v{(tracer_meta.get('chains') or {}).get('version', 0)}"
+
+
+def config_method_tag(config) -> str:
+    """The :func:`method_tag` a grid traced now with ``TracerConfig`` would get."""
+    return f"chains v{CHAIN_REUSE_VERSION}" if config.uses_chains else "sbr"
+
+
 def chains_supported(config) -> bool:
     """Whether a ``TracerConfig`` traces specular chains only (reflection/refraction)."""
     return not (config.diffuse_reflection or config.diffraction)
@@ -356,6 +369,12 @@ class ChainTracer:
                 self._probes[keys[i]] = ids
             self.probes_traced += len(part)
 
+    def _corner(self, i: int, j: int, z: int, di: int, dj: int) -> np.ndarray | None:
+        """Chains of corner ``(di, dj)`` of cell ``(i, j)``: the lattice node's,
+        else its substitute's (None: neither is in free space)."""
+        ids = self._probes[(i + di, j + dj, z)]
+        return ids if ids is not None else self._probes[("sub", i, j, z, di, dj)]
+
     def _substitute_probes(self, sc, src, cells: list[tuple]) -> None:
         """Probes for the corners of ``cells`` that are not in free space.
 
@@ -363,8 +382,9 @@ class ChainTracer:
         cell, moved from the corner towards the cell's centre by the first
         fraction of :data:`SUBSTITUTE_STEPS` that lands in free space. Cells
         along walls and furniture need them most: there the chains change
-        fastest (e.g. paths through a wall and back), and the full 5 cm lab grid
-        missed 4 x more of the strongest paths without them.
+        fastest (e.g. paths through a wall and back): without them the full
+        5 cm lab grid missed 1,793 instead of 656 of the direct grid's
+        strongest-24 paths (of 793,058).
         """
         from engine.raytrace.grid import free_points
 
@@ -428,10 +448,7 @@ class ChainTracer:
         for t, (i, j, z) in enumerate(cells):
             ids = self._cells.get((i, j, z))
             if ids is None:
-                corners = [self._probes[(i + di, j + dj, z)] if
-                           self._probes[(i + di, j + dj, z)] is not None
-                           else self._probes[("sub", i, j, z, di, dj)]
-                           for di in (0, 1) for dj in (0, 1)]
+                corners = [self._corner(i, j, z, di, dj) for di in (0, 1) for dj in (0, 1)]
                 corners = [c for c in corners if c is not None]
                 if corners:
                     ids = self._cells[(i, j, z)] = np.unique(np.concatenate(corners))

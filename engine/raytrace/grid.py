@@ -7,7 +7,7 @@ positions at one height against the static transmitters with a progress bar.
 
 By default it reuses specular chains (:mod:`engine.raytrace.chains`):
 shoot-and-bounce only at the probes of a 0.5 m lattice, Sionna's image method
-for every grid point (the full 5 cm lab grid in ~26 s instead of ~470 s).
+for every grid point (the full 5 cm lab grid in ~25 s instead of ~470 s).
 ``method="sbr"`` traces every point by shoot-and-bounce, in chunks of
 receivers (bounded memory). Either way no path is dropped silently: a chunk
 (or probe call) whose solver buffer reached ``max_num_paths_per_src`` is
@@ -294,8 +294,10 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         height: receiver height z, m (default: the first robot's antenna height).
         margin: distance kept from the room's bounding box, m.
         config: tracer settings (default ``scene.config.tracer``).
-        chunk_size: receivers per solver call (default :data:`DEFAULT_CHUNK_SIZE`;
-            in deterministic mode at most what :data:`DETERMINISTIC_BUDGET` allows).
+        chunk_size: receivers per solver call (``"sbr"``; default
+            :data:`DEFAULT_CHUNK_SIZE`, in deterministic mode at most what
+            :data:`DETERMINISTIC_BUDGET` allows) or per :class:`ChainTracer`
+            call (chain reuse; default :data:`CHAIN_CHUNK_SIZE`).
         deterministic: override ``config.deterministic`` for ``"sbr"`` and the
             verification (default for grids: False, because Sionna's
             deterministic generator needs memory proportional to samples x
@@ -380,7 +382,9 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
                        np.full(nx * ny, height)], axis=1)
     free = free_points(sc, points)
     todo = np.flatnonzero(free)
-    if chunk_size is None:
+    if chunk_size is None and use_chains:
+        chunk_size = CHAIN_CHUNK_SIZE
+    elif chunk_size is None:
         chunk_size = DEFAULT_CHUNK_SIZE
         if det:
             per_target = len(tx_names) * max(1, config.max_depth) * config.samples_per_src
@@ -390,7 +394,6 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         raise ValueError(f"chunk_size: expected >= 1, got {chunk_size}")
     cap = config.max_num_paths_per_src
     spacing_p = config.probe_spacing if probe_spacing is None else float(probe_spacing)
-    tracer = _ChunkTracer(core, sc, src, src_orient, cap, max_cap or 16 * cap, keep_strongest)
     log.info("tracing %d x %d grid (%d free points) at z=%.3f m against %s (%s)",
              nx, ny, len(todo), height, ", ".join(tx_names),
              f"chains, probes every {spacing_p} m" if use_chains else "shoot-and-bounce")
@@ -400,7 +403,6 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         from engine.raytrace.chains import CHAIN_REUSE_VERSION, ChainTracer
 
         ct = ChainTracer(core, spacing_p, max_cap=max_cap)
-        chunk_size = CHAIN_CHUNK_SIZE
         ct.prepare(sc, src, points[todo])  # every probe, PROBES_PER_CALL per call
         with tqdm(total=len(todo), unit="pt", desc="grid", disable=not progress) as bar:
             for start in range(0, len(todo), chunk_size):
@@ -410,8 +412,10 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
                 bar.update(len(idx))
         chain_stats = {"version": CHAIN_REUSE_VERSION, "probe_spacing": spacing_p,
                        "probes_traced": ct.probes_traced, "chains": len(ct.store)}
-        tracer.cap, tracer.retries = ct.cap, ct.truncation_retries
+        cap_used, retries = ct.cap, ct.truncation_retries
     else:
+        tracer = _ChunkTracer(core, sc, src, src_orient, cap, max_cap or 16 * cap,
+                              keep_strongest)
         with tqdm(total=len(todo), unit="pt", desc="grid", disable=not progress) as bar:
             for start in range(0, len(todo), chunk_size):
                 idx = todo[start:start + chunk_size]
@@ -421,6 +425,7 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
                     pieces.append((idx[offs:offs + n], part))
                     offs += n
                 bar.update(len(idx))
+        cap_used, retries = tracer.cap, tracer.retries
 
     s = len(tx_names)
     p = max([part["valid"].shape[2] for _, part in pieces], default=0)
@@ -457,8 +462,8 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         "height": height, "margin": float(margin),
         "tx_names": tx_names, "num_free": int(free.sum()),
         "tracer": {**dataclasses.asdict(config), "deterministic": det,
-                   "max_num_paths_per_src_used": tracer.cap, "chunk_size": chunk_size,
-                   "truncation_retries": tracer.retries, "spec_table_size": spec_table_size,
+                   "max_num_paths_per_src_used": cap_used, "chunk_size": chunk_size,
+                   "truncation_retries": retries, "spec_table_size": spec_table_size,
                    "keep_strongest": keep_strongest,
                    "method": "chains" if use_chains else "sbr", "chains": chain_stats},
         "verification": verification,

@@ -553,6 +553,11 @@ class SionnaTracer:
             and logs a warning; ``"raise"`` raises
             :class:`~engine.raytrace.base.TruncationError` at once.
 
+    With ``config.uses_chains`` (the default) calls go through chain reuse
+    (:class:`~engine.raytrace.chains.ChainTracer`): uplinks to access points
+    are traced as downlinks and reversed, and a call whose sources moved
+    since the previous one is traced directly (:attr:`direct_calls`).
+
     Call:
         ``tracer(scene, poses, links=None) -> {(tx, rx): LinkPaths}``.
     """
