@@ -66,7 +66,13 @@ def test_svd_streams_matches_lapack(nr, nt, dtype):
     # f = H W = U Sigma per RE (relative to sigma_1 of the RE), ||H w_s||^2 = lambda_s.
     hw = hd @ wd
     err = np.linalg.norm(np.abs(hw) - np.abs(f), axis=(1, 2))
-    assert np.all(err <= 10 * tol * np.sqrt(scale[:, 0]) + 1e-300)
+    # A weak second mode (r = sigma_2 / sigma_1) is determined only to ~eps / r in
+    # direction, so |H w_2| carries ~sigma_1 eps / r of rounding whatever the method
+    # (LAPACK included); which BLAS kernels the CPU picks decides where in that
+    # band a result lands (AMD EPYC: 4.7e-12 at r = 4.7e-6, 1.2x the old bound).
+    r = sv[:, -1] / np.where(sv[:, 0] > 0, sv[:, 0], 1.0)
+    cond = np.where(r > 0, 10 * np.finfo(np.float64).eps / np.maximum(r, 1e-300), 0.0)
+    assert np.all(err <= (10 * tol + cond) * np.sqrt(scale[:, 0]) + 1e-300)
     np.testing.assert_allclose(np.sum(np.abs(hw) ** 2, axis=1), lam, rtol=0,
                                atol=10 * tol * scale.max())
 
