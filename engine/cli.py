@@ -288,6 +288,10 @@ def cmd_topics(args) -> int:
     scene = load_scene(scene_path(args), load_sionna=False)
     bus = Bus()
     agents = build_robots(scene.config, bus, scene, seed=args.seed)
+    if scene.config.sensing:  # the twin's [[sensing]] radar publishes detections + tracks
+        from engine.sensing.msgs import advertise
+
+        advertise(bus)
     dt = 0.05
     for k in range(max(args.steps, 0)):
         for a in agents.values():

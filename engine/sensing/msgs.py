@@ -22,10 +22,10 @@ import numpy as np
 
 from engine.msgs import MESSAGE_TYPES, Header
 
-__all__ = ["Detections", "DETECTIONS_TOPIC", "MSG_DEFINITION", "register"]
+__all__ = ["Detections", "DETECTIONS_TOPIC", "MSG_DEFINITION", "register", "advertise"]
 
 #: Default topic of the radar estimator.
-DETECTIONS_TOPIC = "sensing/detections"
+DETECTIONS_TOPIC = "/sensing/detections"
 
 
 @dataclass
@@ -78,3 +78,12 @@ float64[] track_velocity    # [T * 2] row-major vx, vy, m/s
 def register() -> None:
     """Add :class:`Detections` to :data:`engine.msgs.MESSAGE_TYPES` (idempotent)."""
     MESSAGE_TYPES.setdefault(Detections.ROS_TYPE, Detections)
+
+
+def advertise(bus, topic: str = DETECTIONS_TOPIC):
+    """Register :class:`Detections` and advertise ``topic`` from node ``radar`` of
+    ``bus`` (what a twin with ``[[sensing]]`` tables publishes). Returns the node."""
+    register()
+    node = bus.node("radar")
+    node.advertise(topic, Detections)
+    return node
