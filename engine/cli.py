@@ -91,7 +91,9 @@ def cmd_trace(args) -> int:
               file=sys.stderr)
         return 2
     try:
-        res = make_tracer(cfg)(scene, device_poses(cfg))
+        from engine.phy.patterns import AntennaPatterns
+
+        res = AntennaPatterns.from_config(cfg)(make_tracer(cfg)(scene, device_poses(cfg)))
     except ValueError as exc:
         print(f"isac-twin: error: {exc}", file=sys.stderr)
         return 2

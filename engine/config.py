@@ -316,8 +316,16 @@ _ARRAY_KEYS = ("rows", "cols", "vertical_spacing", "horizontal_spacing", "patter
                "polarization")
 
 
+#: polarizations the tracer and PHY model exactly (see engine/phy/patterns.py)
+MODELLED_POLARIZATIONS = ("V",)
+
+
 def _parse_array(r: _Reader, data: dict, prefix: str) -> ArrayConfig:
     r.check_keys(data, _ARRAY_KEYS, prefix)
+    pol = r.string(data, "polarization", prefix, "V", choices=POLARIZATIONS)
+    if pol not in MODELLED_POLARIZATIONS:
+        raise r.fail(f"{prefix}polarization", f"{pol!r} is not modelled (the tracer carries "
+                     "no polarimetric transfer matrix; patterns are exact on V): use \"V\"")
     return ArrayConfig(
         rows=r.integer(data, "rows", prefix, minimum=1),
         cols=r.integer(data, "cols", prefix, minimum=1),
@@ -505,11 +513,12 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
                      f"(e.g. -35), got {link_adaptation.evm_db!r}")
 
     sensing = _parse_sensing(r, data, devices, noise, ofdm)
-    for s_ in sensing:
-        a = by_name[s_.rx].array
-        if a.pattern != "iso" or a.polarization != "V":
-            raise r.fail(f"sensing[{sensing.index(s_)}].rx", f"device {s_.rx!r} array must "
-                         "be iso/V for sensing (the radar steers an isotropic array)")
+    for i, s_ in enumerate(sensing):
+        for key in ("tx", "rx"):
+            dev = by_name[getattr(s_, key)]
+            if dev.array.pattern != "iso":
+                raise r.fail(f"sensing[{i}].{key}", f"device {dev.name!r} has pattern "
+                             f"{dev.array.pattern!r}; sensing links model iso elements only")
     return TwinConfig(path=path, scene=scene, ofdm=ofdm, noise=noise, tracer=tracer,
                       devices=devices, links=tuple(links), schema=schema, raw=data,
                       sensing=sensing, link_adaptation=link_adaptation)

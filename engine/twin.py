@@ -28,6 +28,7 @@ import numpy as np
 from engine.bus import Bus
 from engine.msgs import Header, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
+from engine.phy.patterns import AntennaPatterns
 from engine.raytrace import DevicePose, make_tracer
 from engine.robots import SensorOptions, build_robots
 from engine.robots.control import controller_from_spec
@@ -98,6 +99,8 @@ class Twin:
         self.sensor_options = sensors
         self.tracer = tracer if tracer is not None else make_tracer(self.config)
         self.phy = NetworkPHY(self.config) if phy else None
+        #: the devices' element patterns, applied to every traced link (stage 2)
+        self.patterns = AntennaPatterns.from_config(self.config)
         self.estimators: list[Estimator] = list(estimators or [])
         self.sensing_enabled = bool(sensing) and bool(self.config.sensing)
         #: the ``[[sensing]]`` radar (a RadarEstimator), rebuilt by reset(); None without
@@ -295,7 +298,7 @@ class Twin:
             agent.step(t_next, self.dt, control=False)
         t1 = clock()
         timings["agents"] = t1 - t0
-        paths = self.tracer(self.scene, self.device_poses())
+        paths = self.patterns(self.tracer(self.scene, self.device_poses()))
         t2 = clock()
         timings["trace"] = t2 - t1
         signals = self.phy(paths) if self.phy is not None else {}

@@ -48,6 +48,7 @@ import numpy as np
 from engine.phy.arrays import PlanarArray
 from engine.phy.channel import OFDMChannel, baseband_gains
 from engine.phy.mcs import McsRate
+from engine.phy.patterns import MODELLED_POLARIZATIONS, AntennaPatterns
 from engine.phy.link import (AchievableRate, EqualPower, Interferer, SVDPrecoder,
                              WaterFilling, _water_level, channel_gains, rate_per_re,
                              svd_streams)
@@ -98,11 +99,13 @@ class LinkSignal:
 
 
 def _array(cfg) -> PlanarArray:
-    if cfg.polarization != "V" or cfg.pattern != "iso":
-        # The tracer works at array centres with iso V elements; other patterns and
-        # dual polarization need per-element gains this PHY does not model yet.
-        raise ValueError(f"array pattern {cfg.pattern!r}/polarization {cfg.polarization!r}: "
-                         "the PHY models iso V elements only")
+    if cfg.polarization not in MODELLED_POLARIZATIONS:
+        # engine.config refuses these at load; a hand-built config gets the same line.
+        raise ValueError(f"array polarization {cfg.polarization!r} is not modelled "
+                         "(patterns are exact on V only)")
+    # The element pattern is applied to the path coefficients at the array
+    # centre (engine/phy/patterns.py), as in Sionna's synthetic arrays; the
+    # steering vectors then carry the geometry only.
     return PlanarArray(cfg.rows, cfg.cols, cfg.vertical_spacing, cfg.horizontal_spacing)
 
 
@@ -143,6 +146,7 @@ class NetworkPHY:
         self.precoding = "per_re" if precoding == "svd" else "wideband"
         self.devices = {d.name: d for d in config.devices}
         self.arrays = {d.name: _array(d.array) for d in config.devices}
+        self.patterns = AntennaPatterns.from_config(config)
         self.masks = {d.name: ResourceSet(self.grid, d.subcarriers, d.symbols, name=d.name).mask
                       for d in config.devices if d.is_tx}
         self.rate = AchievableRate(self.grid, self.noise_power, method="numpy")
@@ -162,7 +166,9 @@ class NetworkPHY:
                    tx_orientation=sionna_orientation(paths.tx_orientation), times=times)
 
     def __call__(self, link_paths: dict) -> dict[tuple[str, str], LinkSignal]:
-        """Args: ``{(tx, rx): LinkPaths}``. Returns ``{(tx, rx): LinkSignal}``."""
+        """Args: ``{(tx, rx): LinkPaths}`` (iso-traced, or with the devices'
+        patterns already applied). Returns ``{(tx, rx): LinkSignal}``."""
+        link_paths = self.patterns(link_paths)
         if self.method == "reference":
             return self._reference(link_paths)
         return self._fast(link_paths)
