@@ -113,6 +113,8 @@ class ISAC_LiveLinkMetric(bpy.types.PropertyGroup):
     rx: StringProperty(name="Rx")
     snr_db: FloatProperty(name="SNR (dB)", description="Mean received SNR, dB")
     rate_bps: FloatProperty(name="Rate (bit/s)", description="Achievable rate, bit/s")
+    mcs_rate_bps: FloatProperty(name="MCS rate (bit/s)", default=float("nan"),
+                                description="Rate through the MCS table (a modem's), bit/s")
     num_paths: IntProperty(name="Paths")
     los: BoolProperty(name="LOS")
 
