@@ -215,7 +215,11 @@ def cmd_run(args) -> int:
             parts.append(f"{name} ({rb.pose[0]:.2f}, {rb.pose[1]:.2f}) yaw {rb.pose[5]:+.2f}")
         for (tx, rx), ls in r.links.items():
             parts.append(f"{tx}->{rx} {ls.paths.num_paths if ls.paths else 0} paths"
-                         + ("" if args.no_phy else f" {ls.rate_bps / 1e6:.0f} Mbit/s"))
+                         + ("" if args.no_phy else f" {ls.rate_bps / 1e6:.0f} Mbit/s"
+                            f" (MCS {ls.mcs_rate_bps / 1e6:.0f})"))
+        if r.sensing is not None:  # a [[sensing]] radar ran this step
+            n = sum(len(v) for v in r.sensing.detections.values())
+            parts.append(f"radar {n} det {len(r.sensing.tracks)} tracks")
         print("  ".join(parts), flush=True)
     if args.timing:
         print(twin.stats.table())
