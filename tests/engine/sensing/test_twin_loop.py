@@ -12,24 +12,28 @@ LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene
 
 pytestmark = pytest.mark.slow
 
+#: the lab's [[sensing]] table: every 10th step (0.5 s between radar frames at 50 ms)
+EVERY = 10
+
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
     from engine.record import record_twin
     from engine.twin import Twin
 
-    tw = Twin.from_scene(LAB, dt=0.25, phy=False)
+    tw = Twin.from_scene(LAB, dt=0.05, phy=False)  # the lab's default step
     assert tw.radar is not None and [s.name for s in tw.radar.links] == ["AP2->AP1"]
+    assert tw.radar.links[0].every == EVERY
     results = []
     out = tmp_path_factory.mktemp("rec") / "lab.mcap"
-    record_twin(tw, 8, out, on_step=results.append)
+    record_twin(tw, 4 * EVERY, out, on_step=results.append)
     return tw, results, out
 
 
-def test_lab_twin_senses_every_other_step(recording):
+def test_lab_twin_senses_every_nth_step(recording):
     tw, results, _ = recording
-    # the lab's table says every = 2: steps 0, 2, 4, 6 sense, the others do not
-    assert [r.sensing is not None for r in results] == [True, False] * 4
+    # steps 0, 10, 20, 30 sense, the others do not
+    assert [r.sensing is not None for r in results] == ([True] + [False] * (EVERY - 1)) * 4
     sensed = [r.sensing for r in results if r.sensing is not None]
     assert all(set(s.detections) == {"AP2->AP1"} for s in sensed)
     # the robot is detected near its true position on most sensing steps
