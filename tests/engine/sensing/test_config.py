@@ -58,3 +58,13 @@ def test_load_config_accepts_and_validates_sensing_tables(tmp_path):
     p.write_text(p.read_text().replace('rx = "AP1"\nrho', 'rx = "AP7"\nrho'))
     with _pytest.raises(ConfigError, match=r"sensing\[0\]\.rx: unknown device 'AP7'"):
         load_config(folder)
+
+
+def test_topics_lists_the_labs_sensing_topic(capsys):
+    """`isac-twin topics` on the bundled lab lists the radar's detections topic."""
+    from engine.cli import main
+
+    assert main(["topics", str(LAB)]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("/sensing/detections"))
+    assert row.split()[1:3] == ["isac_twin_msgs/msg/Detections", "radar"]
