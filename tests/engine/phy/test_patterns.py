@@ -142,3 +142,18 @@ def test_unmodelled_polarization_is_refused_at_load_with_one_line(room, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
     assert "devices[0] (AP1).array.polarization: 'VH' is not modelled" in err
+
+
+@pytest.mark.slow
+def test_trace_cli_prints_patterned_gains(room, capsys):
+    """`isac-twin trace` shows the directional AP's gain, not the isotropic one."""
+    from engine.cli import main
+
+    def total_db():
+        assert main(["trace", str(room)]) == 0
+        row = next(x for x in capsys.readouterr().out.splitlines() if "AP1 -> robot1" in x)
+        return float(row.split()[-1])
+
+    iso = total_db()
+    _set_pattern(room, "tr38901")
+    assert total_db() - iso > 1.0  # the tr38901 main lobe faces the robot
