@@ -188,6 +188,14 @@ def add_link(scene, tx: str, rx: str):
     return item
 
 
+def add_sensing_link(scene, tx: str, rx: str, *, rho: float = 0.25, every: int = 1):
+    """Append a sensing (radar) link tx -> rx (``rx == tx``: monostatic), exported as
+    a ``[[sensing]]`` table; checked at export. Returns the item."""
+    item = scene.isac.sensing_links.add()
+    item.tx, item.rx, item.rho, item.every = tx, rx, float(rho), int(every)
+    return item
+
+
 def remove_link(scene, index: int) -> None:
     """Remove link number ``index``; raises IndexError when out of range."""
     links = scene.isac.links

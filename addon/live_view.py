@@ -11,7 +11,11 @@ the collection :data:`COLLECTION` and is named ``ISAC_Live_*``:
   message: one curve per path, tx -> interaction vertices -> rx, with a
   per-point colour attribute ``ray_color`` (by path power or by interaction
   type) read by the material, so Cycles, EEVEE and Workbench all show it;
-* link metrics, step and connection state: on ``Scene.isac_live`` for the panel.
+* radar (``[[sensing]]`` links): detections as small magenta markers in one
+  mesh (``ISAC_Live_Detections``, rebuilt when a ``state`` carries them), confirmed
+  tracks as larger green markers (``ISAC_Live_Tracks``) with a trail per track id;
+* link metrics (Shannon and MCS rates), step and connection state: on
+  ``Scene.isac_live`` for the panel.
 """
 
 from __future__ import annotations
@@ -60,6 +64,9 @@ class LiveView:
         self.rays_built = 0
         #: Engine publish -> applied here, s (from ``state.sent_at``; same-host clocks).
         self.last_latency_s: float | None = None
+        #: radar track id -> positions (m), for the track trails
+        self.tracks: dict[int, collections.deque] = {}
+        self.num_detections = 0
 
 
 def power_color(t: float) -> tuple[float, float, float, float]:
@@ -180,6 +187,55 @@ def _ensure_marker(scene, name: str):
                                         emission=True))
         obj = _object(scene, oname, mesh)
     return obj
+
+
+_OCTA_FACES = [(0, 2, 4), (2, 1, 4), (1, 3, 4), (3, 0, 4), (2, 0, 5), (1, 2, 5), (3, 1, 5),
+               (0, 3, 5)]
+
+
+def marker_geometry(points, size: float):
+    """Octahedra of half-size ``size`` (m) at ``points`` ``[(x, y, z), ...]``:
+    ``(vertices, faces)`` for one mesh."""
+    verts, faces = [], []
+    for x, y, z in points:
+        base = len(verts)
+        verts += [(x + size, y, z), (x - size, y, z), (x, y + size, z), (x, y - size, z),
+                  (x, y, z + size), (x, y, z - size)]
+        faces += [tuple(base + i for i in f) for f in _OCTA_FACES]
+    return verts, faces
+
+
+def _set_markers(scene, name: str, points, size: float, rgba) -> None:
+    """Mesh ``ISAC_Live_<name>``: one octahedron per point (rebuilt each call)."""
+    oname = f"{PREFIX}{name}"
+    obj = bpy.data.objects.get(oname)
+    if obj is None:
+        mesh = bpy.data.meshes.new(oname)
+        mesh.materials.append(_material(oname, rgba, emission=True))
+        obj = _object(scene, oname, mesh)
+    mesh = obj.data
+    mesh.clear_geometry()
+    verts, faces = marker_geometry(points, size)
+    mesh.from_pydata(verts, [], faces)
+    mesh.update()
+
+
+def apply_sensing(scene, msg: dict, view: LiveView) -> None:
+    """``state`` radar fields: detections (located ones) and confirmed tracks
+    with trails; a ``state`` without them leaves the last radar picture."""
+    if "detections" in msg:
+        pts = [tuple(d["position"]) for d in msg["detections"] if d["position"] is not None]
+        _set_markers(scene, "Detections", pts, 0.04, (1.0, 0.1, 0.9, 1.0))
+        view.num_detections = len(pts)
+    if "tracks" in msg:
+        z = 0.12  # just above a robot's body, so the marker is visible
+        pts = [(t["position"][0], t["position"][1], z) for t in msg["tracks"]]
+        _set_markers(scene, "Tracks", pts, 0.08, (0.2, 1.0, 0.2, 1.0))
+        for t in msg["tracks"]:
+            tr = view.tracks.setdefault(int(t["id"]),
+                                        collections.deque(maxlen=view.trail_length))
+            tr.append((t["position"][0], t["position"][1], z))
+            _set_trail(scene, f"track_{int(t['id'])}_trail", tr, (0.2, 1.0, 0.2, 1.0))
 
 
 def _set_trail(scene, name: str, points, rgba) -> None:
@@ -324,6 +380,7 @@ def apply_state(scene, msg: dict, view: LiveView) -> None:
             etrail = view.estimates.setdefault(name, collections.deque(maxlen=view.trail_length))
             etrail.append(tuple(est))
             _set_trail(scene, f"{name}_estimate_trail", etrail, (1.0, 0.3, 0.1, 1.0))
+    apply_sensing(scene, msg, view)
     view.last_step = msg["step"]
     if "sent_at" in msg:
         view.last_latency_s = time.time() - msg["sent_at"]
@@ -357,6 +414,8 @@ def apply_metrics(scene, msg: dict, view: LiveView) -> None:
         _set(row, "rx", m["rx"])
         _set(row, "snr_db", m["snr_db"] if m["snr_db"] is not None else float("nan"))
         _set(row, "rate_bps", m["rate_bps"] if m["rate_bps"] is not None else 0.0)
+        mcs = m.get("mcs_rate_bps")
+        _set(row, "mcs_rate_bps", mcs if mcs is not None else float("nan"))
         _set(row, "num_paths", int(m.get("num_paths", 0)))
         _set(row, "los", bool(m.get("los", False)))
     _set(p, "metrics_step", msg["step"])

@@ -164,6 +164,8 @@ class ISAC_PT_live(_Base, bpy.types.Panel):
             box.label(text=f"{lk.tx} -> {lk.rx}: SNR {lk.snr_db:.1f} dB, "
                            f"{lk.rate_bps / 1e6:.1f} Mbit/s, {lk.num_paths} paths"
                            f"{' (LOS)' if lk.los else ''}")
+            if lk.mcs_rate_bps == lk.mcs_rate_bps:  # not NaN: the engine sent it
+                box.label(text=f"    MCS rate {lk.mcs_rate_bps / 1e6:.1f} Mbit/s")
         col = layout.column(align=True)
         col.prop(p, "show_rays")
         col.prop(p, "ray_color_mode")

@@ -86,6 +86,17 @@ class ISAC_LinkItem(bpy.types.PropertyGroup):
     rx: StringProperty(name="Rx", description="Receiving device (object name)")
 
 
+class ISAC_SensingItem(bpy.types.PropertyGroup):
+    """One sensing (radar) link: tx -> rx (rx = tx: monostatic), written as [[sensing]]."""
+
+    tx: StringProperty(name="Tx", description="Transmitting device (object name)")
+    rx: StringProperty(name="Rx", description="Receiving device; the same as Tx: monostatic")
+    rho: FloatProperty(name="Sensing share", default=0.25, min=0.001, max=1.0,
+                       description="Share of the resource elements carrying sensing symbols")
+    every: IntProperty(name="Every N steps", default=1, min=1,
+                       description="Run the radar every this many twin steps")
+
+
 class ISAC_SceneProps(bpy.types.PropertyGroup):
     """Scene-wide radio settings written to twin.toml."""
 
@@ -101,6 +112,7 @@ class ISAC_SceneProps(bpy.types.PropertyGroup):
     cyclic_prefix_samples: IntProperty(name="CP samples", default=72, soft_min=0)
     links: CollectionProperty(type=ISAC_LinkItem)
     links_index: IntProperty(name="Active link", default=0)
+    sensing_links: CollectionProperty(type=ISAC_SensingItem)
     export_directory: StringProperty(name="Scene folder", subtype="DIR_PATH", default="//scene",
                                      options={"PATH_SUPPORTS_BLEND_RELATIVE"},
                                      description="Folder the exporter writes")
@@ -113,6 +125,8 @@ class ISAC_LiveLinkMetric(bpy.types.PropertyGroup):
     rx: StringProperty(name="Rx")
     snr_db: FloatProperty(name="SNR (dB)", description="Mean received SNR, dB")
     rate_bps: FloatProperty(name="Rate (bit/s)", description="Achievable rate, bit/s")
+    mcs_rate_bps: FloatProperty(name="MCS rate (bit/s)", default=float("nan"),
+                                description="Rate through the MCS table (a modem's), bit/s")
     num_paths: IntProperty(name="Paths")
     los: BoolProperty(name="LOS")
 
@@ -178,7 +192,7 @@ def addon_preferences(context=None):
     return entry.preferences if entry is not None else None
 
 
-CLASSES = (ISAC_ObjectProps, ISAC_LinkItem, ISAC_SceneProps, ISAC_LiveLinkMetric, ISAC_LiveProps,
+CLASSES = (ISAC_ObjectProps, ISAC_LinkItem, ISAC_SensingItem, ISAC_SceneProps, ISAC_LiveLinkMetric, ISAC_LiveProps,
            ISAC_AddonPreferences)
 
 

@@ -177,7 +177,12 @@ _LINK_METRICS = {
     "tx": (_str, _R), "rx": (_str, _R), "snr_db": (_opt(_num), _R),
     "rate_bps": (_opt(_num), _R), "num_paths": (_int, _O), "los": (_bool, _O),
     "strongest_db": (_opt(_num), _O), "total_db": (_opt(_num), _O),
+    "mcs_rate_bps": (_opt(_num), _O),
 }
+#: a radar detection of a ``[[sensing]]`` link (``position`` None: not located)
+_DETECTION = {"link": (_str, _R), "position": (_opt(_vec(3)), _R), "snr_db": (_num, _O)}
+#: a confirmed radar track (m, m/s, map frame)
+_TRACK = {"id": (_int, _R), "position": (_vec(2), _R), "velocity": (_vec(2), _O)}
 _OBJECT = {
     "name": (_str, _R), "material": (_str, _R), "thickness": (_num, _R),
     "bounds_min": (_vec(3), _O), "bounds_max": (_vec(3), _O),
@@ -205,6 +210,8 @@ MESSAGES: dict[str, tuple[frozenset, dict]] = {
     "state": (frozenset({"e2v"}), {
         "step": (_int, _R), "time_s": (_num, _R), "scene_hash": (_str, _O),
         "robots": (_list_of(_record(_ROBOT)), _R), "sent_at": (_num, _O),
+        "detections": (_list_of(_record(_DETECTION)), _O),
+        "tracks": (_list_of(_record(_TRACK)), _O),
     }),
     "paths": (frozenset({"e2v"}), {
         "step": (_int, _R), "links": (_list_of(_record(_LINK_PATHS)), _R),

@@ -13,7 +13,14 @@ a Python loop over the antennas and a 1-D FFT per subcarrier/symbol row
 (what a straightforward port of a single-antenna radar would do), followed
 by the same CFAR/refinement. Prints ms/frame and the ratio. No assertions.
 
-Run: ``python bench/bench_radar.py [--repeat 5]``
+With ``--twin STEPS`` it also measures the sensing frame cost per step in the
+loop: the bundled lab's ``[[sensing]]`` radar (AP2 -> AP1, 25 % of the REs:
+echo + clutter tracing with Sionna's RCS solver, eq.-4 echo channel, radar
+processing, tracker) as ``Twin`` stage ``sense``, against the comms ray
+tracing of the same steps (stage ``trace``, AP1/AP2 -> robot1) as the
+baseline: prints ms per sensing step and the ratio.
+
+Run: ``python bench/bench_radar.py [--repeat 5] [--twin 12]``
 """
 
 from __future__ import annotations
@@ -69,10 +76,37 @@ def naive_range_doppler(radar: OFDMRadar, h: np.ndarray) -> RangeDopplerMap:
     return RangeDopplerMap(power=power, path_length_m=d, doppler_hz=nu, cube=cube)
 
 
+def twin_sensing_cost(steps: int, dt: float = 0.05) -> dict:
+    """Sensing frame cost in the lab twin (stage ``sense``) vs the comms trace."""
+    import engine
+    from engine.twin import Twin
+
+    tw = Twin.from_scene(engine.bundled_scene_dir(), dt=dt, phy=False)
+    every = tw.radar.links[0].every
+    for _ in tw.run(2 * every):  # warm-up: Sionna scenes, kernels, background
+        pass
+    sense, trace, frames = [], [], 0
+    for r in tw.run(steps):
+        trace.append(r.timings_s["trace"])
+        if r.sensing is not None:
+            sense.append(r.timings_s["sense"])
+            frames += 1
+    s_ms, t_ms = 1e3 * float(np.mean(sense)), 1e3 * float(np.mean(trace))
+    print(f"twin loop ({steps} steps, dt {dt} s, radar every {every}): sensing frame "
+          f"{s_ms:.1f} ms (min {1e3 * min(sense):.1f}, {frames} frames), comms trace "
+          f"{t_ms:.1f} ms/step -> sensing frame / comms trace x{s_ms / t_ms:.2f}; "
+          f"{s_ms / every:.1f} ms per step on average")
+    return dict(sense_ms=s_ms, trace_ms=t_ms, every=every)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--twin", type=int, default=0, metavar="STEPS",
+                    help="also measure the sensing frame cost in the lab twin")
     a = ap.parse_args()
+    if a.twin > 0:
+        twin_sensing_cost(a.twin)
     radar = OFDMRadar(ResourceSet(GRID, name="AP2->AP1"), FC, rx_array=ARRAY,
                       max_detections=4)
     y, x = frame()

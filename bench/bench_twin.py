@@ -37,6 +37,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import engine  # noqa: E402  - configures Dr.Jit's LLVM before mitsuba
+from engine.config import load_config  # noqa: E402
 from engine.phy.network import NetworkPHY  # noqa: E402
 from engine.robots import SensorOptions  # noqa: E402
 from engine.twin import STAGES, Twin  # noqa: E402
@@ -59,10 +60,10 @@ def overlap_config(cfg):
 
 
 def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
-                overlap: bool = False) -> dict:
+                overlap: bool = False, sensing: bool = False) -> dict:
     tw = Twin.from_scene(engine.bundled_scene_dir(), seed=seed, tracer=tracer,
                          sensors=SensorOptions(lidar=True, imu=True, odometry=True,
-                                               camera=False))
+                                               camera=False), sensing=sensing)
     cfg = overlap_config(tw.config) if overlap else tw.config
     tw.phy = NetworkPHY(cfg, **VARIANTS[name])
     tw.set_path("robot1", PATH)
@@ -85,6 +86,24 @@ def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
                                                         for lk, ls in last.links.items()}))
 
 
+def run_sensing_variant(steps: int, warmup: int) -> dict:
+    """The lab with its ``[[sensing]]`` radar (AP2 -> AP1, every 2nd step) against
+    the same twin without it, same seed, both with the ``fast`` PHY. Prints the
+    stage tables, steps/s, the radar's ms per sensing step and the slow-down."""
+    out = {}
+    for label, on in (("without sensing", False), ("with sensing", True)):
+        r = run_variant("fast", steps, warmup, sensing=on)
+        out[label] = r
+        print(f"== bundled/fast {label} ({steps} steps)\n{r['table']}")
+        print(f"  -> {r['steps_s']:.1f} steps/s\n", flush=True)
+    every = load_config(engine.bundled_scene_dir()).sensing[0].every
+    sense = out["with sensing"]["stage_ms"]["sense"]
+    print(f"radar: {sense:.1f} ms per step on average, {sense * every:.1f} ms per sensing "
+          f"step (every {every}); step rate x{out['with sensing']['steps_s'] / out['without sensing']['steps_s']:.2f} "
+          "of the twin without sensing")
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=40)
@@ -93,7 +112,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--grid", type=Path, default=None, help="grid NPZ for the grid tracer")
     ap.add_argument("--variants", default="fast,fast-exact,reference")
     ap.add_argument("--allocations", default="bundled,overlap")
+    ap.add_argument("--sensing", action="store_true",
+                    help="only the sensing variant (run_sensing_variant)")
     args = ap.parse_args(argv)
+    if args.sensing:
+        run_sensing_variant(10 if args.quick else args.steps, 1 if args.quick else args.warmup)
+        return
     steps = 10 if args.quick else args.steps
     names = [v for v in args.variants.split(",") if v]
     results = []

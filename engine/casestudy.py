@@ -241,11 +241,16 @@ def plot_run(dep: Deployment, out: Path, tag: str, title: str) -> list[Path]:
             continue
         c = f"C{ap_names.index(k.split('->')[0]) if k.split('->')[0] in ap_names else 9}"
         alt = "(" in k
+        if k.endswith("[MCS]"):  # the modem's rate through the MCS table
+            la = dep.twin.config.link_adaptation
+            ax1.plot(t[ok], v[ok] / 1e6, "-.", lw=1.6, color=c,
+                     label=f"{k[:-6]} MCS rate ({la.table}, EVM {la.evm_db:g} dB)")
+            continue
         ax1.plot(t[ok], v[ok] / 1e6, "--" if alt else "-", lw=1.0 if alt else 1.8, color=c,
-                 label=f"{k}" + ("" if alt else f" (as configured: {alloc})"))
+                 label=f"{k} Shannon" + ("" if alt else f" (as configured: {alloc})"))
     ax1.set_ylim(bottom=0)
     ax1.set_xlabel("time (s)")
-    ax1.set_ylabel("achievable rate (Mbit/s)")
+    ax1.set_ylabel("rate (Mbit/s): Shannon (solid), MCS (dash-dot)")
     ax2 = ax1.twinx()
     for i, d in enumerate(d for d in dep.twin.config.devices if d.kind == "access_point"):
         dist = np.linalg.norm(g["truth"] - np.asarray(d.position[:2]), axis=1)
@@ -255,7 +260,7 @@ def plot_run(dep: Deployment, out: Path, tag: str, title: str) -> list[Path]:
     h2, l2 = ax2.get_legend_handles_labels()
     ax1.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.15),
                ncol=2)
-    ax1.set_title(f"Achievable rates along the path: {title}")
+    ax1.set_title(f"Shannon and MCS rates along the path: {title}")
     ax1.grid(alpha=0.3)
     files.append(out / f"rates_{tag}.png")
     fig.savefig(files[-1], dpi=120, bbox_inches="tight")
@@ -275,7 +280,7 @@ def rate_observations(dep: Deployment) -> dict:
     aps = {d.name: d for d in dep.twin.config.devices if d.kind == "access_point"}
     for k in recs[0].rates_bps:
         d = aps.get(k.split("->")[0])
-        if d is None:
+        if d is None or k.endswith("[MCS]"):  # MCS rates saturate: no rank trend
             continue
         v = np.array([r.rates_bps.get(k, np.nan) for r in recs])
         ok = np.isfinite(v)

@@ -91,7 +91,9 @@ def cmd_trace(args) -> int:
               file=sys.stderr)
         return 2
     try:
-        res = make_tracer(cfg)(scene, device_poses(cfg))
+        from engine.phy.patterns import AntennaPatterns
+
+        res = AntennaPatterns.from_config(cfg)(make_tracer(cfg)(scene, device_poses(cfg)))
     except ValueError as exc:
         print(f"isac-twin: error: {exc}", file=sys.stderr)
         return 2
@@ -213,7 +215,11 @@ def cmd_run(args) -> int:
             parts.append(f"{name} ({rb.pose[0]:.2f}, {rb.pose[1]:.2f}) yaw {rb.pose[5]:+.2f}")
         for (tx, rx), ls in r.links.items():
             parts.append(f"{tx}->{rx} {ls.paths.num_paths if ls.paths else 0} paths"
-                         + ("" if args.no_phy else f" {ls.rate_bps / 1e6:.0f} Mbit/s"))
+                         + ("" if args.no_phy else f" {ls.rate_bps / 1e6:.0f} Mbit/s"
+                            f" (MCS {ls.mcs_rate_bps / 1e6:.0f})"))
+        if r.sensing is not None:  # a [[sensing]] radar ran this step
+            n = sum(len(v) for v in r.sensing.detections.values())
+            parts.append(f"radar {n} det {len(r.sensing.tracks)} tracks")
         print("  ".join(parts), flush=True)
     if args.timing:
         print(twin.stats.table())
@@ -288,6 +294,10 @@ def cmd_topics(args) -> int:
     scene = load_scene(scene_path(args), load_sionna=False)
     bus = Bus()
     agents = build_robots(scene.config, bus, scene, seed=args.seed)
+    if scene.config.sensing:  # the twin's [[sensing]] radar publishes detections + tracks
+        from engine.sensing.msgs import advertise
+
+        advertise(bus)
     dt = 0.05
     for k in range(max(args.steps, 0)):
         for a in agents.values():

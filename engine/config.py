@@ -23,6 +23,7 @@ PATTERNS = ("iso", "dipole", "hw_dipole", "tr38901")
 POLARIZATIONS = ("V", "H", "VH", "cross")
 TRACER_METHODS = ("auto", "chains", "sbr")
 TRACER_BACKENDS = ("sionna", "grid")
+MCS_TABLES = ("he", "nr_cqi2")  #: see engine/phy/mcs.py
 
 
 class ConfigError(ValueError):
@@ -142,6 +143,43 @@ class LinkConfig:
 
 
 @dataclass(frozen=True)
+class SensingConfig:
+    """One ``[[sensing]]`` table (docs/sensing.md): a radar link ``tx -> rx``
+    (``rx == tx``: monostatic) run every ``every`` twin steps."""
+
+    tx: str
+    rx: str
+    rho: float = 1.0  #: sensing share of the REs (subcarrier comb)
+    subcarriers: tuple[int, int] | None = None  #: explicit half-open range
+    symbols: tuple[int, int] | None = None
+    power_dbm: float = 20.0  #: default: the tx device's power_dbm
+    noise_figure_db: float = 7.0  #: default: [noise].noise_figure_db
+    estimate_angles: bool = True
+    target_height_m: float | None = 0.096  #: None: full 3-D geolocation
+    every: int = 1  #: run the radar every this many steps
+    #: "first_arrival" (the earliest CFAR peak, robust to clutter) or "nls"
+    range_method: str = "first_arrival"
+
+    @property
+    def name(self) -> str:
+        """``"tx->rx"``."""
+        return f"{self.tx}->{self.rx}"
+
+
+@dataclass(frozen=True)
+class LinkAdaptationConfig:
+    """``[link_adaptation]``: the rate a modem reaches beside the Shannon rate.
+
+    ``table``: ``"he"`` (802.11ax HE MCS 0-11) or ``"nr_cqi2"`` (5G NR CQI
+    table 2, TS 38.214 Table 5.2.2.1-3); ``evm_db``: transmitter EVM floor
+    (dB, e.g. -35): the per-stream SINR is capped by ``1 / EVM``.
+    """
+
+    table: str = "he"
+    evm_db: float = -35.0
+
+
+@dataclass(frozen=True)
 class TwinConfig:
     """The whole ``twin.toml``, validated."""
 
@@ -153,6 +191,8 @@ class TwinConfig:
     devices: tuple[DeviceConfig, ...]
     links: tuple[LinkConfig, ...]
     schema: int = SCHEMA_VERSION
+    sensing: tuple[SensingConfig, ...] = ()
+    link_adaptation: LinkAdaptationConfig = field(default_factory=LinkAdaptationConfig)
     raw: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -258,7 +298,11 @@ class _Reader:
         return (start, stop)
 
 
-_TOP_KEYS = ("schema", "scene", "ofdm", "noise", "tracer", "devices", "links", "sensing")
+_TOP_KEYS = ("schema", "scene", "ofdm", "noise", "tracer", "devices", "links", "sensing",
+             "link_adaptation")
+SENSING_KEYS = ("tx", "rx", "rho", "subcarriers", "symbols", "power_dbm", "noise_figure_db",
+                "estimate_angles", "target_height_m", "every", "range_method")
+RANGE_METHODS = ("first_arrival", "nls")  #: see engine/sensing/radar.py
 _DEVICE_KEYS = ("name", "kind", "role", "position", "orientation", "power_dbm", "array",
                 "subcarriers", "symbols", "model", "antenna_offset", "path")
 PATH_KINDS = ("circle", "polyline", "figure_eight", "goal")
@@ -272,8 +316,16 @@ _ARRAY_KEYS = ("rows", "cols", "vertical_spacing", "horizontal_spacing", "patter
                "polarization")
 
 
+#: polarizations the tracer and PHY model exactly (see engine/phy/patterns.py)
+MODELLED_POLARIZATIONS = ("V",)
+
+
 def _parse_array(r: _Reader, data: dict, prefix: str) -> ArrayConfig:
     r.check_keys(data, _ARRAY_KEYS, prefix)
+    pol = r.string(data, "polarization", prefix, "V", choices=POLARIZATIONS)
+    if pol not in MODELLED_POLARIZATIONS:
+        raise r.fail(f"{prefix}polarization", f"{pol!r} is not modelled (the tracer carries "
+                     "no polarimetric transfer matrix; patterns are exact on V): use \"V\"")
     return ArrayConfig(
         rows=r.integer(data, "rows", prefix, minimum=1),
         cols=r.integer(data, "cols", prefix, minimum=1),
@@ -451,15 +503,64 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
             raise r.fail(prefix.rstrip("."), f"a link needs two devices, got {tx!r} twice")
         links.append(LinkConfig(tx=tx, rx=rx))
 
-    cfg = TwinConfig(path=path, scene=scene, ofdm=ofdm, noise=noise, tracer=tracer,
-                     devices=devices, links=tuple(links), schema=schema, raw=data)
-    if "sensing" in data:
-        # Sensing links are validated by their own module (docs/sensing.md); a bad
-        # table fails here, at load, like every other key.
-        from engine.sensing.config import parse_sensing
+    la = r.table(data, "link_adaptation", "", required=False)
+    r.check_keys(la, ("table", "evm_db"), "link_adaptation.")
+    link_adaptation = LinkAdaptationConfig(
+        table=r.string(la, "table", "link_adaptation.", "he", choices=MCS_TABLES),
+        evm_db=r.number(la, "evm_db", "link_adaptation.", -35.0))
+    if link_adaptation.evm_db >= 0:
+        raise r.fail("link_adaptation.evm_db", "expected a negative EVM floor in dB "
+                     f"(e.g. -35), got {link_adaptation.evm_db!r}")
 
-        parse_sensing(cfg)
-    return cfg
+    sensing = _parse_sensing(r, data, devices, noise, ofdm)
+    for i, s_ in enumerate(sensing):
+        for key in ("tx", "rx"):
+            dev = by_name[getattr(s_, key)]
+            if dev.array.pattern != "iso":
+                raise r.fail(f"sensing[{i}].{key}", f"device {dev.name!r} has pattern "
+                             f"{dev.array.pattern!r}; sensing links model iso elements only")
+    return TwinConfig(path=path, scene=scene, ofdm=ofdm, noise=noise, tracer=tracer,
+                      devices=devices, links=tuple(links), schema=schema, raw=data,
+                      sensing=sensing, link_adaptation=link_adaptation)
+
+
+def _parse_sensing(r: _Reader, data: dict, devices, noise: NoiseConfig,
+                   ofdm: OFDMConfig) -> tuple[SensingConfig, ...]:
+    tables = r.get(data, "sensing", "", [])
+    if not isinstance(tables, list):
+        raise r.fail("sensing", "expected an array of tables [[sensing]]")
+    by_name = {d.name: d for d in devices}
+    out = []
+    for i, t in enumerate(tables):
+        prefix = f"sensing[{i}]."
+        if not isinstance(t, dict):
+            raise r.fail(f"sensing[{i}]", "expected a table")
+        r.check_keys(t, SENSING_KEYS, prefix)
+        for k in ("tx", "rx"):
+            if t.get(k) not in by_name:
+                raise r.fail(f"{prefix}{k}", f"unknown device {t.get(k)!r} "
+                             f"(devices: {', '.join(by_name)})")
+        tx = by_name[t["tx"]]
+        rho = r.number(t, "rho", prefix, 1.0)
+        if not 0 < rho <= 1:
+            raise r.fail(f"{prefix}rho", f"expected a share in (0, 1], got {t['rho']!r}")
+        h = t.get("target_height_m", 0.096)
+        height = None if h is False else r.number(t, "target_height_m", prefix, 0.096)
+        out.append(SensingConfig(
+            tx=tx.name, rx=t["rx"], rho=rho,
+            subcarriers=(r.range_(t, "subcarriers", prefix, None, ofdm.num_subcarriers)
+                         if "subcarriers" in t else None),
+            symbols=(r.range_(t, "symbols", prefix, None, ofdm.num_symbols)
+                     if "symbols" in t else None),
+            power_dbm=r.number(t, "power_dbm", prefix, tx.power_dbm),
+            noise_figure_db=r.number(t, "noise_figure_db", prefix, noise.noise_figure_db,
+                                     nonneg=True),
+            estimate_angles=r.boolean(t, "estimate_angles", prefix, True),
+            target_height_m=height,
+            every=r.integer(t, "every", prefix, 1, minimum=1),
+            range_method=r.string(t, "range_method", prefix, "first_arrival",
+                                  choices=RANGE_METHODS)))
+    return tuple(out)
 
 
 def load_config(path: str | Path) -> TwinConfig:

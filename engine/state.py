@@ -42,7 +42,10 @@ class LinkState:
         tx, rx: device names.
         paths: the traced paths (None when the link was not traced this step).
         snr_db: mean received SNR over the resource set, dB.
-        rate_bps: achievable rate, bit/s.
+        rate_bps: achievable (Shannon, log-det) rate, bit/s.
+        mcs_rate_bps: the rate a modem reaches through the ``[link_adaptation]``
+            MCS table with the EVM floor (engine/phy/mcs.py), bit/s.
+        mcs: ``[S]`` MCS table index per stream (-1: below the lowest entry).
     """
 
     tx: str
@@ -50,6 +53,8 @@ class LinkState:
     paths: LinkPaths | None
     snr_db: float = float("nan")
     rate_bps: float = float("nan")
+    mcs_rate_bps: float = float("nan")
+    mcs: tuple = ()
 
 
 @dataclass
@@ -65,6 +70,9 @@ class StepResult:
         scene_hash: content hash of the scene the step was traced in.
         signals: ``(tx, rx) -> engine.phy.network.LinkSignal``, the full PHY state
             (channels, precoders, powers) when the PHY ran.
+        sensing: the radar's ``engine.sensing.estimator.SensingStep`` (detections
+            per sensing link, confirmed tracks) when a ``[[sensing]]`` link ran
+            this step, else None.
     """
 
     step: int
@@ -74,6 +82,7 @@ class StepResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     scene_hash: str = ""
     signals: dict = field(default_factory=dict, repr=False)
+    sensing: object = field(default=None, repr=False)
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ import numpy as np
 from engine.bus import Bus
 from engine.msgs import Header, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
+from engine.phy.patterns import AntennaPatterns
 from engine.raytrace import DevicePose, make_tracer
 from engine.robots import SensorOptions, build_robots
 from engine.robots.control import controller_from_spec
@@ -37,7 +38,7 @@ from engine.transport.twin_msgs import Csi
 
 log = logging.getLogger(__name__)
 
-STAGES = ("agents", "trace", "phy", "estimate", "control")
+STAGES = ("agents", "trace", "phy", "sense", "estimate", "control")
 
 #: ``estimator(twin, result) -> None``: fills ``result.robots[name].estimate``.
 Estimator = Callable[["Twin", StepResult], None]
@@ -83,11 +84,13 @@ class Twin:
         tracer: a ray-tracing backend (default: the config's ``[tracer]``).
         phy: compute channels and rates each step (stage 3).
         estimators: stage-5 callables, run in order.
+        sensing: run the config's ``[[sensing]]`` radar links (stage "sense",
+            before the estimators; see :meth:`_build_sensing`).
     """
 
     def __init__(self, scene: TwinScene, *, seed: int = 0, dt: float = 0.05,
                  sensors: SensorOptions | None = None, tracer=None, phy: bool = True,
-                 estimators: list[Estimator] | None = None) -> None:
+                 estimators: list[Estimator] | None = None, sensing: bool = True) -> None:
         if not dt > 0:
             raise ValueError(f"dt: expected a positive step in s, got {dt}")
         self.scene = scene
@@ -96,7 +99,12 @@ class Twin:
         self.sensor_options = sensors
         self.tracer = tracer if tracer is not None else make_tracer(self.config)
         self.phy = NetworkPHY(self.config) if phy else None
+        #: the devices' element patterns, applied to every traced link (stage 2)
+        self.patterns = AntennaPatterns.from_config(self.config)
         self.estimators: list[Estimator] = list(estimators or [])
+        self.sensing_enabled = bool(sensing) and bool(self.config.sensing)
+        #: the ``[[sensing]]`` radar (a RadarEstimator), rebuilt by reset(); None without
+        self.radar = None
         self.running = True
         self._pending_edits: list[Edit] = []
         #: access points' array poses ``(position, orientation)``, movable by edits
@@ -132,10 +140,23 @@ class Twin:
             if hasattr(ctl, "reset"):
                 ctl.reset()
             self.agents[name].drive(ctl)
+        self._build_sensing()
         self.step_index = 0
         self.time_s = 0.0
         self.stats = RunStats()
         self.last: StepResult | None = None
+
+    def _build_sensing(self) -> None:
+        """One :class:`~engine.sensing.estimator.RadarEstimator` for every
+        ``[[sensing]]`` table (fresh tracker after a reset); its detections
+        topic is advertised on the new bus at once."""
+        if not self.sensing_enabled:
+            return
+        from engine.sensing.config import parse_sensing
+        from engine.sensing.estimator import RadarEstimator
+
+        self.radar = RadarEstimator(parse_sensing(self.config), seed=self.seed)
+        self.radar.attach(self.bus)
 
     def reset(self) -> None:
         """Back to the initial state (same seed: the same run again). Room edits and
@@ -277,7 +298,7 @@ class Twin:
             agent.step(t_next, self.dt, control=False)
         t1 = clock()
         timings["agents"] = t1 - t0
-        paths = self.tracer(self.scene, self.device_poses())
+        paths = self.patterns(self.tracer(self.scene, self.device_poses()))
         t2 = clock()
         timings["trace"] = t2 - t1
         signals = self.phy(paths) if self.phy is not None else {}
@@ -299,13 +320,20 @@ class Twin:
             sig = signals.get(lk)
             result.links[lk] = LinkState(tx=lk[0], rx=lk[1], paths=lp,
                                          snr_db=sig.snr_db if sig else float("nan"),
-                                         rate_bps=sig.rate_bps if sig else float("nan"))
+                                         rate_bps=sig.rate_bps if sig else float("nan"),
+                                         mcs_rate_bps=sig.mcs_rate_bps if sig else float("nan"),
+                                         mcs=sig.mcs if sig else ())
         result.signals = signals
         for (tx, rx), sig in signals.items():
             agent = self.agents.get(rx)
             if agent is not None:
                 agent.node.publish(agent.topics["csi"], Csi(
                     header=Header(stamp=t_next, frame_id=rx), tx=tx, rx=rx, h=sig.h))
+        t_sense = clock()
+        if self.radar is not None:
+            self.radar(self, result)
+        timings["sense"] = clock() - t_sense
+        t3 = clock()
         for est in self.estimators:
             est(self, result)
         t4 = clock()
@@ -315,7 +343,7 @@ class Twin:
         timings["control"] = clock() - t4
         result.timings_s = timings
         for k, v in timings.items():
-            self.stats.stage_s[k] += v
+            self.stats.stage_s[k] = self.stats.stage_s.get(k, 0.0) + v
         self.stats.steps += 1
         self.step_index += 1
         self.time_s = t_next

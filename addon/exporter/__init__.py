@@ -206,6 +206,11 @@ def _collect(scene, depsgraph):
             problems.append(f"{tag}: duplicate link")
         seen.add((link.tx, link.rx))
         links.append((link.tx, link.rx))
+    for i, sl in enumerate(getattr(scene.isac, "sensing_links", ())):
+        tag = f"Sensing link {i + 1} ({sl.tx or '?'} -> {sl.rx or '?'})"
+        for end, name in (("tx", sl.tx), ("rx", sl.rx)):
+            if name not in by_name:
+                problems.append(f"{tag}: {end} '{name}' is not a device in the scene")
 
     if problems:
         raise ExportError(problems)
@@ -262,7 +267,15 @@ def twin_data(scene, devices, links, depsgraph) -> dict:
                  "cyclic_prefix_samples": int(p.cyclic_prefix_samples)},
         "devices": [_device_entry(o, depsgraph) for o in devices],
         "links": [{"tx": tx, "rx": rx} for tx, rx in links],
+        **_sensing_entries(p),
     }
+
+
+def _sensing_entries(p) -> dict:
+    """``{"sensing": [...]}`` for the scene's sensing links (nothing when none)."""
+    rows = [{"tx": s.tx, "rx": s.rx, "rho": float(s.rho), "every": int(s.every)}
+            for s in getattr(p, "sensing_links", ())]
+    return {"sensing": rows} if rows else {}
 
 
 def export_scene(context_or_scene, folder, *, interchange: bool = True) -> ExportReport:

@@ -71,8 +71,24 @@ def state_message(res: StepResult) -> dict:
             "name": name, "pose": _vec(r.pose, 6), "velocity": _vec(r.velocity, 2),
             "odometry": None if r.odometry is None else _vec(r.odometry, 3),
             "estimate": None if r.estimate is None else _vec(r.estimate, 3)})
-    return {"type": "state", "step": int(res.step), "time_s": float(res.time_s),
-            "scene_hash": res.scene_hash, "robots": robots, "sent_at": time.time()}
+    msg = {"type": "state", "step": int(res.step), "time_s": float(res.time_s),
+           "scene_hash": res.scene_hash, "robots": robots, "sent_at": time.time()}
+    msg.update(sensing_fields(res))
+    return msg
+
+
+def sensing_fields(res: StepResult) -> dict:
+    """``detections`` and ``tracks`` of a ``state`` message when the twin's radar
+    ran this step (``res.sensing``), else nothing (the viewer keeps the last)."""
+    s = getattr(res, "sensing", None)
+    if s is None:
+        return {}
+    dets = [{"link": link, "snr_db": float(d.snr_db),
+             "position": None if d.position is None else _vec(d.position, 3)}
+            for link, ds in s.detections.items() for d in ds]
+    tracks = [{"id": int(t.id), "position": _vec(t.position, 2),
+               "velocity": _vec(t.velocity, 2)} for t in s.tracks]
+    return {"detections": dets, "tracks": tracks}
 
 
 def link_polylines(lp, max_paths: int) -> dict:
@@ -116,7 +132,8 @@ def metrics_message(res: StepResult) -> dict:
     links = []
     for (tx, rx), ls in res.links.items():
         m = {"tx": tx, "rx": rx, "snr_db": wire.finite_or_none(ls.snr_db),
-             "rate_bps": wire.finite_or_none(ls.rate_bps)}
+             "rate_bps": wire.finite_or_none(ls.rate_bps),
+             "mcs_rate_bps": wire.finite_or_none(getattr(ls, "mcs_rate_bps", float("nan")))}
         if ls.paths is not None:
             s = ls.paths.summary()
             m.update(num_paths=int(s["num_paths"]), los=bool(s["los"]),

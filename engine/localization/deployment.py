@@ -303,6 +303,9 @@ class Deployment:
             for lk, ls in result.links.items():
                 ls.rate_bps, ls.snr_db = sig[lk].rate_bps, sig[lk].snr_db
                 rates[f"{lk[0]}->{lk[1]}"], snrs[f"{lk[0]}->{lk[1]}"] = ls.rate_bps, ls.snr_db
+                # the rate a modem reaches ([link_adaptation] MCS table, EVM floor)
+                ls.mcs_rate_bps, ls.mcs = sig[lk].mcs_rate_bps, sig[lk].mcs
+                rates[f"{lk[0]}->{lk[1]} [MCS]"] = ls.mcs_rate_bps
             for label, phy in self.extra_phy.items():
                 sig = phy({lk: ls.paths for lk, ls in result.links.items()})
                 for lk in result.links:

@@ -47,6 +47,8 @@ import numpy as np
 
 from engine.phy.arrays import PlanarArray
 from engine.phy.channel import OFDMChannel, baseband_gains
+from engine.phy.mcs import McsRate
+from engine.phy.patterns import MODELLED_POLARIZATIONS, AntennaPatterns
 from engine.phy.link import (AchievableRate, EqualPower, Interferer, SVDPrecoder,
                              WaterFilling, _water_level, channel_gains, rate_per_re,
                              svd_streams)
@@ -76,6 +78,10 @@ class LinkSignal:
             mean time; use ``NetworkPHY.channel(paths)`` or
             ``time_invariant_tol=0`` for the exact per-symbol channel, e.g. for
             Doppler sensing).
+        mcs_rate_bps: the rate a modem reaches: per stream one MCS of the
+            config's ``[link_adaptation]`` table over the allocation, with the
+            transmitter EVM floor (:class:`~engine.phy.mcs.McsRate`), bit/s.
+        mcs: ``[S]`` table index per stream (-1: below the lowest entry).
     """
 
     tx: str
@@ -88,14 +94,18 @@ class LinkSignal:
     snr_db: float
     sinr_db: float
     time_invariant: bool = False
+    mcs_rate_bps: float = float("nan")
+    mcs: tuple = ()
 
 
 def _array(cfg) -> PlanarArray:
-    if cfg.polarization != "V" or cfg.pattern != "iso":
-        # The tracer works at array centres with iso V elements; other patterns and
-        # dual polarization need per-element gains this PHY does not model yet.
-        raise ValueError(f"array pattern {cfg.pattern!r}/polarization {cfg.polarization!r}: "
-                         "the PHY models iso V elements only")
+    if cfg.polarization not in MODELLED_POLARIZATIONS:
+        # engine.config refuses these at load; a hand-built config gets the same line.
+        raise ValueError(f"array polarization {cfg.polarization!r} is not modelled "
+                         "(patterns are exact on V only)")
+    # The element pattern is applied to the path coefficients at the array
+    # centre (engine/phy/patterns.py), as in Sionna's synthetic arrays; the
+    # steering vectors then carry the geometry only.
     return PlanarArray(cfg.rows, cfg.cols, cfg.vertical_spacing, cfg.horizontal_spacing)
 
 
@@ -136,9 +146,12 @@ class NetworkPHY:
         self.precoding = "per_re" if precoding == "svd" else "wideband"
         self.devices = {d.name: d for d in config.devices}
         self.arrays = {d.name: _array(d.array) for d in config.devices}
+        self.patterns = AntennaPatterns.from_config(config)
         self.masks = {d.name: ResourceSet(self.grid, d.subcarriers, d.symbols, name=d.name).mask
                       for d in config.devices if d.is_tx}
         self.rate = AchievableRate(self.grid, self.noise_power, method="numpy")
+        la = config.link_adaptation
+        self.mcs = McsRate(la.table, la.evm_db)
         self._cache: dict = {}
 
     def channel(self, paths, times=None) -> np.ndarray:
@@ -153,7 +166,9 @@ class NetworkPHY:
                    tx_orientation=sionna_orientation(paths.tx_orientation), times=times)
 
     def __call__(self, link_paths: dict) -> dict[tuple[str, str], LinkSignal]:
-        """Args: ``{(tx, rx): LinkPaths}``. Returns ``{(tx, rx): LinkSignal}``."""
+        """Args: ``{(tx, rx): LinkPaths}`` (iso-traced, or with the devices'
+        patterns already applied). Returns ``{(tx, rx): LinkSignal}``."""
+        link_paths = self.patterns(link_paths)
         if self.method == "reference":
             return self._reference(link_paths)
         return self._fast(link_paths)
@@ -278,6 +293,7 @@ class NetworkPHY:
                 interf.append(fi if d["full"] else fi[d["idx"]])
             se, sinr = rate_per_re(d["f"], interf, self.noise_power)
             wts = d["wts"]
+            mcs_bits, mcs = self.mcs(sinr, d["p"], wts)
             bits = float(se.sum() if wts is None else np.dot(wts, se))
             nr = hl.shape[2]
             gain = (d["gain"].mean() if wts is None else np.dot(wts, d["gain"]) / wts.sum()) / nr
@@ -303,7 +319,9 @@ class NetworkPHY:
                 rate_bps=bits / self.grid.step_duration_s,
                 snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
                 sinr_db=float(10 * np.log10(sinr_mean)) if sinr_mean > 0 else float("-inf"),
-                time_invariant=invariant)
+                time_invariant=invariant,
+                mcs_rate_bps=mcs_bits / self.grid.step_duration_s,
+                mcs=tuple(int(i) for i in mcs))
         return out
 
     def _reference(self, link_paths: dict) -> dict[tuple[str, str], LinkSignal]:
@@ -334,12 +352,15 @@ class NetworkPHY:
             per_re = total / mask.sum()
             gain = np.mean(np.sum(np.abs(hl[mask]) ** 2, axis=(1, 2))) / nr
             snr = per_re * gain / self.noise_power
+            mcs_bits, mcs = self.mcs(r.sinr[mask], p[mask])
             sinr = r.sinr[mask]
             sinr = sinr[np.isfinite(sinr) & (sinr > 0)]
             out[(tx, rx)] = LinkSignal(
                 tx=tx, rx=rx, h=hl, w=w, p=p, mask=mask, rate_bps=r.rate_bps,
                 snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
-                sinr_db=float(10 * np.log10(sinr.mean())) if sinr.size else float("-inf"))
+                sinr_db=float(10 * np.log10(sinr.mean())) if sinr.size else float("-inf"),
+                mcs_rate_bps=mcs_bits / self.grid.step_duration_s,
+                mcs=tuple(int(i) for i in mcs))
         return out
 
 

@@ -1,6 +1,9 @@
-"""``[[sensing]]`` tables of ``twin.toml`` -> :class:`SensingLinkSpec` list.
+"""Typed ``[[sensing]]`` tables -> :class:`SensingLinkSpec` list.
 
-Read from ``TwinConfig.raw`` (the raw TOML dict). Keys of one table::
+The tables are parsed and validated once, by :mod:`engine.config`, into
+:class:`engine.config.SensingConfig` (``TwinConfig.sensing``); this module only
+adds what the radar needs from the devices (the receive array and its
+orientation). Keys of one table::
 
     [[sensing]]
     tx = "AP2"                 # transmitting device
@@ -12,70 +15,32 @@ Read from ``TwinConfig.raw`` (the raw TOML dict). Keys of one table::
     noise_figure_db = 7.0      # default: [noise].noise_figure_db
     estimate_angles = true
     target_height_m = 0.096    # geolocate on this plane (false: full 3-D)
+    every = 1                  # run the radar every this many twin steps
+    range_method = "first_arrival"   # or "nls" (OFDMRadar)
 """
 
 from __future__ import annotations
 
-from engine.config import ConfigError, TwinConfig
+from engine.config import SENSING_KEYS, SensingConfig, TwinConfig
 from engine.phy.arrays import PlanarArray
 from engine.sensing.link import SensingLinkSpec
 
-__all__ = ["parse_sensing", "SENSING_KEYS"]
-
-SENSING_KEYS = ("tx", "rx", "rho", "subcarriers", "symbols", "power_dbm", "noise_figure_db",
-                "estimate_angles", "target_height_m")
+__all__ = ["parse_sensing", "link_spec", "SENSING_KEYS"]
 
 
-def _range(v, key, prefix, path):
-    if v is None:
-        return None
-    if (not isinstance(v, list) or len(v) != 2
-            or not all(isinstance(x, int) and not isinstance(x, bool) for x in v)):
-        raise ConfigError(f"{path}: {prefix}{key}: expected [start, stop] integers, got {v!r}")
-    return (int(v[0]), int(v[1]))
+def link_spec(config: TwinConfig, s: SensingConfig) -> SensingLinkSpec:
+    """The radar's :class:`SensingLinkSpec` of one typed ``[[sensing]]`` table."""
+    rx = config.device(s.rx)
+    a = rx.array
+    return SensingLinkSpec(
+        tx=s.tx, rx=s.rx,
+        rx_array=PlanarArray(a.rows, a.cols, a.vertical_spacing, a.horizontal_spacing),
+        rx_orientation=tuple(rx.orientation), power_dbm=s.power_dbm, rho=s.rho,
+        subcarriers=s.subcarriers, symbols=s.symbols, noise_figure_db=s.noise_figure_db,
+        estimate_angles=s.estimate_angles, target_height_m=s.target_height_m,
+        every=s.every, range_method=s.range_method)
 
 
 def parse_sensing(config: TwinConfig) -> list[SensingLinkSpec]:
-    """The sensing links of a config (empty when there is no ``[[sensing]]``).
-
-    Raises:
-        ConfigError: unknown keys or devices, bad values (names the table).
-    """
-    tables = config.raw.get("sensing", [])
-    if not isinstance(tables, list):
-        raise ConfigError(f"{config.path}: sensing: expected an array of tables [[sensing]]")
-    out = []
-    names = {d.name: d for d in config.devices}
-    for i, t in enumerate(tables):
-        prefix = f"sensing[{i}]."
-        if not isinstance(t, dict):
-            raise ConfigError(f"{config.path}: sensing[{i}]: expected a table")
-        bad = sorted(set(t) - set(SENSING_KEYS))
-        if bad:
-            raise ConfigError(f"{config.path}: {prefix}{bad[0]}: unknown key "
-                              f"(allowed: {', '.join(SENSING_KEYS)})")
-        for k in ("tx", "rx"):
-            if t.get(k) not in names:
-                raise ConfigError(f"{config.path}: {prefix}{k}: unknown device {t.get(k)!r} "
-                                  f"(devices: {', '.join(names)})")
-        tx, rx = names[t["tx"]], names[t["rx"]]
-        a = rx.array
-        if a.pattern != "iso" or a.polarization != "V":
-            raise ConfigError(f"{config.path}: {prefix}rx: device {rx.name!r} array must be "
-                              "iso/V for sensing")
-        rho = t.get("rho", 1.0)
-        if isinstance(rho, bool) or not isinstance(rho, (int, float)) or not 0 < rho <= 1:
-            raise ConfigError(f"{config.path}: {prefix}rho: expected a share in (0, 1], "
-                              f"got {rho!r}")
-        h = t.get("target_height_m", 0.096)
-        out.append(SensingLinkSpec(
-            tx=tx.name, rx=rx.name,
-            rx_array=PlanarArray(a.rows, a.cols, a.vertical_spacing, a.horizontal_spacing),
-            rx_orientation=tuple(rx.orientation),
-            power_dbm=float(t.get("power_dbm", tx.power_dbm)), rho=float(rho),
-            subcarriers=_range(t.get("subcarriers"), "subcarriers", prefix, config.path),
-            symbols=_range(t.get("symbols"), "symbols", prefix, config.path),
-            noise_figure_db=float(t.get("noise_figure_db", config.noise.noise_figure_db)),
-            estimate_angles=bool(t.get("estimate_angles", True)),
-            target_height_m=None if h is False else float(h)))
-    return out
+    """The sensing links of a config (empty when there is no ``[[sensing]]``)."""
+    return [link_spec(config, s) for s in config.sensing]

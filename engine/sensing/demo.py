@@ -37,7 +37,7 @@ def lab_twin(dt: float = 0.5, path: dict | None = CIRCLE, scene=LAB):
     """The bundled lab's twin with robot1 on the circle (no PHY stage)."""
     from engine.twin import Twin
 
-    tw = Twin.from_scene(scene, dt=dt, phy=False)
+    tw = Twin.from_scene(scene, dt=dt, phy=False, sensing=False)  # its own radar below
     if path is not None:
         tw.set_path("robot1", path)
     return tw

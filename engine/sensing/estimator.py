@@ -8,7 +8,7 @@ divided by the known symbols, background-subtracted and processed by
 :class:`~engine.sensing.radar.OFDMRadar`; detections are geolocated
 (range ellipse x azimuth) and fed to one multi-target
 :class:`~engine.sensing.tracker.KalmanTracker`. Detections and confirmed
-tracks are published on ``sensing/detections``
+tracks are published on ``/sensing/detections``
 (:class:`~engine.sensing.msgs.Detections`) and stored on the step result as
 ``result.sensing`` (a :class:`SensingStep`).
 """
@@ -25,7 +25,7 @@ from engine.raytrace.base import DevicePose, sionna_orientation
 from engine.sensing.clutter import BackgroundSubtractor
 from engine.sensing.geometry import locate
 from engine.sensing.link import SensingLinkSpec, SensingReceiver, echo_channel
-from engine.sensing.msgs import DETECTIONS_TOPIC, Detections, register
+from engine.sensing.msgs import DETECTIONS_TOPIC, Detections, advertise
 from engine.sensing.radar import OFDMRadar, SensingError
 from engine.sensing.tracer import BURGER_SIZE, SensingTracer, TargetSpec
 from engine.sensing.tracker import KalmanTracker, Track
@@ -109,6 +109,14 @@ class RadarEstimator:
         self._bus = None
         self._last_t: float | None = None
         self.history: list[SensingStep] = []
+        self._calls = 0
+
+    def attach(self, bus) -> None:
+        """Advertise the detections topic on ``bus`` now (so the registry and
+        recorders list it before the first detection)."""
+        if self.publish and self._bus is not bus:
+            self._bus = bus
+            self._node = advertise(bus, self.topic)
 
     # ------------------------------------------------------------------ setup
 
@@ -147,6 +155,7 @@ class RadarEstimator:
         ori = sionna_orientation(pose.orientation)
         if st["radar"] is None or st["orientation"] != ori:
             kw = dict(self.radar_kw)
+            kw.setdefault("range_method", spec.range_method)
             st["radar"] = OFDMRadar(st["rx"].resource_set,
                                     self._scene.config.scene.frequency_hz,
                                     rx_array=spec.rx_array, rx_orientation=ori,
@@ -172,17 +181,24 @@ class RadarEstimator:
 
     # ------------------------------------------------------------------ step
 
-    def __call__(self, twin, result) -> SensingStep:
+    def __call__(self, twin, result) -> SensingStep | None:
+        """Sense on the links due this call (``SensingLinkSpec.every``); sets and
+        returns ``result.sensing`` (None when no link is due)."""
         if self.tracer is None or self._scene is not twin.scene:
             self._setup(twin)
+        call, self._calls = self._calls, self._calls + 1
+        due = [s for s in self.links if call % max(int(s.every), 1) == 0]
+        if not due:
+            result.sensing = None
+            return None
         truth = self.update_targets(twin, result)
         poses = twin.device_poses()
-        links = [(s.tx, s.rx) for s in self.links]
+        links = [(s.tx, s.rx) for s in due]
         traced = self.tracer(poses, links)
         grid = grid_from_config(twin.config)
         out = SensingStep(truth=truth)
         measurements = []
-        for s in self.links:
+        for s in due:
             st = self._state[s.name]
             ep = traced[(s.tx, s.rx)]
             key = id(ep.clutter)
@@ -220,11 +236,7 @@ class RadarEstimator:
         return out
 
     def _publish(self, twin, stamp: float, out: SensingStep) -> None:
-        if self._bus is not twin.bus:
-            register()
-            self._bus = twin.bus
-            self._node = twin.bus.node("radar")
-            self._node.advertise(self.topic, Detections)
+        self.attach(twin.bus)
         dets = [d for ds in out.detections.values() for d in ds]
         msg = Detections(link="*" if len(out.detections) != 1 else next(iter(out.detections)))
         msg.header.stamp = float(stamp)

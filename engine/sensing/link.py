@@ -65,6 +65,9 @@ class SensingLinkSpec:
         estimate_angles: estimate the angle of arrival.
         target_height_m: geolocate on the plane ``z = target_height_m``
             (robots drive on the floor; None: use the full 3-D direction).
+        every: sense every this many twin steps (1: every step).
+        range_method: :class:`~engine.sensing.radar.OFDMRadar` range method
+            (``radar_kw`` of the estimator overrides it).
     """
 
     tx: str
@@ -78,6 +81,8 @@ class SensingLinkSpec:
     noise_figure_db: float = 7.0
     estimate_angles: bool = True
     target_height_m: float | None = 0.096
+    every: int = 1
+    range_method: str = "nls"
 
     @property
     def name(self) -> str:

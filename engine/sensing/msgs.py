@@ -1,17 +1,12 @@
 """Bus message types of the sensing layer.
 
 ``isac_twin_msgs/msg/Detections``: one step's radar detections and the
-tracker's confirmed tracks. :func:`register` adds it to
+tracker's confirmed tracks, published by the twin's ``[[sensing]]`` radar on
+:data:`DETECTIONS_TOPIC`. :func:`register` adds it to
 :data:`engine.msgs.MESSAGE_TYPES` (so :func:`engine.bus.resolve_type` accepts
-the class and its ROS name) without editing ``engine/msgs.py``; the
-:class:`~engine.sensing.estimator.RadarEstimator` calls it before publishing.
-
-It is *not* registered at import: every registered type must also have a
-CDR mapping in ``engine/transport`` (``tests/engine/transport/test_cdr.py``
-round-trips every type). To carry it over the wire, add
-:data:`MSG_DEFINITION` to ``engine.transport.twin_msgs.MSG_DEFINITIONS`` and
-the field mapping to ``engine.transport.cdr.to_ros``/``from_ros`` (flatten
-``position [M, 3]`` and ``track_* [T, 2]`` row-major).
+the class and its ROS name) without editing ``engine/msgs.py``; its CDR
+mapping (MCAP, zenoh) is :mod:`engine.transport.sensing_cdr`, which registers
+it on import. :func:`advertise` puts the topic on a bus.
 """
 
 from __future__ import annotations
@@ -22,10 +17,10 @@ import numpy as np
 
 from engine.msgs import MESSAGE_TYPES, Header
 
-__all__ = ["Detections", "DETECTIONS_TOPIC", "MSG_DEFINITION", "register"]
+__all__ = ["Detections", "DETECTIONS_TOPIC", "MSG_DEFINITION", "register", "advertise"]
 
 #: Default topic of the radar estimator.
-DETECTIONS_TOPIC = "sensing/detections"
+DETECTIONS_TOPIC = "/sensing/detections"
 
 
 @dataclass
@@ -78,3 +73,12 @@ float64[] track_velocity    # [T * 2] row-major vx, vy, m/s
 def register() -> None:
     """Add :class:`Detections` to :data:`engine.msgs.MESSAGE_TYPES` (idempotent)."""
     MESSAGE_TYPES.setdefault(Detections.ROS_TYPE, Detections)
+
+
+def advertise(bus, topic: str = DETECTIONS_TOPIC):
+    """Register :class:`Detections` and advertise ``topic`` from node ``radar`` of
+    ``bus`` (what a twin with ``[[sensing]]`` tables publishes). Returns the node."""
+    register()
+    node = bus.node("radar")
+    node.advertise(topic, Detections)
+    return node

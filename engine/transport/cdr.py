@@ -33,6 +33,7 @@ import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from engine import msgs as m
+from engine.transport import sensing_cdr
 from engine.transport import twin_msgs as tm
 
 #: XCDR1 little-endian encapsulation header (what rmw_zenoh and ros2 bag carry).
@@ -44,7 +45,7 @@ def typestore():
     """The rosbags typestore (ROS 2 Jazzy + ``isac_twin_msgs``)."""
     ts = get_typestore(Stores.ROS2_JAZZY)
     types: dict = {}
-    for name, text in tm.MSG_DEFINITIONS.items():
+    for name, text in {**tm.MSG_DEFINITIONS, **sensing_cdr.MSG_DEFINITIONS}.items():
         types.update(get_types_from_msg(text, name))
     ts.register(types)
     return ts
@@ -208,7 +209,8 @@ def to_ros(msg: Any):
     if isinstance(msg, tm.LinkMetrics):
         return R(header=_header(msg.header), tx=msg.tx, rx=msg.rx, snr_db=float(msg.snr_db),
                  rate_bps=float(msg.rate_bps), num_paths=int(msg.num_paths), los=bool(msg.los),
-                 total_gain_db=float(msg.total_gain_db))
+                 total_gain_db=float(msg.total_gain_db),
+                 mcs_rate_bps=float(msg.mcs_rate_bps))
     if isinstance(msg, tm.LinkPathsMsg):
         a = np.asarray(msg.a, complex).ravel()
         v = np.asarray(msg.vertices, float)
@@ -237,6 +239,9 @@ def to_ros(msg: Any):
     if isinstance(msg, tm.ClockPing):
         return R(origin=msg.origin, responder=msg.responder, seq=int(msg.seq),
                  t0_ns=int(msg.t0_ns), t1_ns=int(msg.t1_ns), t2_ns=int(msg.t2_ns))
+    obj = sensing_cdr.to_ros(msg, R, _header)
+    if obj is not None:
+        return obj
     raise TypeError(f"no CDR conversion for {type(msg).__name__}")
 
 
@@ -300,7 +305,8 @@ def from_ros(obj: Any, type_name: str):
         return tm.LinkMetrics(header=_header_from(obj.header), tx=obj.tx, rx=obj.rx,
                               snr_db=float(obj.snr_db), rate_bps=float(obj.rate_bps),
                               num_paths=int(obj.num_paths), los=bool(obj.los),
-                              total_gain_db=float(obj.total_gain_db))
+                              total_gain_db=float(obj.total_gain_db),
+                              mcs_rate_bps=float(obj.mcs_rate_bps))
     if t == tm.LinkPathsMsg.ROS_TYPE:
         L, D = len(obj.tau), int(obj.depth)
         return tm.LinkPathsMsg(header=_header_from(obj.header), tx=obj.tx, rx=obj.rx,
@@ -335,6 +341,9 @@ def from_ros(obj: Any, type_name: str):
     if t == tm.ClockPing.ROS_TYPE:
         return tm.ClockPing(origin=obj.origin, responder=obj.responder, seq=int(obj.seq),
                             t0_ns=int(obj.t0_ns), t1_ns=int(obj.t1_ns), t2_ns=int(obj.t2_ns))
+    out = sensing_cdr.from_ros(obj, t, _header_from)
+    if out is not None:
+        return out
     raise TypeError(f"no conversion from ROS type {type_name!r}")
 
 

@@ -37,6 +37,7 @@ float64 rate_bps        # achievable rate, bit/s
 uint32 num_paths
 bool los
 float64 total_gain_db   # 10 log10(sum |a|^2), dB (-inf when no path)
+float64 mcs_rate_bps    # rate through the [link_adaptation] MCS table, bit/s
 """,
     "isac_twin_msgs/msg/LinkPaths": """\
 # The traced propagation paths of one link: L paths, D interaction slots each.
@@ -119,6 +120,7 @@ class LinkMetrics:
     num_paths: int = 0
     los: bool = False
     total_gain_db: float = float("-inf")
+    mcs_rate_bps: float = float("nan")
 
 
 @dataclass
@@ -254,4 +256,5 @@ def link_metrics_msg(ls, stamp: float = 0.0) -> LinkMetrics:
         los = bool(n and inter.ndim == 2 and not np.any(inter[0]))
     return LinkMetrics(header=Header(stamp=stamp, frame_id="map"), tx=ls.tx, rx=ls.rx,
                        snr_db=float(ls.snr_db), rate_bps=float(ls.rate_bps), num_paths=n,
-                       los=los, total_gain_db=float(total))
+                       los=los, total_gain_db=float(total),
+                       mcs_rate_bps=float(getattr(ls, "mcs_rate_bps", float("nan"))))

@@ -274,3 +274,25 @@ def test_refuses_empty_resource_range(scene, tmp_path):
     devices.set_resources(scene.objects["AP1"], symbols=(9, 3))
     with pytest.raises(ExportError, match=r"Device 'AP1': symbol range \[9, 3\) is empty"):
         export_scene(scene, tmp_path / "out", interchange=False)
+
+
+def test_sensing_links_export_and_load_in_engine(scene, tmp_path):
+    """A sensing link set in Blender becomes a [[sensing]] table the engine types."""
+    config = pytest.importorskip("engine.config")
+    from addon import devices
+    from addon.exporter import export_scene
+
+    s = small_scene(scene)
+    devices.add_sensing_link(s, "AP1", "AP1", rho=0.5, every=3)  # monostatic
+    export_scene(s, tmp_path, interchange=False)
+    data = tomllib.loads((tmp_path / "twin.toml").read_text())
+    assert data["sensing"] == [{"tx": "AP1", "rx": "AP1", "rho": 0.5, "every": 3}]
+    cfg = config.load_config(tmp_path / "twin.toml")
+    assert [(x.name, x.rho, x.every) for x in cfg.sensing] == [("AP1->AP1", 0.5, 3)]
+
+
+def test_refuses_unknown_sensing_link_end(scene, tmp_path):
+    from addon import devices
+
+    devices.add_sensing_link(small_scene(scene), "AP1", "ghost")
+    assert "Sensing link 1 (AP1 -> ghost): rx 'ghost' is not a device" in refused(scene, tmp_path)

@@ -139,7 +139,8 @@ def _twin_for(scene_dir):
             r.estimate = r.pose[:3].copy()
 
     return Twin(load_scene(scene_dir, load_sionna=False), tracer=lambda scene, poses: {},
-                phy=False, sensors=SensorOptions(lidar=False), estimators=[oracle])
+                phy=False, sensors=SensorOptions(lidar=False), estimators=[oracle],
+                sensing=False)  # the lab's radar would trace with Sionna
 
 
 @pytest.mark.slow

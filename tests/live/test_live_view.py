@@ -226,3 +226,47 @@ def test_client_backs_off_while_nothing_listens(addon_module):
     assert len(c.outbox) == 1
     c.disconnect()
     assert c.state == live.IDLE
+
+
+def test_radar_detections_and_tracks_are_drawn(scene):
+    """Engine StepResult with a radar step -> state message (validated by the wire
+    format) -> detection and track markers plus a track trail in Blender."""
+    import numpy as np
+
+    from addon import live_view, wire
+    from engine.live.protocol import state_message
+    from engine.sensing.estimator import SensingStep
+    from engine.sensing.radar import Detection
+    from engine.sensing.tracker import Track
+    from engine.state import RobotState, StepResult
+
+    view = live_view.LiveView()
+    for step in range(2):
+        d1 = Detection("AP2->AP1", 7.1, 0.2, -1.6, 0.3, 1.9, 18.0, 40, 3,
+                       position=np.array([5.5, 3.1 + 0.1 * step, 0.096]))
+        d2 = Detection("AP2->AP1", 9.0, 0.0, 0.0, np.nan, np.nan, 12.0, 51, 0)  # not located
+        res = StepResult(step=step, time_s=0.5 * step)
+        res.robots["robot1"] = RobotState("robot1", np.array([5.5, 3.0, 0, 0, 0, 1.57]),
+                                          np.array([0.2, 0.1]))
+        res.sensing = SensingStep(detections={"AP2->AP1": [d1, d2]}, tracks=[
+            Track(id=4, x=np.array([5.45, 3.05 + 0.1 * step, 0.0, 0.2]), P=np.eye(4),
+                  confirmed=True)])
+        msg = state_message(res)
+        assert wire.validate(msg, "e2v") is None
+        assert [d["position"] is None for d in msg["detections"]] == [False, True]
+        live_view.apply_message(scene, msg, view)
+    dets = bpy.data.objects["ISAC_Live_Detections"].data
+    assert len(dets.vertices) == 6  # one octahedron: the located detection only
+    centre = sum((v.co for v in dets.vertices), start=dets.vertices[0].co * 0) / 6
+    assert tuple(round(x, 4) for x in centre) == (5.5, 3.2, 0.096)
+    tracks = bpy.data.objects["ISAC_Live_Tracks"].data
+    assert len(tracks.vertices) == 6
+    assert len(bpy.data.objects["ISAC_Live_track_4_trail"].data.splines[0].points) == 2
+    # a state without radar fields keeps the last radar picture
+    live_view.apply_message(scene, {"type": "state", "step": 3, "time_s": 1.5,
+                                    "robots": []}, view)
+    assert len(bpy.data.objects["ISAC_Live_Detections"].data.vertices) == 6
+    # bad radar fields are refused by the wire format, naming the field
+    bad = dict(msg, tracks=[{"id": 1, "position": [1.0]}])
+    assert "tracks" in wire.validate(bad, "e2v")
+    live_view.clear(scene)

@@ -30,6 +30,8 @@ def test_loop_produces_four_positions_and_finite_errors(lab, lab_db, settings):
             assert v.shape == (2,) and np.isfinite(v).all(), k
     assert np.isfinite(recs[0].rates_bps["AP1->robot1"])
     assert np.isnan(recs[1].rates_bps["AP1->robot1"])  # rate_every=2
+    # beside Shannon, the modem's rate through the MCS table (engine/phy/mcs.py)
+    assert 0 < recs[0].rates_bps["AP1->robot1 [MCS]"] < recs[0].rates_bps["AP1->robot1"]
     err = errors(recs)
     for k, v in err.items():
         assert np.isfinite(v).all(), k

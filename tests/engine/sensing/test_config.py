@@ -1,4 +1,4 @@
-"""engine/sensing/config.py: ``[[sensing]]`` tables read from ``TwinConfig.raw``."""
+"""engine/sensing/config.py: typed ``[[sensing]]`` tables (parsed once by engine.config)."""
 
 import dataclasses
 from pathlib import Path
@@ -12,8 +12,10 @@ LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene
 
 
 def _with(tables):
+    from engine.config import parse_config
+
     cfg = load_config(LAB)
-    return dataclasses.replace(cfg, raw=dict(cfg.raw, sensing=tables))
+    return parse_config(dict(cfg.raw, sensing=tables), cfg.path)
 
 
 def test_parse_sensing_links():
@@ -24,7 +26,9 @@ def test_parse_sensing_links():
     assert specs[0].rx_array.num_ant == 32 and specs[0].power_dbm == 20.0
     assert specs[1].monostatic and specs[1].subcarriers == (0, 512)
     assert specs[1].target_height_m is None
-    assert parse_sensing(load_config(LAB)) == []
+    cfg = load_config(LAB)
+    assert parse_sensing(dataclasses.replace(cfg, sensing=())) == []
+    assert [s.name for s in parse_sensing(cfg)] == ["AP2->AP1"]  # the lab's link
 
 
 @pytest.mark.parametrize("table, msg", [
@@ -32,6 +36,8 @@ def test_parse_sensing_links():
     ({"tx": "AP2", "rx": "AP1", "rho": 2}, r"sensing\[0\]\.rho"),
     ({"tx": "AP2", "rx": "AP1", "beam": 1}, r"sensing\[0\]\.beam: unknown key"),
     ({"tx": "AP2", "rx": "AP1", "symbols": [0]}, r"sensing\[0\]\.symbols"),
+    ({"tx": "AP2", "rx": "AP1", "every": 0}, r"sensing\[0\]\.every"),
+    ({"tx": "AP2", "rx": "AP1", "rho": "x"}, r"sensing\[0\]\.rho"),
 ])
 def test_parse_sensing_errors(table, msg):
     with pytest.raises(ConfigError, match=msg):
@@ -48,7 +54,17 @@ def test_load_config_accepts_and_validates_sensing_tables(tmp_path):
     folder = box_room(tmp_path / "room")
     p = folder / "twin.toml"
     p.write_text(p.read_text() + '\n[[sensing]]\ntx = "AP1"\nrx = "AP1"\nrho = 0.25\n')
-    assert load_config(folder).raw["sensing"][0]["rho"] == 0.25
+    assert load_config(folder).sensing[0].rho == 0.25
     p.write_text(p.read_text().replace('rx = "AP1"\nrho', 'rx = "AP7"\nrho'))
     with _pytest.raises(ConfigError, match=r"sensing\[0\]\.rx: unknown device 'AP7'"):
         load_config(folder)
+
+
+def test_topics_lists_the_labs_sensing_topic(capsys):
+    """`isac-twin topics` on the bundled lab lists the radar's detections topic."""
+    from engine.cli import main
+
+    assert main(["topics", str(LAB)]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("/sensing/detections"))
+    assert row.split()[1:3] == ["isac_twin_msgs/msg/Detections", "radar"]

@@ -27,7 +27,7 @@ def test_bistatic_tracking_on_the_circle():
     assert m["track_coverage"] >= 0.75
     # the estimator published its detections on the bus
     tw = m["twin"]
-    assert tw.bus.topic_type("sensing/detections") is Detections
+    assert tw.bus.topic_type("/sensing/detections") is Detections
     # echo paths are attributed to the robot target
     ep = m["estimator"].tracer(tw.device_poses(), [("AP2", "AP1")])[("AP2", "AP1")]
     assert ep.echo.num_paths > 0 and set(ep.target) == {"robot1"}

@@ -174,10 +174,10 @@ def test_detections_message_on_the_bus():
     register()
     assert resolve_type("isac_twin_msgs/msg/Detections") is Detections
     bus = Bus()
-    sub = bus.node("viewer").subscribe("sensing/detections", Detections)
+    sub = bus.node("viewer").subscribe("/sensing/detections", Detections)
     pub = bus.node("radar")
-    pub.advertise("sensing/detections", Detections)
-    pub.publish("sensing/detections", Detections(link="AP2->AP1",
+    pub.advertise("/sensing/detections", Detections)
+    pub.publish("/sensing/detections", Detections(link="AP2->AP1",
                                                  path_length=np.array([9.6])))
     msg = sub.take()
     assert msg.link == "AP2->AP1" and msg.path_length[0] == 9.6

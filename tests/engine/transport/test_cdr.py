@@ -41,7 +41,7 @@ def _sample(type_name: str):
                                                    np.array([1.5, -2.0]), np.array([0.1, 0.2]),
                                                    np.array([0.0, 0.3])),
         "isac_twin_msgs/msg/LinkMetrics": tm.LinkMetrics(h, "AP1", "robot1", 23.5, 1.2e8, 7,
-                                                         True, -61.2),
+                                                         True, -61.2, 6.1e7),
         "isac_twin_msgs/msg/LinkPaths": tm.LinkPathsMsg(
             h, "AP1", "robot1", 3.5e9, np.array([0.1, 2.0, 2.0]), np.array([4.0, 2.0, 0.25]),
             rng.normal(size=3) + 1j * rng.normal(size=3), np.array([1e-8, 2e-8, 3e-8]),
@@ -57,7 +57,17 @@ def _sample(type_name: str):
             {"kind": "polyline", "waypoints": [[1, 1], [2, 1], [2, 2]], "closed": True,
              "speed": 0.15}, STAMP),
         "isac_twin_msgs/msg/ClockPing": tm.ClockPing("twin", "robot1", 7, 10, 20, 30),
+        "isac_twin_msgs/msg/Detections": _detections(h, rng),
     }[type_name]
+
+
+def _detections(h, rng):
+    from engine.sensing.msgs import Detections
+
+    return Detections(h, "AP2->AP1", rng.random(2) + 3, rng.normal(size=2), rng.random(2),
+                      np.array([np.nan, 1.2]), rng.random(2) * 20,
+                      np.array([[1.0, 2.0, 0.1], [np.nan, np.nan, np.nan]]),
+                      np.array([3, 9], np.int64), rng.random((2, 2)), rng.normal(size=(2, 2)))
 
 
 def _assert_same(a, b, path="msg"):
