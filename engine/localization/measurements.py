@@ -29,7 +29,8 @@ from engine.phy.arrays import PlanarArray
 from engine.phy.channel import baseband_gains
 from engine.phy.estimation import LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp
 from engine.phy.ofdm import ResourceGrid, ResourceSet
-from engine.raytrace.base import SPEED_OF_LIGHT, sionna_orientation
+from engine.pose import sionna_orientation
+from engine.raytrace.base import SPEED_OF_LIGHT
 
 #: Decimation of the subcarriers used as kNN features (1024 / 64 = 16 subcarriers).
 KNN_SUBCARRIER_STEP = 64

@@ -144,7 +144,7 @@ class NetworkPHY:
     def channel(self, paths, times=None) -> np.ndarray:
         """Eq. 4 for one :class:`~engine.raytrace.base.LinkPaths` -> ``[K, N, Nr, Nt]``
         (``[T, N, Nr, Nt]`` at explicit symbol ``times`` [s])."""
-        from engine.raytrace.base import sionna_orientation
+        from engine.pose import sionna_orientation
 
         syn = OFDMChannel(self.grid, self.arrays[paths.rx], self.arrays[paths.tx])
         b = baseband_gains(paths.a, paths.tau, paths.frequency_hz)

@@ -13,13 +13,13 @@ from engine.robots.agent import OpenCRStep, RobotAgent, SensorOptions, build_rob
 from engine.robots.control import (CirclePath, FigureEightPath, GoalReacher, Path, PathError,
                                    PolylinePath, PurePursuit, controller_from_spec)
 from engine.robots.kinematics import (ROBOT_SPECS, DiffDriveRobot, ProcessNoise, RobotSpec,
-                                      RobotState, SpeedLimitError, robot_spec)
+                                      KinematicState, SpeedLimitError, robot_spec)
 from engine.robots.sensors import (DepthCamera, ImuNoise, ImuSensor, Lidar2D, WheelEncoders,
                                    WheelOdometry)
 
 __all__ = ["OpenCRStep", "RobotAgent", "SensorOptions", "build_robots", "CirclePath", "FigureEightPath",
            "GoalReacher", "controller_from_spec", "Path", "PathError", "PolylinePath",
            "PurePursuit", "ROBOT_SPECS",
-           "DiffDriveRobot", "ProcessNoise", "RobotSpec", "RobotState", "SpeedLimitError",
+           "DiffDriveRobot", "ProcessNoise", "RobotSpec", "KinematicState", "SpeedLimitError",
            "robot_spec", "DepthCamera", "ImuNoise", "ImuSensor", "Lidar2D", "WheelEncoders",
            "WheelOdometry"]

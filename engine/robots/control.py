@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from engine.msgs import Twist
-from engine.robots.kinematics import (RobotSpec, RobotState, SpeedLimitError, make_twist,
+from engine.robots.kinematics import (RobotSpec, KinematicState, SpeedLimitError, make_twist,
                                       robot_spec, wrap_angle)
 
 log = logging.getLogger(__name__)
@@ -446,11 +446,11 @@ class PurePursuit:
     def reset(self) -> None:
         self._s, self.travelled, self.error, self.done = None, 0.0, 0.0, False
 
-    def __call__(self, state: RobotState) -> Twist:
+    def __call__(self, state: KinematicState) -> Twist:
         v, w = self.command(state)
         return make_twist(v, w)
 
-    def command(self, state: RobotState) -> tuple[float, float]:
+    def command(self, state: KinematicState) -> tuple[float, float]:
         """``(v m/s, w rad/s)`` for ``state`` (the same as calling, without the Twist)."""
         path, spec = self.path, self.spec
         win = 2.0 * self.lookahead + 0.5
@@ -536,10 +536,10 @@ class GoalReacher:
                                 f"(room x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g} m)")
         self.done = False
 
-    def __call__(self, state: RobotState) -> Twist:
+    def __call__(self, state: KinematicState) -> Twist:
         return make_twist(*self.command(state))
 
-    def command(self, state: RobotState) -> tuple[float, float]:
+    def command(self, state: KinematicState) -> tuple[float, float]:
         """``(v m/s, w rad/s)`` for ``state``."""
         spec = self.spec
         dx, dy = self.goal[:2] - state.pose[:2]
