@@ -153,7 +153,8 @@ class Twin:
 
     def reset(self) -> None:
         """Back to the initial state (same seed: the same run again). Room edits and
-        moved access points stay; robots return to their start."""
+        moved access points stay; robots return to their start. The hooks (state
+        sources, trace schedule, estimators) stay attached."""
         self._build_agents()
 
     def set_controller(self, robot: str, controller) -> None:

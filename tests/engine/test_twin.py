@@ -156,10 +156,13 @@ def test_hooks_state_source_and_trace_schedule(lab):
     np.testing.assert_allclose(res[1].robots["robot1"].pose[:2], [1.10, 1.5])
     assert [bool(r.links) for r in res] == [True, False, True]
     assert len(cmd.drain()) == 0  # a placed robot is not driven
+    tw.reset()  # new agents, same hooks
+    np.testing.assert_allclose(tw.step().robots["robot1"].pose[:2], [1.05, 1.5])
     with pytest.raises(KeyError, match="no robot named 'ghost'"):
         tw.set_state_source("ghost", None)
     tw.set_state_source("robot1", None)
     tw.trace_schedule = None
+    cmd = tw.bus.node("probe3").subscribe("/robot1/cmd_vel", "geometry_msgs/msg/Twist")
     r = tw.step()
     assert r.links and len(cmd.drain()) == 1
-    assert not np.allclose(r.robots["robot1"].pose[:2], [1.20, 1.5])
+    assert not np.allclose(r.robots["robot1"].pose[:2], [1.10, 1.5])
