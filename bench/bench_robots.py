@@ -28,7 +28,7 @@ import numpy as np  # noqa: E402
 from engine.bus import Bus  # noqa: E402
 from engine.robots import (CirclePath, DiffDriveRobot, FigureEightPath, Lidar2D,  # noqa: E402
                            PurePursuit, RobotAgent, SensorOptions)
-from engine.robots.kinematics import RobotState  # noqa: E402
+from engine.robots.kinematics import KinematicState  # noqa: E402
 from engine.robots.sensors import cast_rays  # noqa: E402
 from engine.scene import load_scene  # noqa: E402
 from engine.synthetic import box_room  # noqa: E402
@@ -58,14 +58,14 @@ def main() -> None:
     it = iter(range(10 ** 9))
 
     def scan():  # a new pose each call, as in a moving robot
-        lidar.measure(0.0, RobotState(pose=poses[next(it) % len(poses)]))
+        lidar.measure(0.0, KinematicState(pose=poses[next(it) % len(poses)]))
 
     def raw():
-        o, d = lidar.rays(RobotState(pose=poses[next(it) % len(poses)]))
+        o, d = lidar.rays(KinematicState(pose=poses[next(it) % len(poses)]))
         cast_rays(scene, o, d)
 
     def loop():
-        o, d = lidar.rays(RobotState(pose=poses[next(it) % len(poses)]))
+        o, d = lidar.rays(KinematicState(pose=poses[next(it) % len(poses)]))
         out = np.empty(len(d))
         for i in range(len(d)):
             si = mi_scene.ray_intersect(mi.Ray3f(o=mi.Point3f(*map(float, o)),
@@ -76,7 +76,7 @@ def main() -> None:
     import drjit as dr
 
     def loop_opaque():  # the fair loop: opaque inputs, so one kernel is compiled and reused
-        o, d = lidar.rays(RobotState(pose=poses[next(it) % len(poses)]))
+        o, d = lidar.rays(KinematicState(pose=poses[next(it) % len(poses)]))
         org = mi.Point3f(*(dr.opaque(mi.Float, float(c)) for c in o))
         out = np.empty(len(d))
         for i in range(len(d)):

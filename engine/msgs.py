@@ -155,3 +155,20 @@ class JointState:
 
 
 MESSAGE_TYPES[JointState.ROS_TYPE] = JointState
+
+
+@dataclass
+class Csi:
+    """The CSI a robot's radio receives on one link (Algorithm 1, stage 3).
+
+    ``h`` is ``[K, N, Nr, Nt]`` complex (symbols, subcarriers, rx ports, tx ports).
+    """
+
+    ROS_TYPE = "isac_twin_msgs/msg/Csi"
+    header: Header = field(default_factory=Header)
+    tx: str = ""
+    rx: str = ""
+    h: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0, 0), np.complex64))
+
+
+MESSAGE_TYPES[Csi.ROS_TYPE] = Csi

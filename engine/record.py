@@ -367,11 +367,12 @@ def load_trajectories(path: str | Path) -> dict[str, Trajectory]:
 class TrajectoryReplay:
     """Drive a twin's robots along recorded trajectories.
 
-    Attaches to ``twin`` by replacing each replayed agent's ``step(t, dt)`` with
-    one that puts the robot at its recorded pose (and recorded speed) at ``t``,
-    publishes ``ground_truth`` and polls the scene sensors (LiDAR, camera); the
-    controllers are detached. Then ``twin.step()`` re-traces all links along the
-    recording. :meth:`detach` restores the agents.
+    Attaches to ``twin`` through its state-source hook
+    (:meth:`engine.twin.Twin.set_state_source`): each replayed robot is placed at
+    its recorded pose (and recorded speed) at ``t`` and publishes ``ground_truth``
+    and its scene sensors (LiDAR, camera); its controller does not run. Then
+    ``twin.step()`` re-traces all links along the recording. :meth:`detach`
+    returns the robots to simulation.
 
     Args:
         twin: the twin (its robots must be named as in the recording).
@@ -385,12 +386,8 @@ class TrajectoryReplay:
         if not self.trajectories:
             raise ValueError(f"{path}: no /<robot>/ground_truth of the twin's robots "
                              f"({', '.join(twin.agents)}) in the recording")
-        self._saved: dict[str, tuple] = {}
-        for r in self.trajectories:
-            agent = twin.agents[r]
-            self._saved[r] = (agent.step, agent.controller)
-            agent.controller = None
-            agent.step = self._make_step(agent, self.trajectories[r])
+        for r, traj in self.trajectories.items():
+            twin.set_state_source(r, self.source(traj))
 
     @property
     def steps(self) -> int:
@@ -398,33 +395,17 @@ class TrajectoryReplay:
         return max(len(t) for t in self.trajectories.values())
 
     @staticmethod
-    def _make_step(agent, traj: Trajectory):
-        from engine.msgs import Header, Pose
-        from engine.robots.kinematics import RobotState
+    def source(traj: Trajectory):
+        """``source(t, dt) -> KinematicState`` along ``traj`` (a twin state source)."""
+        from engine.robots.kinematics import KinematicState
 
-        def step(t: float, dt: float, *, control: bool = True) -> dict:
-            # Same signature as RobotAgent.step; replayed robots have no controller.
+        def state_at(t: float, dt: float) -> KinematicState:
             pose, v, w = traj.at(t)
-            agent.robot.state = RobotState(pose=pose, v=v, w=w, t=t)
-            st = agent.robot.state
-            out = {"ground_truth": PoseStamped(header=Header(stamp=t, frame_id="map"),
-                                               pose=Pose(position=st.position,
-                                                         orientation=st.quaternion()))}
-            for key, sensor in (("scan", agent.lidar), ("camera/depth", agent.camera)):
-                if sensor is not None and key in agent.topics:
-                    m = sensor.poll(t, st)
-                    if m is not None:
-                        out[key] = m
-            for key, msg in out.items():
-                agent.node.publish(agent.topics[key], msg)
-            agent.last.update(out)
-            return out
+            return KinematicState(pose=pose, v=v, w=w, t=t)
 
-        return step
+        return state_at
 
     def detach(self) -> None:
-        for r, (step, ctl) in self._saved.items():
-            agent = self.twin.agents[r]
-            agent.step = step
-            agent.controller = ctl
-        self._saved.clear()
+        """Return the replayed robots to simulation."""
+        for r in self.trajectories:
+            self.twin.set_state_source(r, None)

@@ -437,14 +437,14 @@ class RobotRuntime:
     # ------------------------------------------------------------ control
     def command(self) -> tuple[float, float]:
         """The command now (v m/s, w rad/s): path > fresh twin cmd_vel > stop."""
-        from engine.robots.kinematics import RobotState
+        from engine.robots.kinematics import KinematicState
 
         with self._lock:
             ctl, cmd, age = self._controller, self._twin_cmd, time.monotonic() - self._twin_cmd_t
         if ctl is not None:
             x, y, yaw = self.estimator.pose()
             v, w = self.estimator.velocity
-            st = RobotState(pose=np.array([x, y, 0.0, 0.0, 0.0, yaw]), v=float(v), w=float(w))
+            st = KinematicState(pose=np.array([x, y, 0.0, 0.0, 0.0, yaw]), v=float(v), w=float(w))
             self.stats.mode = "path"
             return tuple(float(u) for u in ctl.command(st))
         if cmd is not None and age <= self.config.cmd_timeout_s:

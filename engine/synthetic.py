@@ -1,16 +1,46 @@
 """Write small scene folders from code: analytic test rooms without Blender.
 
 Used by the engine's tests and benchmarks (a closed box room, a single
-reflector) so that the engine can be checked without ``bpy``. The files follow
-``docs/config.md`` exactly as the add-on's exporter writes them.
+reflector) so that the engine can be checked without ``bpy``. The files are
+written by the add-on's own stdlib-only exporter functions
+(``addon/exporter/{geometry,mitsuba_xml,twin_toml}.py``: one writer of the
+scene-folder format, ``docs/config.md``), loaded by file path without ``bpy``.
 """
 
 from __future__ import annotations
 
+import importlib
+import importlib.machinery
+import importlib.util
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+#: the add-on's exporter package, loaded under this name without its bpy-bound __init__
+EXPORTER_MODULE = "isac_twin_addon_exporter"
+EXPORTER_DIR = Path(__file__).resolve().parents[1] / "addon" / "exporter"
+
+
+def exporter(module: str):
+    """The add-on exporter's stdlib-only submodule ``module`` (``"geometry"``,
+    ``"mitsuba_xml"``, ``"twin_toml"``, ``"numbers"``).
+
+    Raises:
+        ImportError: the add-on sources are not beside the engine (e.g. an
+            installed wheel), naming the folder looked in.
+    """
+    pkg = sys.modules.get(EXPORTER_MODULE)
+    if pkg is None:
+        if not (EXPORTER_DIR / f"{module}.py").is_file():
+            raise ImportError(f"{EXPORTER_DIR}: the add-on's exporter is needed to write "
+                              f"scene folders ({module}.py not found)")
+        spec = importlib.machinery.ModuleSpec(EXPORTER_MODULE, None, is_package=True)
+        pkg = importlib.util.module_from_spec(spec)
+        pkg.__path__ = [str(EXPORTER_DIR)]
+        sys.modules[EXPORTER_MODULE] = pkg
+    return importlib.import_module(f"{EXPORTER_MODULE}.{module}")
 
 
 def box_mesh(lo, hi) -> tuple[np.ndarray, np.ndarray]:
@@ -29,16 +59,13 @@ def quad_mesh(corners) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Binary little-endian PLY with float32 ``x y z`` and uchar/int triangle lists."""
-    vertices = np.asarray(vertices, "<f4")
-    faces = np.asarray(faces, "<i4")
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(vertices)}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              f"element face {len(faces)}\nproperty list uchar int vertex_indices\n"
-              "end_header\n").encode("ascii")
-    rec = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", 3)])
-    rec["n"], rec["i"] = 3, faces
-    path.write_bytes(header + vertices.tobytes() + rec.tobytes())
+    """Binary little-endian PLY (float32 ``x y z``, uchar/int triangle lists), written
+    by the add-on's ``geometry.write_ply``."""
+    geo = exporter("geometry")
+    v = np.asarray(vertices, float)
+    mesh = geo.WorldMesh(Path(path).stem, [float(x) for x in v.reshape(-1)],
+                         [int(i) for i in np.asarray(faces).reshape(-1)], 0.0)
+    geo.write_ply(Path(path), mesh)
 
 
 @dataclass
@@ -63,16 +90,6 @@ class SyntheticDevice:
     extra: dict = field(default_factory=dict)
 
 
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, str):
-        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    return repr(float(v)) if isinstance(v, float) else str(v)
-
-
 def write_scene_folder(folder: str | Path, objects: list[SyntheticObject],
                        devices: list[SyntheticDevice], links: list[tuple[str, str]],
                        *, frequency_hz: float = 2.4e9, name: str = "synthetic",
@@ -81,42 +98,30 @@ def write_scene_folder(folder: str | Path, objects: list[SyntheticObject],
     """Write ``scene.xml``, ``meshes/*.ply`` and ``twin.toml``; return the folder."""
     folder = Path(folder)
     (folder / "meshes").mkdir(parents=True, exist_ok=True)
-    mats = sorted({(o.material, o.thickness) for o in objects})
-    mat_id = {m: f"mat-{m[0]}-{m[1]:g}" for m in mats}
-    xml = ['<scene version="2.1.0">']
-    for m in mats:
-        xml += [f'    <bsdf type="itu-radio-material" id="{mat_id[m]}">',
-                f'        <string name="type" value="{m[0]}"/>',
-                f'        <float name="thickness" value="{m[1]:g}"/>', "    </bsdf>"]
     for o in objects:
         write_ply(folder / "meshes" / f"{o.name}.ply", o.vertices, o.faces)
-        xml += [f'    <shape type="ply" id="mesh-{o.name}">',
-                f'        <string name="filename" value="meshes/{o.name}.ply"/>',
-                '        <boolean name="face_normals" value="true"/>',
-                f'        <ref id="{mat_id[(o.material, o.thickness)]}" name="bsdf"/>',
-                "    </shape>"]
-    xml.append("</scene>\n")
-    (folder / "scene.xml").write_text("\n".join(xml))
-
-    t = ["schema = 1", "", "[scene]", f'name = "{name}"', 'file = "scene.xml"',
-         f"frequency_hz = {frequency_hz!r}", "", "[ofdm]",
-         f"num_subcarriers = {num_subcarriers}",
-         f"subcarrier_spacing_hz = {float(subcarrier_spacing_hz)!r}",
-         f"num_symbols = {num_symbols}", "cyclic_prefix_samples = 72", ""]
+    exporter("mitsuba_xml").write_scene_xml(
+        folder / "scene.xml", [(o.name, o.material, float(o.thickness)) for o in objects])
+    data: dict = {
+        "schema": 1,
+        "scene": {"name": name, "file": "scene.xml", "frequency_hz": float(frequency_hz)},
+        "ofdm": {"num_subcarriers": int(num_subcarriers),
+                 "subcarrier_spacing_hz": float(subcarrier_spacing_hz),
+                 "num_symbols": int(num_symbols), "cyclic_prefix_samples": 72},
+    }
     if tracer:
-        t += ["[tracer]"] + [f"{k} = {_toml_value(v)}" for k, v in tracer.items()] + [""]
-    for d in devices:
-        t += ["[[devices]]", f'name = "{d.name}"', f'kind = "{d.kind}"', f'role = "{d.role}"',
-              f"position = {_toml_value(list(d.position))}",
-              f"orientation = {_toml_value(list(d.orientation))}",
-              f"power_dbm = {float(d.power_dbm)!r}"]
-        t += [f"{k} = {_toml_value(v)}" for k, v in d.extra.items()]
-        t += ["[devices.array]", f"rows = {d.rows}", f"cols = {d.cols}",
-              "vertical_spacing = 0.5", "horizontal_spacing = 0.5", 'pattern = "iso"',
-              'polarization = "V"', ""]
-    for tx, rx in links:
-        t += ["[[links]]", f'tx = "{tx}"', f'rx = "{rx}"', ""]
-    (folder / "twin.toml").write_text("\n".join(t))
+        data["tracer"] = dict(tracer)
+    data["devices"] = [
+        {"name": d.name, "kind": d.kind, "role": d.role,
+         "position": [float(x) for x in d.position],
+         "orientation": [float(x) for x in d.orientation], "power_dbm": float(d.power_dbm),
+         **d.extra,
+         "array": {"rows": d.rows, "cols": d.cols, "vertical_spacing": 0.5,
+                   "horizontal_spacing": 0.5, "pattern": "iso", "polarization": "V"}}
+        for d in devices]
+    if links:
+        data["links"] = [{"tx": tx, "rx": rx} for tx, rx in links]
+    exporter("twin_toml").write_twin_toml(folder / "twin.toml", data)
     return folder
 
 

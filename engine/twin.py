@@ -26,15 +26,15 @@ from pathlib import Path
 import numpy as np
 
 from engine.bus import Bus
-from engine.msgs import Header, quaternion_to_yaw
+from engine.msgs import Csi, Header, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
 from engine.phy.patterns import AntennaPatterns
-from engine.raytrace import DevicePose, make_tracer
+from engine.pose import DevicePose, antenna_pose
+from engine.raytrace import make_tracer
 from engine.robots import SensorOptions, build_robots
 from engine.robots.control import controller_from_spec
 from engine.scene import TwinScene, load_scene
 from engine.state import Command, Edit, LinkState, RobotState, StepResult
-from engine.transport.twin_msgs import Csi
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +86,16 @@ class Twin:
         estimators: stage-5 callables, run in order.
         sensing: run the config's ``[[sensing]]`` radar links (stage "sense",
             before the estimators; see :meth:`_build_sensing`).
+
+    Hooks (the supported way to change how a twin steps; never replace a method
+    of a live twin or agent):
+
+    * :meth:`set_state_source` -- a robot's state comes from outside (a
+      recording, a real robot) instead of its simulated motion model (stage 1).
+    * :attr:`trace_schedule` -- ``schedule(step_index) -> bool``: trace the
+      links on this step (stage 2); on other steps the step has no links, no
+      signals and no CSI. ``None`` (default) traces every step.
+    * :attr:`estimators` -- stage-5 observers ``est(twin, result)``, run in order.
     """
 
     def __init__(self, scene: TwinScene, *, seed: int = 0, dt: float = 0.05,
@@ -105,6 +115,10 @@ class Twin:
         self.sensing_enabled = bool(sensing) and bool(self.config.sensing)
         #: the ``[[sensing]]`` radar (a RadarEstimator), rebuilt by reset(); None without
         self.radar = None
+        #: ``schedule(step_index) -> bool``: trace on this step (None: every step)
+        self.trace_schedule: Callable[[int], bool] | None = None
+        #: robot name -> ``source(t, dt) -> KinematicState`` replacing its motion model
+        self.state_sources: dict[str, StateSource] = {}
         self.running = True
         self._pending_edits: list[Edit] = []
         #: access points' array poses ``(position, orientation)``, movable by edits
@@ -160,7 +174,8 @@ class Twin:
 
     def reset(self) -> None:
         """Back to the initial state (same seed: the same run again). Room edits and
-        moved access points stay; robots return to their start."""
+        moved access points stay; robots return to their start. The hooks (state
+        sources, trace schedule, estimators) stay attached."""
         self._build_agents()
 
     def set_controller(self, robot: str, controller) -> None:
@@ -169,6 +184,20 @@ class Twin:
             raise KeyError(f"no robot named {robot!r} (robots: {', '.join(self.agents)})")
         self._controllers[robot] = controller
         self.agents[robot].drive(controller)
+
+    def set_state_source(self, robot: str, source: StateSource | None) -> None:
+        """Take ``robot``'s state from ``source(t, dt) -> KinematicState`` each step
+        (t: the step's end time, s; dt: step, s) instead of simulating its motion;
+        ``None`` returns it to simulation. A sourced robot is placed, not driven:
+        its controller does not run and it publishes ground truth and scene
+        sensors only (:meth:`engine.robots.RobotAgent.place`).
+        """
+        if robot not in self.agents:
+            raise KeyError(f"no robot named {robot!r} (robots: {', '.join(self.agents)})")
+        if source is None:
+            self.state_sources.pop(robot, None)
+        else:
+            self.state_sources[robot] = source
 
     def set_path(self, robot: str, spec: dict) -> None:
         """Follow a path given as a spec dict, e.g. ``{"kind": "circle", "centre": [4, 3],
@@ -270,8 +299,8 @@ class Twin:
     # ------------------------------------------------------------------ step
 
     def device_poses(self) -> dict[str, DevicePose]:
-        """Array-centre poses of every device now: APs from the config, robots from
-        their state (antenna offset in base_link, velocity of the antenna)."""
+        """Array-centre poses of every device now: APs from their (editable) poses,
+        robots from their state through :func:`engine.pose.antenna_pose`."""
         poses = {}
         for d in self.config.devices:
             agent = self.agents.get(d.name)
@@ -279,12 +308,7 @@ class Twin:
                 poses[d.name] = DevicePose(*self.ap_poses[d.name])
                 continue
             st = agent.state
-            pos = st.to_world(d.antenna_offset)
-            yaw = st.yaw
-            lever = pos - st.position
-            vel = (st.v * np.array([np.cos(yaw), np.sin(yaw), 0.0])
-                   + np.cross([0.0, 0.0, st.w], lever))
-            poses[d.name] = DevicePose(tuple(pos), (0.0, 0.0, yaw), tuple(vel))
+            poses[d.name] = antenna_pose(st.pose, d.antenna_offset, st.v, st.w)
         return poses
 
     def step(self) -> StepResult:
@@ -294,11 +318,18 @@ class Twin:
         timings = {}
         t0 = clock()
         t_next = self.time_s + self.dt
-        for agent in self.agents.values():
-            agent.step(t_next, self.dt, control=False)
+        for name, agent in self.agents.items():
+            source = self.state_sources.get(name)
+            if source is None:
+                agent.step(t_next, self.dt, control=False)
+            else:
+                agent.place(source(t_next, self.dt), t_next)
         t1 = clock()
         timings["agents"] = t1 - t0
-        paths = self.patterns(self.tracer(self.scene, self.device_poses()))
+        if self.trace_schedule is None or self.trace_schedule(self.step_index):
+            paths = self.patterns(self.tracer(self.scene, self.device_poses()))
+        else:
+            paths = {}
         t2 = clock()
         timings["trace"] = t2 - t1
         signals = self.phy(paths) if self.phy is not None else {}
@@ -338,8 +369,9 @@ class Twin:
             est(self, result)
         t4 = clock()
         timings["estimate"] = t4 - t3
-        for agent in self.agents.values():
-            agent.control()
+        for name, agent in self.agents.items():
+            if name not in self.state_sources:
+                agent.control()
         timings["control"] = clock() - t4
         result.timings_s = timings
         for k, v in timings.items():

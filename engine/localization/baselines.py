@@ -132,9 +132,9 @@ class KnnCsi:
                 for j, i in enumerate(self.free[s:s + chunk]):
                     n = int(db.num_paths[i, a])
                     h = csi_from_paths(db.a[i, a, :n], db.lengths[i, a, :n] / 299_792_458.0,
-                                       db.theta_t[i, a, :n], db.phi_t[i, a, :n],
-                                       db.theta_r[i, a, :n], db.phi_r[i, a, :n],
-                                       db.frequency_hz, freqs, spec.arrays[rx], tx_arr)
+                                       db.frequency_hz, freqs, spec.arrays[rx], tx_arr,
+                                       theta_r=db.theta_r[i, a, :n], phi_r=db.phi_r[i, a, :n],
+                                       theta_t=db.theta_t[i, a, :n], phi_t=db.phi_t[i, a, :n])
                     out[s + j] = to_db(np.mean(np.abs(h) ** 2, axis=1))
             self.features.append(out.reshape(len(self.free), -1))
 
@@ -197,9 +197,10 @@ def observe_database_point(db: FingerprintDB, i: int, spec: FeatureSpec,
         j = min(n, num_paths)
         lengths[a, :j], powers[a, :j] = db.lengths[i, a, :j], db.power[i, a, :j]
         h = csi_from_paths(db.a[i, a, :n], db.lengths[i, a, :n] / 299_792_458.0,
-                           db.theta_t[i, a, :n], db.phi_t[i, a, :n], db.theta_r[i, a, :n],
-                           db.phi_r[i, a, :n], db.frequency_hz, spec.knn_frequencies,
-                           spec.arrays[rx], spec.arrays[ap])
+                           db.frequency_hz, spec.knn_frequencies, spec.arrays[rx],
+                           spec.arrays[ap], theta_r=db.theta_r[i, a, :n],
+                           phi_r=db.phi_r[i, a, :n], theta_t=db.theta_t[i, a, :n],
+                           phi_t=db.phi_t[i, a, :n])
         csi.append(to_db(np.mean(np.abs(h) ** 2, axis=1)))
         pdp.append(to_db(pdp_from_paths(db.lengths[i, a, :n], db.power[i, a, :n],
                                         spec.pdp_bins_m, spec.grid)))

@@ -43,7 +43,8 @@ from engine.localization.fingerprints import FingerprintDB, attach
 from engine.localization.measurements import (FeatureSpec, PilotSettings, observe_pilots,
                                               observe_tracer)
 from engine.phy.network import NetworkPHY
-from engine.raytrace import DevicePose, device_poses
+from engine.pose import DevicePose, antenna_pose, planar_pose
+from engine.raytrace import device_poses
 from engine.robots import SensorOptions
 from engine.scene import TwinScene, load_scene
 from engine.robots.control import controller_from_spec
@@ -219,14 +220,8 @@ class Deployment:
         self.reality.set_controller(self.robot, self._control)
         # In the paper's mode the real room's links serve only the rates: trace
         # them on rate steps only (the twin's tracer does the MDP).
-        inner = self.reality.tracer
-
-        def tracer(scene, poses, *a, **kw):
-            if s.source == "real" or self.reality.step_index % self.rate_every == 0:
-                return inner(scene, poses, *a, **kw)
-            return {}
-
-        self.reality.tracer = tracer
+        if s.source != "real":
+            self.reality.trace_schedule = lambda k: k % self.rate_every == 0
         self.records: list[StepRecord] = []
         self.rejected = 0  #: closed loop: estimates rejected by the gate
 
@@ -241,10 +236,7 @@ class Deployment:
         return np.array([xy[0], xy[1], odom[2] + dth])
 
     def _antenna(self, pose_xyyaw) -> np.ndarray:
-        x, y, yaw = pose_xyyaw
-        off = np.asarray(self.dev.antenna_offset, float)
-        c, s = math.cos(yaw), math.sin(yaw)
-        return np.array([x + c * off[0] - s * off[1], y + s * off[0] + c * off[1], off[2]])
+        return np.array(antenna_pose(planar_pose(*pose_xyyaw), self.dev.antenna_offset).position)
 
     def _control(self, state):
         st = state.copy()

@@ -26,10 +26,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from engine.phy.arrays import PlanarArray
-from engine.phy.channel import baseband_gains
+from engine.phy.channel import baseband_gains, cfr_at
 from engine.phy.estimation import LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp
 from engine.phy.ofdm import ResourceGrid, ResourceSet
-from engine.raytrace.base import SPEED_OF_LIGHT, sionna_orientation
+from engine.pose import sionna_orientation
+from engine.raytrace.base import SPEED_OF_LIGHT
 
 #: Decimation of the subcarriers used as kNN features (1024 / 64 = 16 subcarriers).
 KNN_SUBCARRIER_STEP = 64
@@ -94,29 +95,26 @@ class Observation:
 # --------------------------------------------------------------------------- features
 
 
-def csi_from_paths(a, tau, theta_t, phi_t, theta_r, phi_r, frequency_hz: float,
-                   freqs_hz, rx_array: PlanarArray, tx_array: PlanarArray,
+def csi_from_paths(a, tau, frequency_hz: float, freqs_hz, rx_array: PlanarArray,
+                   tx_array: PlanarArray, *, theta_r, phi_r, theta_t, phi_t,
                    rx_orientation=(0.0, 0.0, 0.0), tx_orientation=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """Eq.-4 CSI of one link at selected subcarriers (one symbol, no Doppler).
+    """Eq.-4 CSI of one link at selected subcarriers (one symbol, no Doppler):
+    :func:`engine.phy.channel.cfr_at` of the passband gains ``a``.
 
     Args:
-        a, tau, theta_*, phi_*: ``[L]`` path parameters (passband ``a``, s, rad).
+        a, tau: ``[L]`` passband path gains and delays (s).
+        frequency_hz: carrier, Hz.
         freqs_hz: ``[S]`` centred subcarrier offsets, Hz.
+        theta_r, phi_r, theta_t, phi_t: ``[L]`` angles, rad (keyword-only: the
+            order of the stored database columns differs from eq. 4's).
         rx_orientation, tx_orientation: ``[yaw, pitch, roll]`` rad (Sionna order).
 
     Returns:
         ``[S, Nr, Nt]`` complex128.
     """
-    tau = np.asarray(tau, float)
-    if tau.size == 0:
-        return np.zeros((len(freqs_hz), rx_array.num_ant, tx_array.num_ant), complex)
-    b = baseband_gains(np.asarray(a, complex), tau, frequency_hz)
-    arx = rx_array.steering_vectors(np.asarray(theta_r, float), np.asarray(phi_r, float),
-                                    rx_orientation)
-    atx = tx_array.steering_vectors(np.asarray(theta_t, float), np.asarray(phi_t, float),
-                                    tx_orientation)
-    ph = np.exp(-2j * np.pi * np.mod(np.outer(freqs_hz, tau), 1.0)) * b  # [S, L]
-    return np.einsum("sl,lr,lt->srt", ph, arx, atx, optimize=True)
+    b = baseband_gains(np.asarray(a, complex), np.asarray(tau, float), frequency_hz)
+    return cfr_at(b, tau, theta_r, phi_r, theta_t, phi_t, freqs_hz, rx_array, tx_array,
+                  rx_orientation, tx_orientation)
 
 
 def db(x) -> np.ndarray:
@@ -174,10 +172,11 @@ def observe_tracer(links: list, spec: FeatureSpec, num_paths: int = 9) -> Observ
     for i, lp in enumerate(links):
         m = ideal_mdp(lp.tau, lp.a, max_paths=num_paths)
         lengths[i, :len(m)], powers[i, :len(m)] = m.distances_m, m.powers
-        h = csi_from_paths(lp.a, lp.tau, lp.theta_t, lp.phi_t, lp.theta_r, lp.phi_r,
-                           lp.frequency_hz, spec.knn_frequencies, spec.arrays[lp.rx],
-                           spec.arrays[lp.tx], sionna_orientation(lp.rx_orientation),
-                           sionna_orientation(lp.tx_orientation))
+        h = csi_from_paths(lp.a, lp.tau, lp.frequency_hz, spec.knn_frequencies,
+                           spec.arrays[lp.rx], spec.arrays[lp.tx], theta_r=lp.theta_r,
+                           phi_r=lp.phi_r, theta_t=lp.theta_t, phi_t=lp.phi_t,
+                           rx_orientation=sionna_orientation(lp.rx_orientation),
+                           tx_orientation=sionna_orientation(lp.tx_orientation))
         csi.append(db(np.mean(np.abs(h) ** 2, axis=1)))
         pdp.append(db(pdp_from_paths(SPEED_OF_LIGHT * lp.tau, np.abs(lp.a) ** 2,
                                      spec.pdp_bins_m, spec.grid)))

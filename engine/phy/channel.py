@@ -43,7 +43,7 @@ from engine.phy._checks import complex_array, real_array, same_length
 from engine.phy.arrays import PlanarArray
 from engine.phy.ofdm import ResourceGrid
 
-__all__ = ["OFDMChannel", "baseband_gains", "cfr_from_antenna_gains"]
+__all__ = ["OFDMChannel", "baseband_gains", "cfr_at", "cfr_from_antenna_gains"]
 
 
 def baseband_gains(a, tau, carrier_frequency_hz: float) -> np.ndarray:
@@ -193,6 +193,36 @@ def cfr_from_antenna_gains(gains, tau, doppler, grid: ResourceGrid,
         out[:, :, pair] = _synthesize(g2[:, pair:pair + 1], t2[:, pair], d2[:, pair],
                                       grid, dtype)[:, :, 0]
     return out.reshape(k_, n_, nr, nt)
+
+
+def cfr_at(b, tau, theta_r, phi_r, theta_t, phi_t, freqs_hz, rx_array: PlanarArray,
+           tx_array: PlanarArray, rx_orientation=(0.0, 0.0, 0.0),
+           tx_orientation=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Eq. 4 at one instant (``t = 0``, so no Doppler) at chosen subcarriers.
+
+    The snapshot variant of :class:`OFDMChannel` (same arguments, same order) for
+    features that need a few subcarriers of one symbol (e.g. fingerprint CSI).
+
+    Args:
+        b: baseband complex path gains ``[L]`` (see :func:`baseband_gains`).
+        tau: delays ``[L]`` [s].
+        theta_r, phi_r: arrival zenith/azimuth ``[L]`` [rad].
+        theta_t, phi_t: departure zenith/azimuth ``[L]`` [rad].
+        freqs_hz: centred subcarrier offsets ``[S]`` [Hz].
+        rx_orientation, tx_orientation: ``[yaw, pitch, roll]`` [rad].
+
+    Returns:
+        ``H [S, Nr, Nt]`` complex128.
+    """
+    tau = np.asarray(tau, float)
+    if tau.size == 0:
+        return np.zeros((len(freqs_hz), rx_array.num_ant, tx_array.num_ant), complex)
+    arx = rx_array.steering_vectors(np.asarray(theta_r, float), np.asarray(phi_r, float),
+                                    rx_orientation)
+    atx = tx_array.steering_vectors(np.asarray(theta_t, float), np.asarray(phi_t, float),
+                                    tx_orientation)
+    ph = np.exp(-2j * np.pi * np.mod(np.outer(freqs_hz, tau), 1.0)) * np.asarray(b, complex)
+    return np.einsum("sl,lr,lt->srt", ph, arx, atx, optimize=True)
 
 
 class OFDMChannel:

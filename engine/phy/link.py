@@ -46,6 +46,7 @@ __all__ = [
     "MRTPrecoder", "SVDPrecoder", "EqualPower", "WaterFilling", "water_filling",
     "transmit", "receive", "transmit_power", "Interferer", "LinkRate",
     "AchievableRate", "channel_gains", "svd_streams", "rate_per_re",
+    "wideband_streams", "water_level",
 ]
 
 
@@ -134,10 +135,31 @@ class SVDPrecoder:
         hm = h[m]  # [R, Nr, Nt]
         if hm.shape[0] == 0:
             raise ValueError("mask selects no resource element")
-        cov = np.einsum("rij,rik->jk", np.conj(hm), hm) / hm.shape[0]
-        _, vec = np.linalg.eigh(cov)
-        w = vec[:, ::-1][:, :s]
+        w = wideband_streams(hm, s)
         return np.broadcast_to(w, (k, n, nt, s)).copy()
+
+
+def wideband_streams(h, num_streams: int, weights=None) -> np.ndarray:
+    """The wideband (eigen) precoder: the ``S`` principal eigenvectors of the mean
+    channel covariance ``sum_r w_r H_r^H H_r / sum_r w_r`` over a resource set.
+
+    Args:
+        h: channels of the set's REs ``[R, Nr, Nt]`` complex.
+        num_streams: S.
+        weights: how often each RE counts ``[R]`` (None: once each).
+
+    Returns:
+        ``W [Nt, S]``, orthonormal columns, strongest first.
+    """
+    hd = np.asarray(h, dtype=np.complex128)
+    if weights is None:
+        cov = np.einsum("rij,rik->jk", np.conj(hd), hd) / hd.shape[0]
+    else:
+        wts = np.asarray(weights, dtype=float)
+        hw = hd * np.sqrt(wts)[:, None, None]
+        cov = np.einsum("rij,rik->jk", np.conj(hw), hw) / wts.sum()
+    _, vec = np.linalg.eigh(cov)
+    return vec[:, ::-1][:, :num_streams]
 
 
 def channel_gains(h, w) -> np.ndarray:
@@ -180,7 +202,7 @@ def water_filling(gains, total_power: float, noise_power: float = 1.0,
         return out
     # Floor levels 1/SNR_i, sorted; water level if the m best entries are active;
     # the rounding residue is removed so the budget is never exceeded.
-    out[active] = _water_level(g[active], p_tot, n0)
+    out[active] = water_level(g[active], p_tot, n0)
     return out
 
 
@@ -679,7 +701,7 @@ def rate_per_re(f, interference, noise_power: float):
     return se, np.where(g < 1, g / np.maximum(1 - g, 1e-300), np.inf)
 
 
-def _water_level(g, total_power: float, noise_power: float, weights=None) -> np.ndarray:
+def water_level(g, total_power: float, noise_power: float, weights=None) -> np.ndarray:
     """Water-filling powers for gains ``g [M] > 0`` whose entries count ``weights``
     times in the budget (``sum w_i p_i = P``); ``weights=None`` = all ones."""
     inv = noise_power / g
@@ -687,7 +709,7 @@ def _water_level(g, total_power: float, noise_power: float, weights=None) -> np.
         weights = np.asarray(weights, dtype=float)
         if weights.size and np.all(weights == weights.flat[0]):
             # Uniform weights: plain water-filling with the budget per copy.
-            return _water_level(g, total_power / weights.flat[0], noise_power)
+            return water_level(g, total_power / weights.flat[0], noise_power)
     if weights is None:
         inv_s = np.sort(inv)
         levels = (total_power + np.cumsum(inv_s)) / np.arange(1, inv.size + 1)

@@ -50,8 +50,8 @@ from engine.phy.channel import OFDMChannel, baseband_gains
 from engine.phy.mcs import McsRate
 from engine.phy.patterns import MODELLED_POLARIZATIONS, AntennaPatterns
 from engine.phy.link import (AchievableRate, EqualPower, Interferer, SVDPrecoder,
-                             WaterFilling, _water_level, channel_gains, rate_per_re,
-                             svd_streams)
+                             WaterFilling, channel_gains, rate_per_re, svd_streams,
+                             water_level, wideband_streams)
 from engine.phy.ofdm import ResourceGrid, ResourceSet
 from engine.phy.units import dbm_to_watt, thermal_noise_power
 
@@ -157,7 +157,7 @@ class NetworkPHY:
     def channel(self, paths, times=None) -> np.ndarray:
         """Eq. 4 for one :class:`~engine.raytrace.base.LinkPaths` -> ``[K, N, Nr, Nt]``
         (``[T, N, Nr, Nt]`` at explicit symbol ``times`` [s])."""
-        from engine.raytrace.base import sionna_orientation
+        from engine.pose import sionna_orientation
 
         syn = OFDMChannel(self.grid, self.arrays[paths.rx], self.arrays[paths.tx])
         b = baseband_gains(paths.a, paths.tau, paths.frequency_hz)
@@ -241,11 +241,7 @@ class NetworkPHY:
                 w, lam, f1 = svd_streams(hm, s)
             else:
                 hd = np.asarray(hm, dtype=np.complex128)
-                hw = hd if wts is None else hd * np.sqrt(wts)[:, None, None]
-                cov = np.einsum("rij,rik->jk", np.conj(hw), hw) / (
-                    hd.shape[0] if wts is None else wts.sum())
-                _, vec = np.linalg.eigh(cov)
-                w0 = vec[:, ::-1][:, :s]
+                w0 = wideband_streams(hd, s, wts)
                 f1 = hd @ w0
                 lam = np.sum(np.abs(f1) ** 2, axis=1)
                 w = np.broadcast_to(w0, (hd.shape[0], nt, s))
@@ -255,7 +251,7 @@ class NetworkPHY:
                 on = lam > 0
                 if total > 0 and on.any():
                     pw = None if wts is None else np.broadcast_to(wts[:, None], lam.shape)[on]
-                    p[on] = _water_level(lam[on], total, self.noise_power, pw)
+                    p[on] = water_level(lam[on], total, self.noise_power, pw)
             else:
                 p = np.full(lam.shape, total / (count * s))
             f = f1 * np.sqrt(p)[:, None, :]

@@ -23,7 +23,6 @@ Conventions (Sionna RT's, so that Sionna's own ``Paths.cfr`` is the reference):
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -31,6 +30,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from engine.config import LinkConfig, TwinConfig
+from engine.pose import DevicePose, antenna_pose, sionna_orientation  # noqa: F401 (re-exported)
 
 #: Speed of light in vacuum, m/s (Sionna's value).
 SPEED_OF_LIGHT = 299_792_458.0
@@ -49,28 +49,6 @@ Link = tuple[str, str]  #: ``(tx name, rx name)``
 class TruncationError(RuntimeError):
     """The solver hit its path-buffer cap (``max_num_paths_per_src``): paths
     would have been dropped silently."""
-
-
-@dataclass(frozen=True)
-class DevicePose:
-    """Pose of a device's array centre.
-
-    Attributes:
-        position: array centre ``[3]``, m (world frame).
-        orientation: array orientation ``[roll, pitch, yaw]`` ``[3]``, rad.
-        velocity: array-centre velocity ``[3]``, m/s.
-    """
-
-    position: tuple[float, float, float]
-    orientation: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-    def __post_init__(self):
-        for k in ("position", "orientation", "velocity"):
-            v = np.asarray(getattr(self, k), dtype=float).reshape(-1)
-            if v.shape != (3,):
-                raise ValueError(f"DevicePose.{k}: expected 3 numbers, got {getattr(self, k)!r}")
-            object.__setattr__(self, k, tuple(float(x) for x in v))
 
 
 @dataclass(frozen=True, eq=False)
@@ -194,31 +172,18 @@ class Tracer(Protocol):
 # --------------------------------------------------------------------------- helpers
 
 
-def sionna_orientation(orientation) -> tuple[float, float, float]:
-    """``[roll, pitch, yaw]`` -> Sionna's / ``engine.phy``'s ``[yaw, pitch, roll]``."""
-    r, p, y = (float(x) for x in orientation)
-    return (y, p, r)
-
-
-def _rot_z(yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def device_poses(config: TwinConfig) -> dict[str, DevicePose]:
     """Initial array-centre poses of all devices from the config (velocity 0).
 
     Access points: ``position`` is the array centre. Robots: ``position`` is
-    ``base_link`` on the floor and the array centre is
-    ``position + Rz(yaw) @ antenna_offset`` (robots drive on the floor, so only
-    the yaw rotates the offset).
+    ``base_link`` and the array centre is :func:`engine.pose.antenna_pose` of it.
     """
     out = {}
     for d in config.devices:
-        pos = np.asarray(d.position, float)
         if d.kind == "robot":
-            pos = pos + _rot_z(d.orientation[2]) @ np.asarray(d.antenna_offset, float)
-        out[d.name] = DevicePose(position=tuple(pos), orientation=tuple(d.orientation))
+            out[d.name] = antenna_pose((*d.position, *d.orientation), d.antenna_offset)
+        else:
+            out[d.name] = DevicePose(position=tuple(d.position), orientation=tuple(d.orientation))
     return out
 
 

@@ -10,16 +10,18 @@ or all of it on the bus with :class:`~engine.robots.agent.RobotAgent`.
 """
 
 from engine.robots.agent import OpenCRStep, RobotAgent, SensorOptions, build_robots
-from engine.robots.control import (CirclePath, FigureEightPath, GoalReacher, Path, PathError,
-                                   PolylinePath, PurePursuit, controller_from_spec)
+from engine.robots.control import (CirclePath, FigureEightPath, GoalReacher, PathError,
+                                   PlanarPath, PolylinePath, PurePursuit,
+                                   controller_from_spec)
 from engine.robots.kinematics import (ROBOT_SPECS, DiffDriveRobot, ProcessNoise, RobotSpec,
-                                      RobotState, SpeedLimitError, robot_spec)
+                                      KinematicState, SpeedLimitError, robot_spec)
 from engine.robots.sensors import (DepthCamera, ImuNoise, ImuSensor, Lidar2D, WheelEncoders,
                                    WheelOdometry)
 
-__all__ = ["OpenCRStep", "RobotAgent", "SensorOptions", "build_robots", "CirclePath", "FigureEightPath",
-           "GoalReacher", "controller_from_spec", "Path", "PathError", "PolylinePath",
+__all__ = ["OpenCRStep", "RobotAgent", "SensorOptions", "build_robots", "CirclePath",
+           "FigureEightPath",
+           "GoalReacher", "controller_from_spec", "PlanarPath", "PathError", "PolylinePath",
            "PurePursuit", "ROBOT_SPECS",
-           "DiffDriveRobot", "ProcessNoise", "RobotSpec", "RobotState", "SpeedLimitError",
+           "DiffDriveRobot", "ProcessNoise", "RobotSpec", "KinematicState", "SpeedLimitError",
            "robot_spec", "DepthCamera", "ImuNoise", "ImuSensor", "Lidar2D", "WheelEncoders",
            "WheelOdometry"]

@@ -173,6 +173,31 @@ class RobotAgent:
             self.control()
         return out
 
+    def place(self, state, t: float) -> dict[str, object]:
+        """Put the robot at ``state`` (a :class:`~engine.robots.kinematics.KinematicState`
+        from an outside source, e.g. a recording) at time ``t`` s and publish what a
+        placed robot can measure: ``ground_truth`` and the scene sensors (LiDAR, depth
+        camera). Wheel encoders, odometry and IMU are not simulated for a placed robot.
+
+        Returns:
+            ``topic key -> message`` of what was published.
+        """
+        self.robot.state = state
+        st = self.robot.state
+        out: dict[str, object] = {
+            "ground_truth": PoseStamped(header=Header(stamp=t, frame_id="map"),
+                                        pose=Pose(position=st.position,
+                                                  orientation=st.quaternion()))}
+        for key, sensor in (("scan", self.lidar), ("camera/depth", self.camera)):
+            if sensor is not None and key in self.topics:
+                m = sensor.poll(t, st)
+                if m is not None:
+                    out[key] = m
+        for key, msg in out.items():
+            self.node.publish(self.topics[key], msg)
+        self.last.update(out)
+        return out
+
     def control(self) -> None:
         """Publish the controller's next command from the current state (if driven)."""
         if self.controller is not None:

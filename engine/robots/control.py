@@ -9,7 +9,7 @@ length ``s`` (m):
   ``size / 2`` high.
 
 Each answers ``point(s)``, ``tangent(s)``, ``curvature(s)`` and
-:meth:`Path.project` (closest point, arc length and signed cross-track
+:meth:`PlanarPath.project` (closest point, arc length and signed cross-track
 error, positive when the robot is left of the path).
 
 Controllers are callables ``controller(state) -> Twist``:
@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from engine.msgs import Twist
-from engine.robots.kinematics import (RobotSpec, RobotState, SpeedLimitError, make_twist,
+from engine.robots.kinematics import (RobotSpec, KinematicState, SpeedLimitError, make_twist,
                                       robot_spec, wrap_angle)
 
 log = logging.getLogger(__name__)
@@ -81,7 +81,7 @@ class Projection:
     error: float
 
 
-class Path:
+class PlanarPath:
     """A planar path parametrised by arc length. Subclasses fill the geometry."""
 
     closed: bool = False
@@ -155,7 +155,7 @@ class Path:
         return self.name
 
 
-class CirclePath(Path):
+class CirclePath(PlanarPath):
     """A circle, the bundled lab's trajectory (centre (4, 3), radius 1.5 m).
 
     Args:
@@ -215,7 +215,7 @@ class CirclePath(Path):
         return Projection(s, self.point(s), self.tangent(s), self.direction * (self.radius - rho))
 
 
-class SampledPath(Path):
+class SampledPath(PlanarPath):
     """A path given by a dense ordered point list (linear between points).
 
     Args:
@@ -400,7 +400,7 @@ class PurePursuit:
     end is reached decelerating at the robot's acceleration limit.
 
     Args:
-        path: the :class:`Path` to follow.
+        path: the :class:`PlanarPath` to follow.
         spec: robot model (:class:`RobotSpec` or name).
         lookahead: m (> 0).
         speed: cruise speed, m/s (default: the model's limit).
@@ -415,10 +415,11 @@ class PurePursuit:
         SpeedLimitError: ``speed`` above the model's limit.
     """
 
-    def __init__(self, path: Path, spec: RobotSpec | str = "burger", *, lookahead: float = 0.25,
+    def __init__(self, path: PlanarPath, spec: RobotSpec | str = "burger", *,
+                 lookahead: float = 0.25,
                  speed: float | None = None, bounds=None, goal_tolerance: float = 0.03):
-        if not isinstance(path, Path):
-            raise TypeError(f"path: expected a Path, got {type(path).__name__}")
+        if not isinstance(path, PlanarPath):
+            raise TypeError(f"path: expected a PlanarPath, got {type(path).__name__}")
         self.path = path
         self.spec = robot_spec(spec) if isinstance(spec, str) else spec
         self.lookahead = _positive(lookahead, "lookahead")
@@ -446,11 +447,11 @@ class PurePursuit:
     def reset(self) -> None:
         self._s, self.travelled, self.error, self.done = None, 0.0, 0.0, False
 
-    def __call__(self, state: RobotState) -> Twist:
+    def __call__(self, state: KinematicState) -> Twist:
         v, w = self.command(state)
         return make_twist(v, w)
 
-    def command(self, state: RobotState) -> tuple[float, float]:
+    def command(self, state: KinematicState) -> tuple[float, float]:
         """``(v m/s, w rad/s)`` for ``state`` (the same as calling, without the Twist)."""
         path, spec = self.path, self.spec
         win = 2.0 * self.lookahead + 0.5
@@ -536,10 +537,10 @@ class GoalReacher:
                                 f"(room x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g} m)")
         self.done = False
 
-    def __call__(self, state: RobotState) -> Twist:
+    def __call__(self, state: KinematicState) -> Twist:
         return make_twist(*self.command(state))
 
-    def command(self, state: RobotState) -> tuple[float, float]:
+    def command(self, state: KinematicState) -> tuple[float, float]:
         """``(v m/s, w rad/s)`` for ``state``."""
         spec = self.spec
         dx, dy = self.goal[:2] - state.pose[:2]

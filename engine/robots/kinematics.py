@@ -46,6 +46,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from engine.msgs import Twist
+from engine.pose import rotation_matrix
 
 log = logging.getLogger(__name__)
 
@@ -129,18 +130,6 @@ def robot_spec(model: str) -> RobotSpec:
             from None
 
 
-def rotation_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """``[3, 3]`` rotation body -> world for ZYX Euler angles (rad), REP-103."""
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return np.array([
-        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-        [-sp, cp * sr, cp * cr],
-    ])
-
-
 def euler_to_quaternion(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Quaternion ``[x, y, z, w]`` of ZYX Euler angles (rad)."""
     cr, sr = math.cos(roll / 2), math.sin(roll / 2)
@@ -175,7 +164,7 @@ def arc_step(x: float, y: float, yaw: float, v: float, w: float, dt: float
 
 
 @dataclass
-class RobotState:
+class KinematicState:
     """State ``s_t`` of one agent.
 
     Attributes:
@@ -231,7 +220,7 @@ class RobotState:
         """``[8]``: ``[x, y, z, roll, pitch, yaw, v, w]``."""
         return np.concatenate([self.pose, [self.v, self.w]])
 
-    def copy(self) -> RobotState:
+    def copy(self) -> KinematicState:
         return replace(self, pose=self.pose.copy(), wheel_pos=self.wheel_pos.copy(),
                        wheel_vel=self.wheel_vel.copy(), accel=self.accel.copy())
 
@@ -311,7 +300,7 @@ class DiffDriveRobot:
         self.name = name
         self.noise = noise or ProcessNoise()
         self.rng = rng if rng is not None else np.random.default_rng(seed)
-        self.state = RobotState(pose=p)
+        self.state = KinematicState(pose=p)
         self.command = (0.0, 0.0)  #: last clamped command (v, w)
 
     # ------------------------------------------------------------------ limits
@@ -347,7 +336,7 @@ class DiffDriveRobot:
         return s.body_twist(pl, pr)
 
     # ------------------------------------------------------------------ step
-    def step(self, u, dt: float, *, validate: bool = False) -> RobotState:
+    def step(self, u, dt: float, *, validate: bool = False) -> KinematicState:
         """Advance the state by ``dt`` s under command ``u`` (eq. 5).
 
         Args:
@@ -357,7 +346,7 @@ class DiffDriveRobot:
             validate: raise :class:`SpeedLimitError` for a command above a limit.
 
         Returns:
-            The new :class:`RobotState` (also ``self.state``).
+            The new :class:`KinematicState` (also ``self.state``).
         """
         if not (dt > 0 and math.isfinite(dt)):
             raise ValueError(f"{self.name}: dt must be a positive finite number of s, got {dt}")
@@ -406,7 +395,7 @@ class DiffDriveRobot:
         pose[5] = float(wrap_angle(pose[5]))
 
         accel = np.array([(v1 - v0) / dt, v1 * w1, 0.0])
-        self.state = RobotState(pose=pose, v=v1, w=w1,
+        self.state = KinematicState(pose=pose, v=v1, w=w1,
                                 wheel_pos=st.wheel_pos + np.array([dl, dr]),
                                 wheel_vel=np.array(s.wheel_rates(v1, w1)),
                                 accel=accel, t=st.t + dt)
@@ -420,7 +409,7 @@ class DiffDriveRobot:
         p = np.asarray(pose, float)
         if p.shape == (3,):
             p = np.array([p[0], p[1], 0.0, 0.0, 0.0, p[2]])
-        self.state = RobotState(pose=p, t=t)
+        self.state = KinematicState(pose=p, t=t)
 
     def antenna_position(self, offset: Sequence[float]) -> np.ndarray:
         """World position ``[3]`` (m) of a point at ``offset`` in base_link (e.g. the antenna)."""
@@ -441,7 +430,7 @@ class PoseObservation:
     xy_std: float = 0.0
     yaw_std: float = 0.0
 
-    def __call__(self, state: RobotState, rng: np.random.Generator) -> np.ndarray:
+    def __call__(self, state: KinematicState, rng: np.random.Generator) -> np.ndarray:
         """``[3]``: observed ``[x, y, yaw]`` (m, m, rad)."""
         e = rng.standard_normal(3) * np.array([self.xy_std, self.xy_std, self.yaw_std])
         return np.array([state.x + e[0], state.y + e[1], float(wrap_angle(state.yaw + e[2]))])

@@ -1,7 +1,7 @@
 """Simulated robot sensors: the observation side ``g`` (paper, eq. 6).
 
 Every sensor has its own rate and its own seeded ``numpy.random.Generator``
-and turns the true :class:`~engine.robots.kinematics.RobotState` into a ROS
+and turns the true :class:`~engine.robots.kinematics.KinematicState` into a ROS
 message (:mod:`engine.msgs`). The common call is::
 
     msg = sensor.poll(t, state)   # a message when the sensor is due at t, else None
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from engine.msgs import Header, Image, Imu, JointState, LaserScan, Odometry, Pose, Twist
-from engine.robots.kinematics import (GRAVITY, TICK_RAD, RobotSpec, RobotState,
+from engine.robots.kinematics import (GRAVITY, TICK_RAD, RobotSpec, KinematicState,
                                       euler_to_quaternion, robot_spec, wrap_angle)
 
 log = logging.getLogger(__name__)
@@ -76,7 +76,7 @@ class Sensor:
         """Whether a sample is due at time ``t`` (s)."""
         return self._next_t is None or t >= self._next_t - 1e-9
 
-    def poll(self, t: float, state: RobotState):
+    def poll(self, t: float, state: KinematicState):
         """The sensor's message at time ``t`` (s) if it is due, else ``None``."""
         if not self.due(t):
             return None
@@ -87,7 +87,7 @@ class Sensor:
         self.last_t = t
         return msg
 
-    def measure(self, t: float, state: RobotState):
+    def measure(self, t: float, state: KinematicState):
         """Take a sample now, regardless of the rate. Subclasses implement it."""
         raise NotImplementedError
 
@@ -126,7 +126,7 @@ class WheelEncoders(Sensor):
         self.ticks = np.zeros(2, np.int64)
         self.velocity_units = np.zeros(2, np.int64)
 
-    def measure(self, t: float, state: RobotState) -> JointState:
+    def measure(self, t: float, state: KinematicState) -> JointState:
         true = state.wheel_pos
         if self._last_true is not None and self.slip_std > 0:
             turned = np.abs(true - self._last_true)
@@ -268,7 +268,7 @@ class ImuSensor(Sensor):
         self._yaw: float | None = None
         self._t_prev: float | None = None
 
-    def measure(self, t: float, state: RobotState) -> Imu:
+    def measure(self, t: float, state: KinematicState) -> Imu:
         n = self.noise
         dt = 0.0 if self._t_prev is None else max(t - self._t_prev, 0.0)
         self._t_prev = t
@@ -405,12 +405,12 @@ class Lidar2D(Sensor):
         self._dirs_local = np.stack([np.cos(self.angles), np.sin(self.angles),
                                      np.zeros(self.num_beams)], axis=1)  # [M, 3]
 
-    def rays(self, state: RobotState) -> tuple[np.ndarray, np.ndarray]:
+    def rays(self, state: KinematicState) -> tuple[np.ndarray, np.ndarray]:
         """World origin ``[3]`` and beam directions ``[M, 3]`` for ``state``."""
         R = state.rotation()
         return state.pose[:3] + R @ self.mount, self._dirs_local @ R.T
 
-    def measure(self, t: float, state: RobotState) -> LaserScan:
+    def measure(self, t: float, state: KinematicState) -> LaserScan:
         origin, dirs = self.rays(state)
         d, valid, cos_inc = cast_rays(self.scene, origin, dirs)
         ok = valid & (d >= self.range_min) & (d <= self.range_max) \
@@ -469,12 +469,12 @@ class DepthCamera(Sensor):
         self._z_body = 1.0 / np.linalg.norm(d, axis=1)  # cos of the angle to the optical axis
         self._dirs_local = d * self._z_body[:, None]
 
-    def poll(self, t: float, state: RobotState):
+    def poll(self, t: float, state: KinematicState):
         if not self.enabled:
             return None
         return super().poll(t, state)
 
-    def measure(self, t: float, state: RobotState) -> Image:
+    def measure(self, t: float, state: KinematicState) -> Image:
         R = state.rotation()
         origin = state.pose[:3] + R @ self.mount
         dist, valid, _ = cast_rays(self.scene, origin, self._dirs_local @ R.T)

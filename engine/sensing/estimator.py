@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from engine.phy.ofdm import ResourceGrid
-from engine.raytrace.base import DevicePose, sionna_orientation
+from engine.pose import DevicePose, sionna_orientation
 from engine.sensing.clutter import BackgroundSubtractor
 from engine.sensing.geometry import locate
 from engine.sensing.link import SensingLinkSpec, SensingReceiver, echo_channel

@@ -18,7 +18,8 @@ from engine.phy.channel import OFDMChannel, baseband_gains
 from engine.phy.link import AchievableRate, MRTPrecoder
 from engine.phy.ofdm import ResourceGrid
 from engine.phy.units import dbm_to_watt, thermal_noise_power
-from engine.raytrace.base import LinkPaths, sionna_orientation
+from engine.pose import sionna_orientation
+from engine.raytrace.base import LinkPaths
 from engine.sensing.link import sensing_resource_set
 
 __all__ = ["data_rate", "comm_channel"]

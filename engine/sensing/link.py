@@ -22,7 +22,8 @@ from engine.phy.arrays import PlanarArray
 from engine.phy.channel import OFDMChannel, baseband_gains
 from engine.phy.ofdm import ResourceGrid, ResourceSet
 from engine.phy.units import dbm_to_watt, thermal_noise_power
-from engine.raytrace.base import LinkPaths, sionna_orientation
+from engine.pose import sionna_orientation
+from engine.raytrace.base import LinkPaths
 from engine.sensing.radar import SensingError
 
 __all__ = ["SensingLinkSpec", "sensing_resource_set", "echo_channel", "SensingReceiver"]

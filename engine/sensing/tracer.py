@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.raytrace.base import DevicePose, LinkPaths, empty_link, sionna_orientation
+from engine.pose import DevicePose, sionna_orientation
+from engine.raytrace.base import LinkPaths, empty_link
 
 log = logging.getLogger(__name__)
 

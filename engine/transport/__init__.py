@@ -14,3 +14,6 @@ Importing this package registers the ``isac_twin_msgs`` types on the bus
 """
 
 from engine.transport import twin_msgs  # noqa: F401  (registers isac_twin_msgs types)
+
+#: import the modules above by name (``zenoh_transport`` and ``bridge`` need zenoh)
+__all__ = ["twin_msgs"]

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.msgs import MESSAGE_TYPES, Header
+from engine.msgs import MESSAGE_TYPES, Csi, Header
 
 PACKAGE = "isac_twin_msgs"
 
@@ -155,17 +155,6 @@ class Fingerprint:
     mdp: np.ndarray = _f()
     estimate: np.ndarray = _f(3)  #: [3] m, map frame
     confidence: float = 0.0
-
-
-@dataclass
-class Csi:
-    """``h`` is ``[K, N, Nr, Nt]`` complex (symbols, subcarriers, rx ports, tx ports)."""
-
-    ROS_TYPE = "isac_twin_msgs/msg/Csi"
-    header: Header = field(default_factory=Header)
-    tx: str = ""
-    rx: str = ""
-    h: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 0, 0), np.complex64))
 
 
 @dataclass

@@ -51,10 +51,20 @@ class FakeTwin:
                                             self.bus, None, options=opts)}
         if circle:
             self.agents["robot1"].drive(PurePursuit(CirclePath((1.5, 1.0), 0.5), "burger"))
+        self.state_sources = {}
+
+    def set_state_source(self, robot, source):  # as Twin.set_state_source
+        if source is None:
+            self.state_sources.pop(robot, None)
+        else:
+            self.state_sources[robot] = source
 
     def step(self):
         t = self.time_s + self.dt
-        for a in self.agents.values():
+        for n, a in self.agents.items():
+            if n in self.state_sources:
+                a.place(self.state_sources[n](t, self.dt), t)
+                continue
             ctl, a.controller = a.controller, None
             a.step(t, self.dt)
             a.controller = ctl
@@ -68,8 +78,8 @@ class FakeTwin:
                            np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1),
                            np.zeros((1, 0, 3)), np.zeros((1, 0), np.int32))
             res.links[("AP1", n)] = LinkState("AP1", n, lp, snr_db=20.0, rate_bps=1e8)
-        for a in self.agents.values():
-            if a.controller is not None:
+        for n, a in self.agents.items():
+            if a.controller is not None and n not in self.state_sources:
                 a._ctl_node.publish(a.topics["cmd_vel"], a.controller(a.state))
         self.step_index += 1
         self.time_s = t
@@ -142,6 +152,7 @@ def test_record_twin_links_paths_and_replay(tmp_path):
     d_rec = [m.decode().tau[0] for m in read_messages(out, [PATHS_TOPIC])]
     assert res.links[("AP1", "robot1")].paths.tau[0] == pytest.approx(d_rec[-1])
     rp.detach()
+    assert not twin2.state_sources
 
 
 _CHILD = textwrap.dedent("""

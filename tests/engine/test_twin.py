@@ -138,3 +138,31 @@ def test_moving_devices_by_edit(lab):
     tw.apply_edit(Edit(op="move", target="AP1", position=(9.0, 2.0, 2.0)))
     with pytest.raises(ValueError, match="move 'AP1'.*outside the room"):
         tw.step()
+
+
+def test_hooks_state_source_and_trace_schedule(lab):
+    """A sourced robot is placed (no motion model, no controller) and the trace
+    schedule skips tracing on the steps it refuses; unhooking restores both."""
+    from engine.robots import KinematicState
+    tw = Twin.from_scene(lab, seed=1, phy=False)
+    tw.set_path("robot1", {"kind": "circle", "centre": [3.0, 2.0], "radius": 1.0})
+    calls = []
+    tw.set_state_source("robot1", lambda t, dt: calls.append((t, dt)) or KinematicState(
+        pose=np.array([1.0 + t, 1.5, 0.0, 0.0, 0.0, 0.3]), v=1.0, w=0.0, t=t))
+    tw.trace_schedule = lambda k: k % 2 == 0
+    cmd = tw.bus.node("probe2").subscribe("/robot1/cmd_vel", "geometry_msgs/msg/Twist")
+    res = list(tw.run(3))
+    assert [t for t, _ in calls] == pytest.approx([0.05, 0.10, 0.15])
+    np.testing.assert_allclose(res[1].robots["robot1"].pose[:2], [1.10, 1.5])
+    assert [bool(r.links) for r in res] == [True, False, True]
+    assert len(cmd.drain()) == 0  # a placed robot is not driven
+    tw.reset()  # new agents, same hooks
+    np.testing.assert_allclose(tw.step().robots["robot1"].pose[:2], [1.05, 1.5])
+    with pytest.raises(KeyError, match="no robot named 'ghost'"):
+        tw.set_state_source("ghost", None)
+    tw.set_state_source("robot1", None)
+    tw.trace_schedule = None
+    cmd = tw.bus.node("probe3").subscribe("/robot1/cmd_vel", "geometry_msgs/msg/Twist")
+    r = tw.step()
+    assert r.links and len(cmd.drain()) == 1
+    assert not np.allclose(r.robots["robot1"].pose[:2], [1.10, 1.5])

@@ -175,3 +175,23 @@ def test_per_antenna_pair_delays_variant():
             np.testing.assert_allclose(h[:, :, r, t], ref[:, :, 0, 0], atol=1e-12)
     with pytest.raises(ValueError, match="doppler must have the shape of tau"):
         cfr_from_antenna_gains(g, tau, nu[:, 0, 0], GRID)
+
+
+def test_cfr_at_is_the_ofdm_channel_at_t0_on_chosen_subcarriers():
+    """The snapshot variant (fingerprint CSI) is eq. 4 of OFDMChannel at t = 0."""
+    from engine.phy.channel import cfr_at
+    rng = np.random.default_rng(4)
+    L = 5
+    b = rng.normal(size=L) + 1j * rng.normal(size=L)
+    tau = rng.uniform(10e-9, 90e-9, L)
+    ang = [rng.uniform(0.3, 2.8, L), rng.uniform(-3, 3, L), rng.uniform(0.3, 2.8, L),
+           rng.uniform(-3, 3, L)]
+    rx, tx = PlanarArray(1, 2), PlanarArray(2, 2)
+    ori_r, ori_t = (0.4, 0.0, 0.0), (-1.2, 0.1, 0.0)
+    full = OFDMChannel(GRID, rx, tx, dtype=np.complex128)(
+        b, tau, np.zeros(L), *ang, rx_orientation=ori_r, tx_orientation=ori_t,
+        times=np.zeros(1))[0]
+    pick = np.arange(0, GRID.num_subcarriers, 7)
+    snap = cfr_at(b, tau, *ang, GRID.subcarrier_frequencies[pick], rx, tx, ori_r, ori_t)
+    np.testing.assert_allclose(snap, full[pick], rtol=1e-9, atol=1e-12)
+    assert cfr_at(b[:0], tau[:0], *(a[:0] for a in ang), [1.0, 2.0], rx, tx).shape == (2, 2, 4)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from engine.phy.link import (AchievableRate, Interferer, MRTPrecoder, SVDPrecoder,
-                             WaterFilling, _water_level, channel_gains, rate_per_re,
+                             WaterFilling, water_level, channel_gains, rate_per_re,
                              svd_streams, water_filling)
 from engine.phy.ofdm import ResourceGrid
 
@@ -90,7 +90,7 @@ def test_fast_rate_matches_reference_to_1e6(nr, nt):
             w, lam, f = svd_streams(hq, min(nr, nt))
             p = np.zeros(lam.shape)
             on = lam > 0
-            p[on] = _water_level(lam[on], 1.0, n0)
+            p[on] = water_level(lam[on], 1.0, n0)
             se, _ = rate_per_re(f * np.sqrt(p)[:, None, :], [], n0)
             assert se.sum() == pytest.approx(ref_q, rel=1e-6, abs=1e-9)
         assert ref > 0
@@ -147,11 +147,11 @@ def test_precoders_fast_vs_numpy_give_the_same_rates():
                                    rtol=1e-10)
 
 
-def test_weighted_water_level_equals_expanded_water_filling():
+def test_weightedwater_level_equals_expanded_water_filling():
     rng = np.random.default_rng(1)
     g = rng.exponential(size=50)
     wts = rng.integers(1, 6, size=50).astype(float)
-    p = _water_level(g, 3.0, 0.7, wts)
+    p = water_level(g, 3.0, 0.7, wts)
     ref = water_filling(np.repeat(g, wts.astype(int)), 3.0, 0.7)
     np.testing.assert_allclose(np.repeat(p, wts.astype(int)), ref, rtol=1e-12, atol=1e-15)
     assert np.dot(wts, p) <= 3.0 * (1 + 1e-12)

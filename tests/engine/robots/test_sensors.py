@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from engine.robots.kinematics import TICK_RAD, DiffDriveRobot, RobotState, robot_spec
+from engine.robots.kinematics import TICK_RAD, DiffDriveRobot, KinematicState, robot_spec
 from engine.robots.sensors import (DXL_VELOCITY_UNIT, DepthCamera, ImuNoise, ImuSensor,
                                    Lidar2D, WheelEncoders, WheelOdometry, cast_rays)
 from engine.synthetic import box_room
@@ -32,7 +32,7 @@ def box_distance(o, d, size=SIZE):
 
 
 def state_at(pose):
-    return RobotState(pose=np.asarray(pose, float))
+    return KinematicState(pose=np.asarray(pose, float))
 
 
 @pytest.mark.parametrize("pose", [
