@@ -214,6 +214,11 @@ def ideal_mdp(tau, b, max_paths: int | None = None,
     return _sorted_mdp(SPEED_OF_LIGHT * tau, power, max_paths, min_relative_power_db)
 
 
+#: residual energy, relative to the CSI's, below which a fit is exact in float64
+#: (eps^2 ~ 5e-32 per sample; a margin for the refinement's own rounding)
+_RSS_FLOOR = 1e-24
+
+
 class MdpEstimator:
     """Super-resolution MDP estimator: TLS-ESPRIT over subcarriers, refined
     by non-linear least squares, model order by an information criterion.
@@ -377,6 +382,11 @@ class MdpEstimator:
                 worse = 0
             else:
                 worse += 1
+            # An order whose fit already leaves only float64 rounding (the CSI is at
+            # unit RMS, energy n*s) explains everything: any higher order only fits
+            # rounding noise, which the criterion, on log(rss), would still reward.
+            if rss <= _RSS_FLOOR * n * s:
+                break
         _, tau, amp = best
         power = np.mean(np.abs(amp) ** 2, axis=1) * scale ** 2
         dist = SPEED_OF_LIGHT * tau

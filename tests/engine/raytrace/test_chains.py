@@ -43,8 +43,12 @@ def test_chains_hold_sionna_direct_paths_with_identical_values(room_scene):
             strongest = sorted(ref, key=lambda k: -abs(ref[k]))[:24]
             missing = [k for k in strongest if k not in got]
             assert not missing, (pos, lk, missing)
+            # float32 kernels: the two traces run the image method in different
+            # candidate batches, and Dr.Jit's LLVM code for this CPU (AVX2 on AMD
+            # EPYC) rounds them differently: 2.4e-6 relative seen (~20 ulp), so
+            # 1e-5 (~80 ulp); a wrong chain or interaction differs by orders more.
             for k in strongest:
-                assert got[k] == pytest.approx(ref[k], rel=1e-6, abs=1e-12)
+                assert got[k] == pytest.approx(ref[k], rel=1e-5, abs=1e-12)
 
 
 def test_result_depends_on_position_only(room_scene):
