@@ -33,7 +33,7 @@ from engine.pose import DevicePose, antenna_pose
 from engine.raytrace import make_tracer
 from engine.robots import SensorOptions, build_robots
 from engine.robots.control import controller_from_spec
-from engine.scene import TwinScene, load_scene
+from engine.scene import TwinScene, itu_defined_at, itu_materials, load_scene
 from engine.state import Command, Edit, LinkState, RobotState, StepResult
 
 log = logging.getLogger(__name__)
@@ -210,33 +210,105 @@ class Twin:
 
     # ------------------------------------------------------------------ edits
 
-    def apply_edit(self, edit: Edit) -> None:
-        """Queue an edit; it is applied before the next step (the next trace sees it)."""
+    def validate_edit(self, edit: Edit) -> None:
+        """Check an edit completely against the twin as it is now.
+
+        The one validation of edits: :meth:`apply_edit` calls it before queuing,
+        so the live server (which queues through ``apply_edit``) answers a bad
+        edit at once and the twin never meets it in a step.
+
+        Raises:
+            ValueError: naming the edit (op and target) and the field at fault.
+        """
+        what = f"edit {edit.op} {edit.target!r}"
         if edit.op not in ("move", "material", "remove", "add"):
-            raise ValueError(f"edit: unknown op {edit.op!r} (move, material, remove, add)")
+            raise ValueError(f"{what}: op: expected move, material, remove or add")
+        objects = self.scene.objects
+        devices = set(self.ap_poses) | set(self.agents)
+
+        def triple(field, value, inside=False):
+            try:
+                v = np.asarray(value, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                v = np.zeros(0)
+            if v.shape != (3,) or not np.isfinite(v).all():
+                raise ValueError(f"{what}: {field}: expected 3 finite numbers, got {value!r}")
+            if inside and not self.scene.contains(v):
+                raise ValueError(f"{what}: {field}: {v.tolist()} lies outside the room's "
+                                 f"extent {list(self.scene.bounds_min)}..."
+                                 f"{list(self.scene.bounds_max)} m")
+
+        def material(required):
+            if edit.material is None and not required:
+                return
+            if edit.material not in itu_materials():
+                raise ValueError(f"{what}: material: unknown ITU material {edit.material!r}")
+            if not itu_defined_at(edit.material, self.config.scene.frequency_hz):
+                raise ValueError(f"{what}: material: {edit.material!r} is not defined at "
+                                 f"{self.config.scene.frequency_hz / 1e9:g} GHz")
+            if edit.thickness is not None and not (np.isfinite(edit.thickness)
+                                                   and edit.thickness > 0):
+                raise ValueError(f"{what}: thickness: expected a finite value > 0 m, "
+                                 f"got {edit.thickness!r}")
+
+        if edit.op == "add":
+            if edit.target in objects or edit.target in devices:
+                raise ValueError(f"{what}: target: an object or device of that name exists")
+            if not edit.mesh_file:
+                raise ValueError(f"{what}: mesh_file: required for add")
+            material(required=True)
+            return
+        if edit.op == "move":
+            if edit.target not in objects and edit.target not in devices:
+                raise ValueError(f"{what}: target: no object or device of that name")
+            if edit.position is None and edit.orientation is None:
+                raise ValueError(f"{what}: position/orientation: give at least one")
+            if edit.position is not None:
+                triple("position", edit.position, inside=True)
+            if edit.orientation is not None:
+                triple("orientation", edit.orientation)
+            return
+        if edit.target not in objects:
+            raise ValueError(f"{what}: target: no object of that name")
+        if edit.op == "material":
+            material(required=True)
+
+    def apply_edit(self, edit: Edit) -> None:
+        """Validate an edit (:meth:`validate_edit`) and queue it; it is applied before
+        the next step (the next trace sees it). A bad edit raises here and queues
+        nothing; the edits already queued are untouched."""
+        self.validate_edit(edit)
         self._pending_edits.append(edit)
 
     def _apply_pending(self) -> None:
         edits, self._pending_edits = self._pending_edits, []
         for e in edits:
-            if e.op == "move" and e.target in self.ap_poses:
-                self._move_access_point(e)
-            elif e.op == "move" and e.target in self.agents:
-                self._teleport_robot(e)
-            elif e.op == "move":
-                self.scene.move_object(e.target, e.position, e.orientation)
-            elif e.op == "material":
-                self.scene.set_material(e.target, e.material, e.thickness)
-            elif e.op == "remove":
-                self.scene.remove_object(e.target)
-            elif e.op == "add":
-                self.scene.add_object(e.target, e.mesh_file, e.material, e.thickness or 0.1)
-            log.info("applied edit %s %s; scene hash now %s", e.op, e.target,
-                     self.scene.content_hash()[:12])
+            try:
+                self._apply_one(e)
+            except (KeyError, ValueError, OSError) as exc:
+                # Validated when queued, but an earlier edit of the same batch can
+                # invalidate a later one (remove, then move): skip only that one.
+                log.error("edit %s %r not applied: %s", e.op, e.target, exc)
         if edits:
             for name in self.stale_databases():
                 log.warning("database %s was built before this edit of the room and is "
                             "stale: rebuild it (e.g. `isac-twin grid`)", name)
+
+    def _apply_one(self, e: Edit) -> None:
+        if e.op == "move" and e.target in self.ap_poses:
+            self._move_access_point(e)
+        elif e.op == "move" and e.target in self.agents:
+            self._teleport_robot(e)
+        elif e.op == "move":
+            self.scene.move_object(e.target, e.position, e.orientation)
+        elif e.op == "material":
+            self.scene.set_material(e.target, e.material, e.thickness)
+        elif e.op == "remove":
+            self.scene.remove_object(e.target)
+        elif e.op == "add":
+            self.scene.add_object(e.target, e.mesh_file, e.material, e.thickness or 0.1)
+        log.info("applied edit %s %s; scene hash now %s", e.op, e.target,
+                 self.scene.content_hash()[:12])
 
     def _move_access_point(self, e: Edit) -> None:
         pos, ori = self.ap_poses[e.target]

@@ -116,11 +116,37 @@ def test_commands_and_bad_input(lab):
         tw.set_path("r2", {"kind": "circle", "centre": [3, 2], "radius": 1})
     with pytest.raises(ValueError, match="outside|leaves|room"):
         tw.set_path("robot1", {"kind": "circle", "centre": [3, 2], "radius": 5})
-    with pytest.raises(ValueError, match="unknown op 'explode'"):
+    with pytest.raises(ValueError, match="edit explode 'cabinet': op"):
         tw.apply_edit(Edit(op="explode", target="cabinet"))
-    tw.apply_edit(Edit(op="material", target="cabinet", material="floorboard"))
-    with pytest.raises(ValueError, match="floorboard.*not defined at 2.4 GHz"):
-        tw.step()
+    with pytest.raises(ValueError, match="material: 'floorboard' is not defined at 2.4 GHz"):
+        tw.apply_edit(Edit(op="material", target="cabinet", material="floorboard"))
+    tw.step()  # the rejected edits were never queued: the twin keeps stepping
+
+
+@pytest.mark.parametrize("bad, field", [
+    (Edit(op="move", target="cabinet", position=(float("nan"), 1.0, 0.9)), "position"),
+    (Edit(op="move", target="cabinet", position=(1e308, 1.0, 0.9)), "position"),
+    (Edit(op="move", target="sofa", position=(1.0, 1.0, 0.9)), "target"),
+    (Edit(op="material", target="cabinet", material="unobtainium"), "material"),
+    (Edit(op="material", target="cabinet", material="wood", thickness=-0.1), "thickness"),
+    (Edit(op="material", target="cabinet", material="wood", thickness=float("inf")),
+     "thickness"),
+    (Edit(op="move", target="AP1", orientation=(0.0, float("inf"), 0.0)), "orientation"),
+])
+def test_a_bad_edit_between_two_good_ones_loses_neither(lab, bad, field):
+    """Issue 15, 'no edit lost': the bad edit is refused when queued, naming the edit
+    and the field; the good edits before and after it are both applied. (Before, a
+    bad edit was queued, failed inside the next step, and the step's exception
+    discarded every edit queued with it.)"""
+    tw = Twin.from_scene(lab, seed=1, phy=False)
+    tw.apply_edit(Edit(op="move", target="cabinet", position=(4.0, 1.0, 0.9)))
+    with pytest.raises(ValueError, match=rf"edit {bad.op} '{bad.target}': {field}"):
+        tw.apply_edit(bad)
+    tw.apply_edit(Edit(op="material", target="cabinet", material="wood", thickness=0.05))
+    tw.step()
+    assert tw.scene.object_poses["cabinet"][:3] == pytest.approx([4.0, 1.0, 0.9])
+    assert tw.scene.objects["cabinet"].material == "wood"
+    assert tw.scene.objects["cabinet"].thickness == pytest.approx(0.05)
 
 
 def test_moving_devices_by_edit(lab):
@@ -135,9 +161,8 @@ def test_moving_devices_by_edit(lab):
     d1 = r.links[("AP1", "robot1")].paths.los_delay
     expect = np.linalg.norm(np.array([4.0, 3.0, 0.25]) - [1.0, 2.0, 2.0]) / 299792458.0
     assert d1 == pytest.approx(expect, rel=1e-3) and d1 != pytest.approx(d0, rel=1e-3)
-    tw.apply_edit(Edit(op="move", target="AP1", position=(9.0, 2.0, 2.0)))
-    with pytest.raises(ValueError, match="move 'AP1'.*outside the room"):
-        tw.step()
+    with pytest.raises(ValueError, match="edit move 'AP1': position.*outside the room"):
+        tw.apply_edit(Edit(op="move", target="AP1", position=(9.0, 2.0, 2.0)))
 
 
 def test_hooks_state_source_and_trace_schedule(lab):
