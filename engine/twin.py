@@ -33,7 +33,8 @@ from engine.pose import DevicePose, antenna_pose
 from engine.raytrace import make_tracer
 from engine.robots import SensorOptions, build_robots
 from engine.robots.control import controller_from_spec
-from engine.scene import TwinScene, itu_defined_at, itu_materials, load_scene
+from engine.scene import (BOUNDS_TOLERANCE_M, TwinScene, itu_defined_at, itu_materials,
+                          load_scene)
 from engine.state import Command, Edit, LinkState, RobotState, StepResult
 
 log = logging.getLogger(__name__)
@@ -226,17 +227,22 @@ class Twin:
         objects = self.scene.objects
         devices = set(self.ap_poses) | set(self.agents)
 
-        def triple(field, value, inside=False):
+        def triple(field, value, margin=None):
             try:
                 v = np.asarray(value, dtype=np.float64).reshape(-1)
             except (TypeError, ValueError):
                 v = np.zeros(0)
             if v.shape != (3,) or not np.isfinite(v).all():
                 raise ValueError(f"{what}: {field}: expected 3 finite numbers, got {value!r}")
-            if inside and not self.scene.contains(v):
-                raise ValueError(f"{what}: {field}: {v.tolist()} lies outside the room's "
-                                 f"extent {list(self.scene.bounds_min)}..."
-                                 f"{list(self.scene.bounds_max)} m")
+            if margin is None:
+                return
+            lo = np.asarray(self.scene.bounds_min, float) - margin
+            hi = np.asarray(self.scene.bounds_max, float) + margin
+            if not (np.all(v >= lo) and np.all(v <= hi)):
+                where = ("the room's extent" if margin == 0 else
+                         f"the room's extent grown by {margin:.3g} m")
+                raise ValueError(f"{what}: {field}: {v.tolist()} lies outside {where} "
+                                 f"{np.round(lo, 3).tolist()}..{np.round(hi, 3).tolist()} m")
 
         def material(required):
             if edit.material is None and not required:
@@ -264,7 +270,12 @@ class Twin:
             if edit.position is None and edit.orientation is None:
                 raise ValueError(f"{what}: position/orientation: give at least one")
             if edit.position is not None:
-                triple("position", edit.position, inside=True)
+                # Devices stay in the room. An object may move out (a wall moved
+                # outwards grows the room), by at most the room's diagonal.
+                diag = float(np.linalg.norm(np.subtract(self.scene.bounds_max,
+                                                        self.scene.bounds_min)))
+                triple("position", edit.position,
+                       margin=BOUNDS_TOLERANCE_M if edit.target in devices else diag)
             if edit.orientation is not None:
                 triple("orientation", edit.orientation)
             return
