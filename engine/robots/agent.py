@@ -160,15 +160,8 @@ class RobotAgent:
             out["joint_states"] = js
             if "odom" in self.topics:
                 out["odom"] = self.odometry.update(js)
-        for key, sensor in (("imu", self.imu), ("scan", self.lidar),
-                            ("camera/depth", self.camera)):
-            if sensor is not None:
-                m = sensor.poll(t, st)
-                if m is not None:
-                    out[key] = m
-        for key, msg in out.items():
-            self.node.publish(self.topics[key], msg)
-        self.last.update(out)
+        self._sample_and_publish(out, (("imu", self.imu), ("scan", self.lidar),
+                                       ("camera/depth", self.camera)), t, st)
         if control:
             self.control()
         return out
@@ -188,7 +181,14 @@ class RobotAgent:
             "ground_truth": PoseStamped(header=Header(stamp=t, frame_id="map"),
                                         pose=Pose(position=st.position,
                                                   orientation=st.quaternion()))}
-        for key, sensor in (("scan", self.lidar), ("camera/depth", self.camera)):
+        return self._sample_and_publish(
+            out, (("scan", self.lidar), ("camera/depth", self.camera)), t, st)
+
+    def _sample_and_publish(self, out: dict[str, object], sensors, t: float,
+                            st) -> dict[str, object]:
+        """Poll the due ``(topic key, sensor)`` pairs into ``out``, publish all of
+        ``out`` and remember it as the last messages; returns ``out``."""
+        for key, sensor in sensors:
             if sensor is not None and key in self.topics:
                 m = sensor.poll(t, st)
                 if m is not None:
