@@ -41,9 +41,10 @@ import engine  # noqa: E402,F401 - configures LLVM before mitsuba
 from engine.paths import bundled_scene_dir  # noqa: E402
 from engine.raytrace.base import device_poses, sionna_orientation  # noqa: E402
 from engine.raytrace.grid import (DEFAULT_CHUNK_SIZE, GRID_SPEC_TABLE_SIZE,  # noqa: E402
-                                  VERIFY_TOP_N, _top_missing, free_points, grid_points,
-                                  grid_summary, save_grid, trace_grid)
-from engine.raytrace.sionna import SolverCore  # noqa: E402
+                                  VERIFY_TOP_N, grid_points, grid_summary, save_grid,
+                                  top_missing, trace_grid)
+from engine.raytrace.raw import free_points  # noqa: E402
+from engine.raytrace.solver_core import SolverCore  # noqa: E402
 from engine.scene import load_scene  # noqa: E402
 
 OLD_CHUNK = 16
@@ -133,8 +134,8 @@ def main(argv=None) -> int:
         for s in range(len(tx_names)):
             ref = raw.link(0, s)
             for way, res in (("old", res_old), ("new", res_new)):
-                m, c = _top_missing(ref, res[int(i)][s], VERIFY_TOP_N)
-                ma, ca = _top_missing(ref, res[int(i)][s], 10 ** 9)
+                m, c = top_missing(ref, res[int(i)][s], VERIFY_TOP_N)
+                ma, ca = top_missing(ref, res[int(i)][s], 10 ** 9)
                 t = tally[way]
                 t[0] += m
                 t[1] += c

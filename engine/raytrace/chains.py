@@ -48,13 +48,17 @@ import logging
 
 import numpy as np
 
-from engine.raytrace.base import TruncationError
+from engine.raytrace.base import INTERACTION_REFRACTION, INTERACTION_SPECULAR, TruncationError
+from engine.raytrace.planes import PlaneIndex
+from engine.raytrace.raw import RawPaths, concat_targets, free_points, to_points
+from engine.raytrace.solver_core import (buffer_columns, chain_buffer, gather_pairs,
+                                         pinned_spec_table)
 
 log = logging.getLogger(__name__)
 
 #: Bumped whenever a change of this module changes which paths are found;
 #: stored in grid metadata so that caches traced by another version are rebuilt.
-CHAIN_REUSE_VERSION = 1
+CHAIN_REUSE_VERSION = 2
 
 #: Default spacing of the probe lattice, m.
 DEFAULT_PROBE_SPACING = 0.5
@@ -62,6 +66,11 @@ DEFAULT_PROBE_SPACING = 0.5
 #: Candidate-target pairs evaluated per image-method call (bounds memory:
 #: ~150 B per pair).
 MAX_PAIRS_PER_CALL = 400_000
+
+#: Tolerance (in cells) within which a point counts as on a probe-lattice line:
+#: 1e-5 cells is 5 um at 0.5 m spacing, ~10 x the float32 rounding of a
+#: coordinate in a 10 m room.
+LATTICE_SNAP = 1e-5
 
 #: Probes per candidate-generator call.
 PROBES_PER_CALL = 64
@@ -99,18 +108,29 @@ def chains_supported(config) -> bool:
 class ChainStore:
     """Distinct candidate specular chains for fixed sources in a fixed scene.
 
-    A chain is identified by its source index and, per depth, the interaction
-    type, shape and primitive (``[S] + 3 x [D]`` unsigned integers).
+    A chain is identified as Sionna's generator identifies it: by its source
+    index and, per depth, the interaction type and, for a specular reflection,
+    the reflection *plane* (:class:`~engine.raytrace.planes.PlaneIndex`);
+    which triangle of a plane was hit, and which surface a transmission went
+    through, are not part of it (Sionna's image method finds the path through
+    any coplanar triangle and whatever surfaces the segments cross). Keying by
+    triangle instead made chains found by different probes through different
+    triangles of one wall the same path, two or three times (issue 12).
+
+    A stored specular interaction carries its plane's canonical triangle and
+    point, so a chain's evaluation does not depend on which probe found it.
 
     Args:
         max_depth: the solver's ``max_depth`` (``D = max(1, max_depth)``).
+        planes: the scene's :class:`~engine.raytrace.planes.PlaneIndex`.
     """
 
     _FIELDS = ("src", "types", "shapes", "prims", "probs", "vx", "vy", "vz", "k_tx")
 
-    def __init__(self, max_depth: int):
+    def __init__(self, max_depth: int, planes):
         self.max_depth = int(max_depth)
         self.depth = max(1, self.max_depth)
+        self.planes = planes
         self._index: dict[bytes, int] = {}
         self._chunks: list[dict[str, np.ndarray]] = []
         self._cols: dict[str, np.ndarray] | None = None
@@ -133,15 +153,8 @@ class ChainStore:
         d = self.depth
         if n == 0:
             return [np.zeros(0, np.int64) for _ in range(num_targets)]
-        import drjit as dr
-
-        cols = [buf.source_indices, buf.target_indices, buf.valid,
-                buf.interaction_types.array, buf.shapes.array, buf.primitives.array,
-                buf.probs.array, buf.vertices_x.array, buf.vertices_y.array,
-                buf.vertices_z.array, *buf.k_tx]
-        dr.eval(*cols)
         (src, tgt, valid, types, shapes, prims, probs, vx, vy, vz, kx, ky, kz) = \
-            [np.asarray(c.numpy()) for c in cols]
+            buffer_columns(buf)
         cand = np.flatnonzero(~valid.astype(bool))
         f = {"src": src.astype(np.uint32)[cand],
              "types": types.reshape(n, d)[cand].astype(np.uint32),
@@ -152,8 +165,7 @@ class ChainStore:
              "vz": vz.reshape(n, d)[cand],
              "k_tx": np.stack([kx, ky, kz], 1)[cand].astype(np.float32)}
         tgt = tgt.astype(np.int64)[cand]
-        rows = np.ascontiguousarray(np.concatenate(
-            [f["src"][:, None], f["types"], f["shapes"], f["prims"]], axis=1))
+        rows = self._keys(f)
         keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).ravel()
         uniq, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
         ids = np.empty(len(uniq), np.int64)
@@ -172,6 +184,35 @@ class ChainStore:
             self._buffer = None
         gid = ids[inverse.ravel()]
         return [np.unique(gid[tgt == t]) for t in range(num_targets)]
+
+    def _keys(self, f: dict[str, np.ndarray]) -> np.ndarray:
+        """Identity rows ``[C, 1 + 2 D]`` uint32 of chains ``f`` (source, types,
+        plane + 1 of each specular interaction, else 0); canonicalizes the
+        specular interactions of ``f`` in place."""
+        types = f["types"]
+        spec = types == INTERACTION_SPECULAR
+        plane = self.planes.planes_of(f["shapes"], f["prims"])
+        if np.any(spec & (plane < 0)):
+            bad = np.argwhere(spec & (plane < 0))[0]
+            raise ValueError(f"chain {bad[0]}: specular interaction at depth {bad[1] + 1} on "
+                             f"shape id {f['shapes'][tuple(bad)]}, primitive "
+                             f"{f['prims'][tuple(bad)]}, which is no triangle of the scene")
+        pid = np.where(spec, plane, 0)
+        f["shapes"] = np.where(spec, self.planes.canonical_shape[pid], f["shapes"])
+        f["prims"] = np.where(spec, self.planes.canonical_prim[pid], f["prims"])
+        point = self.planes.canonical_point[pid]
+        for i, k in enumerate(("vx", "vy", "vz")):
+            f[k] = np.where(spec, point[..., i], f[k]).astype(np.float32)
+        # A transmission is identified by its type only; its stored surface
+        # would be the first-seen probe's (only the image method's offset of
+        # the ray target along that surface's normal reads it). None (a null
+        # shape: Sionna's primitive lookups return zeros for it) keeps the
+        # evaluation independent of which probe found the chain.
+        refr = types == INTERACTION_REFRACTION
+        f["shapes"] = np.where(refr, 0, f["shapes"]).astype(np.uint32)
+        f["prims"] = np.where(refr, 0, f["prims"]).astype(np.uint32)
+        ident = np.where(spec, plane + 1, 0).astype(np.uint32)
+        return np.ascontiguousarray(np.concatenate([f["src"][:, None], types, ident], axis=1))
 
     def columns(self) -> dict[str, np.ndarray]:
         """All chains as numpy columns (``src [C]``, ``types/shapes/prims [C, D]``, ...)."""
@@ -195,40 +236,7 @@ class ChainStore:
         ``len(self)`` on are empty chains (no interaction): the slots a
         line-of-sight path is written into."""
         if self._buffer is None:
-            import drjit as dr
-            import mitsuba as mi
-
-            from sionna.rt.constants import (INVALID_PRIMITIVE, INVALID_SHAPE,
-                                             InteractionType)
-            from sionna.rt.path_solvers.paths_buffer import PathsBuffer
-
-            c = self.columns()
-            # Room for at least one empty entry; the size is rounded up to a
-            # power of two so that a growing store rarely changes the buffer
-            # size (Dr.Jit recompiles kernels that gather from it when it does).
-            d = self.depth
-            n = max(1024, 1 << len(c["src"]).bit_length())
-            empty = {"src": 0, "types": int(InteractionType.NONE), "shapes": INVALID_SHAPE,
-                     "prims": INVALID_PRIMITIVE, "probs": 0.0, "vx": 0.0, "vy": 0.0,
-                     "vz": 0.0, "k_tx": 0.0}
-            col = {k: np.concatenate([v, np.full((n - len(v),) + v.shape[1:], empty[k],
-                                                 v.dtype)])
-                   for k, v in c.items()}
-            b = PathsBuffer(n, self.max_depth, False)
-            t = lambda k, cls: cls(col[k].ravel(), shape=(n, d))  # noqa: E731
-            b._src_indices = mi.UInt(col["src"])
-            b._interaction_types = t("types", mi.TensorXu)
-            b._shapes = t("shapes", mi.TensorXu)
-            b._primitives = t("prims", mi.TensorXu)
-            b._probs = t("probs", mi.TensorXf)
-            b._vertices_x = t("vx", mi.TensorXf)
-            b._vertices_y = t("vy", mi.TensorXf)
-            b._vertices_z = t("vz", mi.TensorXf)
-            b._k_tx_x, b._k_tx_y, b._k_tx_z = (
-                mi.Float(np.ascontiguousarray(col["k_tx"][:, i])) for i in range(3))
-            b._paths_counter = mi.UInt(n)
-            dr.eval(b._src_indices, b._interaction_types, b._shapes, b._primitives)
-            self._buffer = b
+            self._buffer = chain_buffer(self.columns(), self.max_depth)
         return self._buffer
 
     def pairs(self, chain_idx: np.ndarray, target_idx: np.ndarray, spare: int = 0):
@@ -238,23 +246,7 @@ class ChainStore:
         buffer's ``paths_counter`` is the number of candidates, so a generator
         stage can append there, e.g. Sionna's line-of-sight test).
         """
-        import drjit as dr
-        import mitsuba as mi
-
-        n = len(chain_idx)
-        idx = np.concatenate([np.asarray(chain_idx, np.int64),
-                              np.full(int(spare), len(self), np.int64)]).astype(np.uint32)
-        b = self.buffer().gather(mi.UInt(idx))
-        b._tgt_indices = mi.UInt(np.concatenate([np.asarray(target_idx, np.uint32),
-                                                 np.zeros(int(spare), np.uint32)]))
-        b._valid = dr.full(mi.Bool, False, len(idx))
-        b._paths_counter = mi.UInt(n)
-        # Evaluated arrays: a stage that scatters into them (the LoS test's
-        # scatter_inc on the counter) must not be split across kernels.
-        dr.make_opaque(b._valid, b._paths_counter, b._tgt_indices)
-        b.schedule()
-        dr.eval()
-        return b
+        return gather_pairs(self.buffer(), len(self), chain_idx, target_idx, spare)
 
 
 class ChainTracer:
@@ -299,7 +291,9 @@ class ChainTracer:
 
     def reset(self) -> None:
         """Forget all probes and chains."""
-        self.store = ChainStore(self.core.config.max_depth)
+        #: The chains (:class:`ChainStore`), made for the scene at the first
+        #: :meth:`prepare` after a reset.
+        self.store: ChainStore | None = None
         self._probes: dict[tuple, np.ndarray | None] = {}
         self._cells: dict[tuple, np.ndarray] = {}
         #: Probes traced (candidate generator runs, one target each) since the reset.
@@ -309,7 +303,10 @@ class ChainTracer:
 
     def _lattice(self, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         s = self.probe_spacing
-        ij = np.floor(targets[:, :2] / s + 1e-9).astype(np.int64)
+        # A point on a lattice line belongs to the cell above it, also when its
+        # coordinate carries float32 rounding (grid origins come from Mitsuba's
+        # float32 bounding box: x = 0.99999994 is on the line x = 1.0).
+        ij = np.floor(targets[:, :2] / s + LATTICE_SNAP).astype(np.int64)
         zk = np.round(targets[:, 2] * 1000.0).astype(np.int64)  # mm
         return ij, zk
 
@@ -320,9 +317,6 @@ class ChainTracer:
         ``check_free``: skip points that are not in free space (lattice nodes
         inside furniture or outside the room)."""
         import mitsuba as mi
-
-        from engine.raytrace.grid import free_points
-        from engine.raytrace.sionna import _points, _spec_table_size
 
         free = free_points(sc, points) if len(points) and check_free else \
             np.ones(len(points), bool)
@@ -341,8 +335,8 @@ class ChainTracer:
             # is truncation: split the probes, then grow the cap.
             buf_cap = min(self.cap, max(4096, 1 << int(2048 * len(part) - 1).bit_length()))
             while True:
-                with _spec_table_size(table):
-                    buf = core.generate(sc.mi_scene, src, _points(pts, len(pts), mi.Point3f),
+                with pinned_spec_table(table):
+                    buf = core.generate(sc.mi_scene, src, to_points(pts, len(pts), mi.Point3f),
                                         buf_cap, los=False)
                 counts = core.last_counts
                 if counts.max(initial=0) < buf_cap or len(part) > 1 and buf_cap >= self.cap:
@@ -386,8 +380,6 @@ class ChainTracer:
         5 cm lab grid missed 1,793 instead of 656 of the direct grid's
         strongest-24 paths (of 793,058).
         """
-        from engine.raytrace.grid import free_points
-
         s = self.probe_spacing
         keys, cand = [], []
         for (i, j, z) in cells:
@@ -425,9 +417,9 @@ class ChainTracer:
         if isinstance(src, np.ndarray):
             import mitsuba as mi
 
-            from engine.raytrace.sionna import _points
-
-            src = _points(src, len(src), mi.Point3f)
+            src = to_points(src, len(src), mi.Point3f)
+        if self.store is None:
+            self.store = ChainStore(self.core.config.max_depth, PlaneIndex(sc.mi_scene))
         s = self.probe_spacing
         ij, zk = self._lattice(targets)
         cells = [(int(i), int(j), int(z)) for (i, j), z in zip(ij, zk)]
@@ -489,10 +481,7 @@ class ChainTracer:
             link in no particular order; ``candidates_per_source`` counts the
             chains in the store.
         """
-        import drjit as dr
         import mitsuba as mi
-
-        from engine.raytrace.sionna import RawPaths, _points
 
         sources = np.asarray(sources, np.float64).reshape(-1, 3)
         targets = np.asarray(targets, np.float64).reshape(-1, 3)
@@ -502,9 +491,9 @@ class ChainTracer:
             self._context = ctx
         core = self.core
         ns, nt = len(sources), len(targets)
-        src = _points(sources, ns, mi.Point3f)
-        src_o = _points(source_orientations, ns, mi.Point3f)
-        v_tx = _points(source_velocities, ns, mi.Vector3f)
+        src = to_points(sources, ns, mi.Point3f)
+        src_o = to_points(source_orientations, ns, mi.Point3f)
+        v_tx = to_points(source_velocities, ns, mi.Vector3f)
         tgt_o_all = np.zeros((nt, 3)) if target_orientations is None else \
             np.asarray(target_orientations, float).reshape(nt, 3)
         v_rx_all = np.zeros((nt, 3)) if target_velocities is None else \
@@ -528,9 +517,9 @@ class ChainTracer:
         for g in groups:
             g = np.asarray(g)
             pos = targets[g]
-            tgt = _points(pos, len(g), mi.Point3f)
-            tgt_o = _points(tgt_o_all[g], len(g), mi.Point3f)
-            v_rx = _points(v_rx_all[g], len(g), mi.Vector3f)
+            tgt = to_points(pos, len(g), mi.Point3f)
+            tgt_o = to_points(tgt_o_all[g], len(g), mi.Point3f)
+            v_rx = to_points(v_rx_all[g], len(g), mi.Vector3f)
             chain_idx = np.concatenate([per_target[t] for t in g])
             tgt_idx = np.repeat(np.arange(len(g)), [len(per_target[t]) for t in g])
             los = ns * len(g) if core.config.los else 0
@@ -539,25 +528,11 @@ class ChainTracer:
                 continue
             buf = self.store.pairs(chain_idx, tgt_idx, spare=los)
             if los:  # Sionna's LoS test appends the visible LoS paths as valid entries
-                core.candidate_generator._los(sc.mi_scene, src, tgt, buf,
-                                              dr.zeros(mi.UInt, ns), None)
+                core.los_test(sc.mi_scene, src, tgt, buf)
             buf.shrink()
             results.append(core.evaluate(buf, sc.mi_scene, sc.wavelength, src, tgt, src_o,
                                          tgt_o, v_tx, v_rx, pattern, pattern, counts, cap,
                                          depth=depth))
         if len(results) == 1:
             return results[0]
-        return _concat_targets(results)
-
-
-def _concat_targets(parts):
-    """Join :class:`RawPaths` of consecutive target groups (pads the path axis)."""
-    from engine.raytrace.grid import _pad
-    from engine.raytrace.sionna import RawPaths
-
-    p = max(r.valid.shape[2] for r in parts)
-    kw = {k: np.concatenate([_pad(getattr(r, k), p) for r in parts], axis=0)
-          for k in ("valid", "a", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r",
-                    "interactions", "vertices")}
-    return RawPaths(**kw, candidates_per_source=parts[0].candidates_per_source,
-                    cap=parts[0].cap)
+        return concat_targets(results)

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from engine.raytrace.raw import find_repeats, match_paths
 from engine.raytrace.base import (INTERACTION_DIFFRACTION, INTERACTION_DIFFUSE,
                                   INTERACTION_NONE, INTERACTION_REFRACTION,
                                   INTERACTION_SPECULAR, SPEED_OF_LIGHT, DevicePose, Link,
@@ -257,4 +258,258 @@ def check_tracer(tracer, scene, poses: Mapping[str, DevicePose] | None = None,
                         str(exc))
     if raise_on_failure and not rep.passed:
         raise AssertionError("tracer conformance failed:\n" + str(rep))
+    return rep
+
+
+# --------------------------------------------------------------- exact path sets
+
+@dataclass
+class PathSetComparison:
+    """One link traced by a backend against Sionna's own solver (see :func:`compare_path_sets`).
+
+    Attributes:
+        link: ``(tx, rx)``.
+        position: the receiver's array centre, m.
+        repeats: pairs of repeated paths in the backend's result.
+        missing_db: ``[M]`` dB relative to the link's strongest reference path,
+            of each reference path the backend lacks.
+        extra_db: likewise for backend paths the reference lacks.
+        cfr_error: relative Frobenius error of the backend's eq.-4 channel
+            against Sionna's ``Paths.cfr`` (single isotropic elements), NaN when
+            the two path sets differ.
+    """
+
+    link: Link
+    position: np.ndarray
+    repeats: list
+    missing_db: np.ndarray
+    extra_db: np.ndarray
+    cfr_error: float
+
+
+class SionnaReference:
+    """Sionna RT's own ``PathSolver`` and ``Paths.cfr`` on a fresh copy of a
+    scene file: the independent reference for :func:`compare_path_sets`.
+
+    Uses only Sionna's public API: ``load_scene(merge_shapes=False)``,
+    ``Transmitter``/``Receiver`` with single isotropic V elements,
+    ``PathSolver(deterministic=True)`` with ``synthetic_array=True``, one
+    receiver per call (Sionna's per-call chain de-duplication table is then
+    never shared between receivers).
+
+    Args:
+        scene: the :class:`~engine.scene.TwinScene` (its file is reloaded; edits
+            made to the live scene are not seen).
+        samples_per_src: rays per source of the reference (e.g. 1e6 or 1e7).
+    """
+
+    def __init__(self, scene, samples_per_src: int):
+        import engine._llvm
+
+        engine._llvm.configure_llvm()
+        import sionna.rt as rt
+
+        cfg = scene.config
+        self.config = cfg
+        self.samples_per_src = int(samples_per_src)
+        self.sc = rt.load_scene(str(cfg.scene.file), merge_shapes=False)
+        self.sc.frequency = cfg.scene.frequency_hz
+        arr = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
+        self.sc.tx_array = self.sc.rx_array = arr
+        self.solver = rt.PathSolver(deterministic=True)
+        self._rt = rt
+
+    def __call__(self, tx: DevicePose, rx: DevicePose, freqs_hz: np.ndarray):
+        """Paths of one link and Sionna's channel ``[S]`` at baseband ``freqs_hz``.
+
+        Returns:
+            ``(LinkPaths, cfr [S] complex128)``.
+        """
+        from engine.raytrace.base import sionna_orientation
+
+        rt, sc, t = self._rt, self.sc, self.config.tracer
+        for n in list(sc.transmitters) + list(sc.receivers):
+            sc.remove(n)
+        sc.add(rt.Transmitter("ref-tx", position=tx.position,
+                              orientation=sionna_orientation(tx.orientation)))
+        sc.add(rt.Receiver("ref-rx", position=rx.position,
+                           orientation=sionna_orientation(rx.orientation)))
+        p = self.solver(sc, max_depth=t.max_depth, max_num_paths_per_src=t.max_num_paths_per_src,
+                        samples_per_src=self.samples_per_src, synthetic_array=True, los=t.los,
+                        specular_reflection=t.specular_reflection,
+                        diffuse_reflection=t.diffuse_reflection, refraction=t.refraction,
+                        diffraction=t.diffraction, seed=t.seed)
+        h = np.asarray(p.cfr(frequencies=np.asarray(freqs_hz, np.float32),
+                             normalize_delays=False, out_type="numpy"), np.complex128)
+        valid = np.asarray(p.valid.numpy(), bool).reshape(-1)
+        ar, ai = p.a
+        a = (np.asarray(ar.numpy(), np.float64) + 1j * np.asarray(ai.numpy(), np.float64))
+        f = lambda x: np.asarray(x.numpy(), np.float64).reshape(-1)[valid]  # noqa: E731
+        inter = np.asarray(p.interactions.numpy()).reshape(t.max_depth or 1, -1).T[valid]
+        vert = np.asarray(p.vertices.numpy(), np.float64).reshape(t.max_depth or 1, -1, 3)
+        vert = np.moveaxis(vert, 0, 1)[valid]
+        vert[inter == 0] = 0.0
+        tau = f(p.tau)
+        order = np.argsort(tau, kind="stable")
+        lp = LinkPaths(tx="ref-tx", rx="ref-rx", tx_position=np.asarray(tx.position, float),
+                       rx_position=np.asarray(rx.position, float),
+                       tx_orientation=np.asarray(tx.orientation, float),
+                       rx_orientation=np.asarray(rx.orientation, float),
+                       frequency_hz=float(self.config.scene.frequency_hz),
+                       a=a.reshape(-1)[valid][order], tau=tau[order],
+                       doppler=np.zeros(len(tau)), theta_t=f(p.theta_t)[order],
+                       phi_t=f(p.phi_t)[order], theta_r=f(p.theta_r)[order],
+                       phi_r=f(p.phi_r)[order], vertices=vert[order],
+                       interactions=inter[order].astype(np.int32))
+        return lp, h.reshape(-1)
+
+
+def link_cfr(lp: LinkPaths, freqs_hz: np.ndarray) -> np.ndarray:
+    """The engine's eq.-4 channel of ``lp`` for single isotropic elements ``[S]``."""
+    from engine.phy.arrays import PlanarArray
+    from engine.phy.channel import baseband_gains, cfr_at
+
+    one = PlanarArray(1, 1)
+    b = baseband_gains(lp.a, lp.tau, lp.frequency_hz)
+    return cfr_at(b, lp.tau, lp.theta_r, lp.phi_r, lp.theta_t, lp.phi_t, freqs_hz,
+                  one, one)[:, 0, 0]
+
+
+def robot_points(scene, n: int, height: float, *, clearance: float = 0.11, seed: int = 0,
+                 lattice: float | None = None) -> np.ndarray:
+    """``n`` random floor points where a robot fits, plus points on probe-lattice lines.
+
+    A point qualifies when it is in free space (:func:`~engine.raytrace.raw.free_points`)
+    and no surface lies within ``clearance`` m of it horizontally (16 rays) at
+    ``height`` and at 5 cm above the floor (a TurtleBot3 burger's footprint
+    radius is 0.105 m). With ``lattice`` (the probe spacing, m), up to 4 more
+    such points lie exactly on lattice lines (x, y or both a multiple of it).
+
+    Returns:
+        ``[n (+ up to 4), 3]`` m.
+    """
+    import mitsuba as mi
+
+    from engine.raytrace.raw import free_points
+
+    lo, hi = np.asarray(scene.bounds_min, float), np.asarray(scene.bounds_max, float)
+    floor = float(lo[2])
+    rng = np.random.default_rng(seed)
+    ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    dirs = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1)
+
+    def fits(q) -> bool:
+        if not free_points(scene.sionna, q[None])[0]:
+            return False
+        for z in (height, floor + 0.05):
+            o = np.repeat([[q[0], q[1], z]], len(dirs), 0).astype(np.float32)
+            ray = mi.Ray3f(mi.Point3f(*(mi.Float(o[:, i]) for i in range(3))),
+                           mi.Vector3f(*(mi.Float(dirs[:, i].astype(np.float32))
+                                         for i in range(3))))
+            ray.maxt = clearance
+            if np.asarray(scene.sionna.mi_scene.ray_test(ray).numpy()).any():
+                return False
+        return True
+
+    pts: list[np.ndarray] = []
+    tries = 0
+    while len(pts) < n:
+        tries += 1
+        if tries > 200 * max(n, 1):
+            raise ValueError(f"found only {len(pts)} of {n} points with {clearance} m "
+                             "clearance in the scene")
+        q = np.r_[rng.uniform(lo[:2], hi[:2]), height]
+        if fits(q):
+            pts.append(q)
+    if lattice:
+        extra = []
+        for q in pts:
+            snapped = [np.r_[np.round(q[0] / lattice) * lattice, q[1], height],
+                       np.r_[q[0], np.round(q[1] / lattice) * lattice, height],
+                       np.r_[np.round(q[:2] / lattice) * lattice, height]]
+            extra += [c for c in snapped if fits(c)]
+            if len(extra) >= 4:
+                break
+        pts += extra[:4]
+    return np.asarray(pts)
+
+
+def compare_path_sets(results: Iterable[Mapping[Link, LinkPaths]], reference: SionnaReference,
+                      freqs_hz: np.ndarray | None = None,
+                      cache: dict | None = None) -> list[PathSetComparison]:
+    """Each link of each backend result against Sionna's own trace of it.
+
+    Args:
+        results: backend outputs ``{(tx, rx): LinkPaths}`` (e.g. one per
+            receiver position).
+        reference: the :class:`SionnaReference` (its ray count decides what
+            "complete" means).
+        freqs_hz: baseband subcarrier offsets for the channel comparison
+            (default: 64 offsets over +-40 MHz).
+        cache: a dict that keeps reference traces between calls (keyed by the
+            two poses; the same ``freqs_hz`` must be used).
+    """
+    if freqs_hz is None:
+        freqs_hz = np.linspace(-40e6, 40e6, 64)
+    out = []
+    for res in results:
+        for lk, lp in res.items():
+            tx = DevicePose(lp.tx_position, lp.tx_orientation)
+            rx = DevicePose(lp.rx_position, lp.rx_orientation)
+            key = (tuple(np.round(tx.position, 9)), tuple(np.round(tx.orientation, 9)),
+                   tuple(np.round(rx.position, 9)), tuple(np.round(rx.orientation, 9)))
+            if cache is not None and key in cache:
+                ref, h_ref = cache[key]
+            else:
+                ref, h_ref = reference(tx, rx, freqs_hz)
+                if cache is not None:
+                    cache[key] = (ref, h_ref)
+            top = float(np.abs(ref.a).max(initial=0.0)) or 1.0
+            m = match_paths(lp, ref)
+            hit = np.zeros(lp.num_paths, bool)
+            hit[m[m >= 0]] = True
+            db = lambda a: 20 * np.log10(np.maximum(np.abs(a), 1e-300) / top)  # noqa: E731
+            missing, extra = db(ref.a[m < 0]), db(lp.a[~hit])
+            err = math.nan
+            if missing.size == 0 and extra.size == 0:
+                h = link_cfr(lp, freqs_hz)
+                err = float(np.linalg.norm(h - h_ref) / max(np.linalg.norm(h_ref), 1e-300))
+            out.append(PathSetComparison(lk, np.asarray(lp.rx_position, float),
+                                         find_repeats(lp), missing, extra, err))
+    return out
+
+
+def check_path_sets(comparisons: list[PathSetComparison], *, within_db: float = 40.0,
+                    cfr_rtol: float = 1e-4) -> ConformanceReport:
+    """The verdicts on :func:`compare_path_sets`' output.
+
+    * ``repeats``: no link has a repeated path;
+    * ``complete``: no reference path within ``within_db`` of its link's
+      strongest path is missing;
+    * ``no extra``: every path the backend returns is in the reference;
+    * ``cfr``: where both path sets are equal, the backend's channel is within
+      ``cfr_rtol`` (relative Frobenius) of Sionna's ``Paths.cfr``.
+    """
+    rep = ConformanceReport()
+    n = len(comparisons)
+
+    def where(c):
+        return f"{c.link[0]}->{c.link[1]} at {np.round(c.position, 3).tolist()}"
+
+    bad = [c for c in comparisons if c.repeats]
+    rep.add("repeats", not bad, f"{len(bad)} of {n} links repeat paths"
+            + ("; e.g. " + where(bad[0]) + f": {len(bad[0].repeats)} pairs" if bad else ""))
+    bad = [c for c in comparisons if np.any(c.missing_db >= -within_db)]
+    rep.add("complete", not bad,
+            f"{len(bad)} of {n} links miss paths within {within_db:g} dB"
+            + ("; e.g. " + where(bad[0]) + f": {np.round(np.sort(bad[0].missing_db)[::-1], 1).tolist()[:5]} dB"
+               if bad else ""))
+    bad = [c for c in comparisons if c.extra_db.size]
+    rep.add("no extra", not bad, f"{len(bad)} of {n} links have paths the reference lacks"
+            + ("; e.g. " + where(bad[0]) + f": {np.round(bad[0].extra_db, 1).tolist()[:5]} dB"
+               if bad else ""))
+    same = [c for c in comparisons if not math.isnan(c.cfr_error)]
+    worst = max((c.cfr_error for c in same), default=0.0)
+    rep.add("cfr", bool(same) and worst <= cfr_rtol,
+            f"{len(same)} of {n} links with equal path sets; max relative error {worst:.2e}")
     return rep

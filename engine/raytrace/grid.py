@@ -28,8 +28,9 @@ receivers per call give exactly the paths of one-receiver calls; 16 lose
 ``SolverCore.spec_table_size``), with which no path of one-receiver calls was
 missing at 16, 64 or 256 receivers per call, and *verifies*: it re-traces
 ``verify`` random free points one per solver call and stores, in
-``meta["verification"]``, the path-count deficit and how many of the
-``verify_top`` (24) strongest paths per link are missing (and logs a warning
+``meta["verification"]``, how many paths the grid lacks (all, and among the
+``verify_top`` (24) strongest per link), how many it has that the direct
+trace lacks, and how many it repeats (and logs a warning
 when any are). The fingerprint database needs only the strongest paths;
 ``keep_strongest`` stores only those.
 
@@ -58,13 +59,16 @@ import numpy as np
 
 from engine.npzfile import NpzRecord, read_npz, write_npz
 from engine.config import TracerConfig
-from engine.raytrace.base import (DevicePose, TruncationError, device_poses,
-                                  sionna_orientation, validate_poses)
+from engine.raytrace.base import DevicePose, device_poses, sionna_orientation, validate_poses
+from engine.raytrace.chains import CHAIN_REUSE_VERSION, ChainTracer
+from engine.raytrace.raw import (RawPaths, find_repeats, free_points, grow_cap, match_paths,
+                                 pad_paths)
+from engine.raytrace.solver_core import SolverCore
 
 log = logging.getLogger(__name__)
 
 GRID_FORMAT = "isac-twin-path-grid"
-GRID_FORMAT_VERSION = 1
+GRID_FORMAT_VERSION = 2
 
 #: Arrays of a grid file besides ``meta``: name -> (dtype, axes).
 GRID_ARRAYS = {
@@ -184,31 +188,16 @@ def grid_points(lo, hi, spacing: float, margin: float = 0.0) -> tuple[np.ndarray
     if np.any(size < spacing):
         raise ValueError(f"grid area {size.tolist()} m is smaller than the spacing {spacing} m")
     n = np.floor(size / spacing + 1e-6).astype(int)
-    origin = lo + (size - (n - 1) * spacing) / 2
+    # Rounded to 1 um: the bounds are Mitsuba's float32 bounding box, and a
+    # grid point meant to sit on a probe-lattice line must not be 1e-7 m off.
+    origin = np.round(lo + (size - (n - 1) * spacing) / 2, 6)
     return origin, (int(n[0]), int(n[1]))
-
-
-def free_points(sionna_scene, points: np.ndarray) -> np.ndarray:
-    """Which points ``[N, 3]`` lie in free space (see module doc) -> ``[N]`` bool."""
-    import drjit as dr
-    import mitsuba as mi
-
-    pts = np.asarray(points, np.float32)
-    free = np.ones(len(pts), bool)
-    o = mi.Point3f(*(mi.Float(pts[:, i]) for i in range(3)))
-    for dz in (1.0, -1.0):
-        ray = mi.Ray3f(o, mi.Vector3f(0.0, 0.0, dz))
-        si = sionna_scene.mi_scene.ray_intersect(ray)
-        hit = si.is_valid()
-        front = dr.dot(si.n, ray.d) < 0
-        free &= np.asarray(hit.numpy(), bool) & np.asarray(front.numpy(), bool)
-    return free
 
 
 # --------------------------------------------------------------------------- tracing
 
 
-def _sorted_chunk(raw, keep_strongest: int | None = None) -> dict[str, np.ndarray]:
+def sorted_chunk(raw, keep_strongest: int | None = None) -> dict[str, np.ndarray]:
     """RawPaths ``[R, T, P]`` -> dict of ``[R, T, P']`` sorted by delay, valid first.
 
     ``keep_strongest``: keep only that many paths (largest ``|a|``) per
@@ -238,14 +227,9 @@ def _sorted_chunk(raw, keep_strongest: int | None = None) -> dict[str, np.ndarra
     return out
 
 
-def _pad(v: np.ndarray, p: int) -> np.ndarray:
-    pad = [(0, 0)] * v.ndim
-    pad[2] = (0, p - v.shape[2])
-    return np.pad(v, pad)
-
-
 class _ChunkTracer:
-    """Traces receiver chunks; splits / grows the cap on truncation."""
+    """Traces receiver chunks: a truncated chunk is split in halves, a single
+    receiver's cap grown by :func:`~engine.raytrace.raw.grow_cap`."""
 
     def __init__(self, core, sc, src, src_orient, cap: int, max_cap: int,
                  keep_strongest: int | None = None):
@@ -254,25 +238,25 @@ class _ChunkTracer:
         self.keep_strongest = keep_strongest
         self.retries = 0
 
+    def _solve(self, pts: np.ndarray, cap: int) -> RawPaths:
+        return self.core.solve_endpoints(self.sc, self.src, pts, cap, self.src_orient)
+
     def __call__(self, pts: np.ndarray) -> list[dict]:
-        raw = self.core.solve_endpoints(self.sc, self.src, pts, self.cap, self.src_orient)
+        if len(pts) == 1:
+            cap = self.cap
+            raw, self.cap = grow_cap(lambda c: self._solve(pts, c), cap, self.max_cap,
+                                     what=f"a single receiver at {pts[0].tolist()}")
+            self.retries += int(self.cap != cap)
+            return [sorted_chunk(raw, self.keep_strongest)]
+        raw = self._solve(pts, self.cap)
         if not raw.truncated:
-            return [_sorted_chunk(raw, self.keep_strongest)]
+            return [sorted_chunk(raw, self.keep_strongest)]
         self.retries += 1
-        if len(pts) > 1:
-            log.info("chunk of %d receivers reached max_num_paths_per_src=%d "
-                     "(candidates per source %s): splitting", len(pts), self.cap,
-                     raw.candidates_per_source.tolist())
-            h = len(pts) // 2
-            return self(pts[:h]) + self(pts[h:])
-        if self.cap * 2 > self.max_cap:
-            raise TruncationError(
-                f"a single receiver at {pts[0].tolist()} needs more than "
-                f"max_num_paths_per_src={self.cap} candidates per source "
-                f"(limit {self.max_cap}); raise tracer.max_num_paths_per_src")
-        log.warning("one receiver reached max_num_paths_per_src=%d: doubling it", self.cap)
-        self.cap *= 2
-        return self(pts)
+        log.info("chunk of %d receivers reached max_num_paths_per_src=%d "
+                 "(candidates per source %s): splitting", len(pts), self.cap,
+                 raw.candidates_per_source.tolist())
+        h = len(pts) // 2
+        return self(pts[:h]) + self(pts[h:])
 
 
 def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.05,
@@ -338,12 +322,64 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         TruncationError: a single receiver overflows the largest cap.
         ValueError: bad arguments or transmitter poses.
     """
-    from tqdm import tqdm
-
-    from engine.raytrace.sionna import SolverCore
-
     cfg = scene.config
     config = config or cfg.tracer
+    plan = _plan(scene, config, tx_names, spacing, height, margin, tx_poses, method, legacy,
+                 keep_strongest)
+    det = False if deterministic is None else bool(deterministic)
+    core = SolverCore(config, deterministic=det, spec_table_size=spec_table_size,
+                      legacy=legacy)
+    chunk_size = _chunk_size(chunk_size, plan, config, det)
+    spacing_p = config.probe_spacing if probe_spacing is None else float(probe_spacing)
+    log.info("tracing %d x %d grid (%d free points) at z=%.3f m against %s (%s)",
+             *plan.shape, len(plan.todo), plan.height, ", ".join(plan.tx_names),
+             f"chains, probes every {spacing_p} m" if plan.use_chains else "shoot-and-bounce")
+    if plan.use_chains:
+        pieces, cap_used, retries, chain_stats = _trace_by_chains(
+            core, scene.sionna, plan, chunk_size, spacing_p, max_cap, progress)
+    else:
+        pieces, cap_used, retries = _trace_by_sbr(
+            core, scene.sionna, plan, chunk_size, max_cap or 16 * config.max_num_paths_per_src,
+            progress)
+        chain_stats = None
+    arrays = _assemble(plan, pieces, max(1, config.max_depth))
+    verification = _verify(core, scene.sionna, plan.src, plan.src_orient, plan.points, arrays,
+                           plan.todo, int(verify), config.seed, config.max_num_paths_per_src,
+                           int(verify_top), plan.keep_strongest)
+    meta = _grid_meta(scene, config, plan, spacing, margin, {
+        **dataclasses.asdict(config), "deterministic": det,
+        "max_num_paths_per_src_used": cap_used, "chunk_size": chunk_size,
+        "truncation_retries": retries, "spec_table_size": spec_table_size,
+        "keep_strongest": plan.keep_strongest,
+        "method": "chains" if plan.use_chains else "sbr", "chains": chain_stats}, verification)
+    grid = PathGrid(meta=meta, arrays=arrays)
+    if out is not None:
+        save_grid(grid, out)
+    return grid
+
+
+@dataclass
+class _GridPlan:
+    """What :func:`trace_grid` traces: the raster, its free points, the sources."""
+
+    tx_names: list[str]
+    src: np.ndarray          # [S, 3] m
+    src_orient_cfg: np.ndarray  # [S, 3] roll, pitch, yaw
+    src_orient: np.ndarray   # [S, 3] Sionna yaw, pitch, roll
+    origin: np.ndarray       # [2] m
+    shape: tuple[int, int]
+    height: float
+    points: np.ndarray       # [N, 3] m
+    free: np.ndarray         # [N] bool
+    todo: np.ndarray         # indices of the free points
+    use_chains: bool
+    keep_strongest: int | None
+
+
+def _plan(scene, config: TracerConfig, tx_names, spacing, height, margin, tx_poses, method,
+          legacy, keep_strongest) -> _GridPlan:
+    """Check the arguments and lay out the raster (job 1 of :func:`trace_grid`)."""
+    cfg = scene.config
     if not (spacing > 0 and np.isfinite(spacing)):
         raise ValueError(f"spacing: expected a positive number of metres, got {spacing!r}")
     if tx_names is None:
@@ -357,145 +393,152 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
     if height is None:
         robots = [d for d in cfg.devices if d.kind == "robot"]
         height = poses[robots[0].name].position[2] if robots else 1.0
-    height = float(height)
     if method in (None, "auto"):
         use_chains = config.uses_chains
     elif method in ("chains", "sbr"):
         use_chains = method == "chains"
     else:
         raise ValueError(f"method: expected 'auto', 'chains' or 'sbr', got {method!r}")
-    use_chains = use_chains and not legacy
-    det = False if deterministic is None else bool(deterministic)
     if keep_strongest is not None and int(keep_strongest) < 1:
         raise ValueError(f"keep_strongest: expected >= 1 or None, got {keep_strongest!r}")
-    keep_strongest = None if keep_strongest is None else int(keep_strongest)
-    core = SolverCore(config, deterministic=det, spec_table_size=spec_table_size,
-                      legacy=legacy)
-    sc = scene.sionna
-    src = np.array([poses[n].position for n in tx_names], float)
-    src_orient_cfg = np.array([poses[n].orientation for n in tx_names], float)
-    src_orient = np.array([sionna_orientation(o) for o in src_orient_cfg])
-
     origin, (nx, ny) = grid_points(scene.bounds_min, scene.bounds_max, spacing, margin)
     ix, iy = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
     points = np.stack([origin[0] + ix.ravel() * spacing, origin[1] + iy.ravel() * spacing,
-                       np.full(nx * ny, height)], axis=1)
-    free = free_points(sc, points)
-    todo = np.flatnonzero(free)
-    if chunk_size is None and use_chains:
+                       np.full(nx * ny, float(height))], axis=1)
+    free = free_points(scene.sionna, points)
+    orient_cfg = np.array([poses[n].orientation for n in tx_names], float)
+    return _GridPlan(tx_names=tx_names,
+                     src=np.array([poses[n].position for n in tx_names], float),
+                     src_orient_cfg=orient_cfg,
+                     src_orient=np.array([sionna_orientation(o) for o in orient_cfg]),
+                     origin=origin, shape=(nx, ny), height=float(height), points=points,
+                     free=free, todo=np.flatnonzero(free),
+                     use_chains=use_chains and not legacy,
+                     keep_strongest=None if keep_strongest is None else int(keep_strongest))
+
+
+def _chunk_size(chunk_size: int | None, plan: _GridPlan, config: TracerConfig,
+                det: bool) -> int:
+    if chunk_size is None and plan.use_chains:
         chunk_size = CHAIN_CHUNK_SIZE
     elif chunk_size is None:
         chunk_size = DEFAULT_CHUNK_SIZE
         if det:
-            per_target = len(tx_names) * max(1, config.max_depth) * config.samples_per_src
+            per_target = len(plan.tx_names) * max(1, config.max_depth) * config.samples_per_src
             chunk_size = max(1, min(chunk_size, DETERMINISTIC_BUDGET // per_target))
-    chunk_size = int(chunk_size)
-    if chunk_size < 1:
+    if int(chunk_size) < 1:
         raise ValueError(f"chunk_size: expected >= 1, got {chunk_size}")
-    cap = config.max_num_paths_per_src
-    spacing_p = config.probe_spacing if probe_spacing is None else float(probe_spacing)
-    log.info("tracing %d x %d grid (%d free points) at z=%.3f m against %s (%s)",
-             nx, ny, len(todo), height, ", ".join(tx_names),
-             f"chains, probes every {spacing_p} m" if use_chains else "shoot-and-bounce")
-    pieces: list[tuple[np.ndarray, dict]] = []
-    chain_stats = None
-    if use_chains:
-        from engine.raytrace.chains import CHAIN_REUSE_VERSION, ChainTracer
+    return int(chunk_size)
 
-        ct = ChainTracer(core, spacing_p, max_cap=max_cap)
-        ct.prepare(sc, src, points[todo])  # every probe, PROBES_PER_CALL per call
-        with tqdm(total=len(todo), unit="pt", desc="grid", disable=not progress) as bar:
-            for start in range(0, len(todo), chunk_size):
-                idx = todo[start:start + chunk_size]
-                raw = ct.trace(sc, src, points[idx], source_orientations=src_orient)
-                pieces.append((idx, _sorted_chunk(raw, keep_strongest)))
-                bar.update(len(idx))
-        chain_stats = {"version": CHAIN_REUSE_VERSION, "probe_spacing": spacing_p,
-                       "probes_traced": ct.probes_traced, "chains": len(ct.store)}
-        cap_used, retries = ct.cap, ct.truncation_retries
-    else:
-        tracer = _ChunkTracer(core, sc, src, src_orient, cap, max_cap or 16 * cap,
-                              keep_strongest)
-        with tqdm(total=len(todo), unit="pt", desc="grid", disable=not progress) as bar:
-            for start in range(0, len(todo), chunk_size):
-                idx = todo[start:start + chunk_size]
-                offs = 0
-                for part in tracer(points[idx]):
-                    n = part["num_paths"].shape[0]
-                    pieces.append((idx[offs:offs + n], part))
-                    offs += n
-                bar.update(len(idx))
-        cap_used, retries = tracer.cap, tracer.retries
 
-    s = len(tx_names)
+def _trace_by_chains(core, sc, plan: _GridPlan, chunk_size: int, probe_spacing: float,
+                     max_cap: int | None, progress: bool):
+    """Job 2 (chain reuse): every probe first, then the points chunk by chunk."""
+    from tqdm import tqdm
+
+    ct = ChainTracer(core, probe_spacing, max_cap=max_cap)
+    ct.prepare(sc, plan.src, plan.points[plan.todo])  # every probe, PROBES_PER_CALL per call
+    pieces = []
+    with tqdm(total=len(plan.todo), unit="pt", desc="grid", disable=not progress) as bar:
+        for start in range(0, len(plan.todo), chunk_size):
+            idx = plan.todo[start:start + chunk_size]
+            raw = ct.trace(sc, plan.src, plan.points[idx], source_orientations=plan.src_orient)
+            pieces.append((idx, sorted_chunk(raw, plan.keep_strongest)))
+            bar.update(len(idx))
+    stats = {"version": CHAIN_REUSE_VERSION, "probe_spacing": probe_spacing,
+             "probes_traced": ct.probes_traced, "chains": len(ct.store)}
+    return pieces, ct.cap, ct.truncation_retries, stats
+
+
+def _trace_by_sbr(core, sc, plan: _GridPlan, chunk_size: int, max_cap: int, progress: bool):
+    """Job 2 (shoot-and-bounce): chunks of receivers, split on truncation."""
+    from tqdm import tqdm
+
+    tracer = _ChunkTracer(core, sc, plan.src, plan.src_orient, core.config.max_num_paths_per_src,
+                          max_cap, plan.keep_strongest)
+    pieces = []
+    with tqdm(total=len(plan.todo), unit="pt", desc="grid", disable=not progress) as bar:
+        for start in range(0, len(plan.todo), chunk_size):
+            idx = plan.todo[start:start + chunk_size]
+            offs = 0
+            for part in tracer(plan.points[idx]):
+                n = part["num_paths"].shape[0]
+                pieces.append((idx[offs:offs + n], part))
+                offs += n
+            bar.update(len(idx))
+    return pieces, tracer.cap, tracer.retries
+
+
+def _assemble(plan: _GridPlan, pieces, depth: int) -> dict[str, np.ndarray]:
+    """Job 3: the traced chunks into the arrays of :data:`GRID_ARRAYS`."""
+    s = len(plan.tx_names)
     p = max([part["valid"].shape[2] for _, part in pieces], default=0)
-    d = max(1, config.max_depth)
-    n_all = len(points)
+    n_all = len(plan.points)
     arrays = {
-        "points": points, "free": free, "tx_positions": src,
-        "tx_orientations": src_orient_cfg,
+        "points": plan.points, "free": plan.free, "tx_positions": plan.src,
+        "tx_orientations": plan.src_orient_cfg,
         "num_paths": np.zeros((n_all, s), np.int32),
         "valid": np.zeros((n_all, s, p), bool),
         "a": np.zeros((n_all, s, p), np.complex64),
         "tau": np.zeros((n_all, s, p), np.float64),
         **{k: np.zeros((n_all, s, p), np.float32) for k in ("theta_t", "phi_t", "theta_r",
                                                             "phi_r")},
-        "interactions": np.zeros((n_all, s, p, d), np.uint8),
-        "vertices": np.zeros((n_all, s, p, d, 3), np.float32),
+        "interactions": np.zeros((n_all, s, p, depth), np.uint8),
+        "vertices": np.zeros((n_all, s, p, depth, 3), np.float32),
     }
     for idx, part in pieces:
         arrays["num_paths"][idx] = part["num_paths"]
         for k in _PATH_KEYS:
-            arrays[k][idx] = _pad(part[k], p).astype(arrays[k].dtype)
+            arrays[k][idx] = pad_paths(part[k], p).astype(arrays[k].dtype)
+    return arrays
 
-    verification = _verify(core, sc, src, src_orient, points, arrays, todo,
-                           int(verify), config.seed, cap, int(verify_top), keep_strongest)
 
+def _grid_meta(scene, config: TracerConfig, plan: _GridPlan, spacing: float, margin: float,
+               tracer_meta: dict, verification: dict) -> dict:
+    """Job 5: the metadata (see ``docs/tracers.md``)."""
     import mitsuba as mi
     import sionna.rt
 
-    meta = {
+    cfg = scene.config
+    return {
         "format": GRID_FORMAT, "version": GRID_FORMAT_VERSION,
         "scene_name": cfg.scene.name, "scene_hash": scene.content_hash(),
         "frequency_hz": cfg.scene.frequency_hz,
-        "origin": origin.tolist(), "spacing": float(spacing), "shape": [nx, ny],
-        "height": height, "margin": float(margin),
-        "tx_names": tx_names, "num_free": int(free.sum()),
-        "tracer": {**dataclasses.asdict(config), "deterministic": det,
-                   "max_num_paths_per_src_used": cap_used, "chunk_size": chunk_size,
-                   "truncation_retries": retries, "spec_table_size": spec_table_size,
-                   "keep_strongest": keep_strongest,
-                   "method": "chains" if use_chains else "sbr", "chains": chain_stats},
-        "verification": verification,
+        "origin": plan.origin.tolist(), "spacing": float(spacing), "shape": list(plan.shape),
+        "height": plan.height, "margin": float(margin),
+        "tx_names": plan.tx_names, "num_free": int(plan.free.sum()),
+        "tracer": tracer_meta, "verification": verification,
         "sionna_version": sionna.rt.__version__ if hasattr(sionna.rt, "__version__")
         else _pkg_version("sionna-rt"),
         "mitsuba_variant": mi.variant(),
         "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
-    grid = PathGrid(meta=meta, arrays=arrays)
-    if out is not None:
-        save_grid(grid, out)
-    return grid
 
 
-def _top_missing(ref: dict, grid: dict, n: int) -> tuple[int, int]:
-    """Of ``ref``'s ``n`` strongest paths, how many are not in ``grid`` (same
-    interactions, delay within 1e-6 relative) -> (missing, checked)."""
+def top_missing(ref: dict, grid: dict, n: int) -> tuple[int, int]:
+    """Of ``ref``'s ``n`` strongest paths, how many are not in ``grid`` (see
+    :func:`~engine.raytrace.raw.match_paths`) -> (missing, checked).
+
+    Both are dicts with ``a, tau [L]``, ``interactions [L, D]``, ``vertices [L, D, 3]``."""
     order = np.argsort(-np.abs(ref["a"]), kind="stable")[:n]
-    missing = 0
-    for i in order:
-        t = ref["tau"][i]
-        cand = np.flatnonzero(np.abs(grid["tau"] - t) <= 1e-6 * abs(t))
-        if not any(np.array_equal(grid["interactions"][j], ref["interactions"][i])
-                   for j in cand):
-            missing += 1
-    return missing, len(order)
+    m = match_paths(_Paths(grid), _Paths({k: v[order] for k, v in ref.items()}))
+    return int((m < 0).sum()), len(order)
+
+
+class _Paths:
+    """Attribute view of a dict of path arrays (for :func:`match_paths`)."""
+
+    def __init__(self, d: dict):
+        self.a, self.tau = d["a"], d["tau"]
+        self.interactions, self.vertices = d["interactions"], d["vertices"]
 
 
 def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
             cap: int, top_n: int = VERIFY_TOP_N, keep_strongest: int | None = None) -> dict:
-    """Re-trace ``n`` random free points one per call; compare path counts and
-    the ``top_n`` strongest paths."""
+    """Re-trace ``n`` random free points one per solver call (Sionna's own
+    shoot-and-bounce, the grid's settings) and compare path by path: paths
+    the grid lacks (all, and among the ``top_n`` strongest per link), paths
+    the direct trace lacks (extra), and repeated paths in the grid."""
     if n <= 0 or len(todo) == 0:
         return {"points": 0}
     num_paths = arrays["num_paths"]
@@ -503,34 +546,40 @@ def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
         top_n = min(top_n, keep_strongest)
     rng = np.random.default_rng(seed)
     pick = rng.choice(todo, size=min(n, len(todo)), replace=False)
-    single, top_missing, top_checked = [], 0, 0
+    single = missing = extra = repeats = n_top_missing = top_checked = differing = 0
+    links = 0
     for i in pick:
         raw = core.solve_endpoints(sc, src, points[i:i + 1], cap, src_orient)
-        single.append(raw.valid.sum(-1)[0])
         for s in range(raw.valid.shape[1]):
+            ref = raw.link(0, s)
+            if keep_strongest is not None:  # the grid keeps only these
+                top = np.sort(np.argsort(-np.abs(ref["a"]), kind="stable")[:keep_strongest])
+                ref = {k: v[top] for k, v in ref.items()}
             k = int(num_paths[i, s])
-            stored = {"tau": arrays["tau"][i, s, :k],
-                      "interactions": arrays["interactions"][i, s, :k]}
-            m, c = _top_missing(raw.link(0, s), stored, top_n)
-            top_missing += m
-            top_checked += c
-    single = np.array(single)
-    if keep_strongest is not None:
-        single = np.minimum(single, keep_strongest)
-    grid = num_paths[pick]
-    missing = int(np.clip(single - grid, 0, None).sum())
+            stored = {f: arrays[f][i, s, :k] for f in ("a", "tau", "interactions", "vertices")}
+            m = match_paths(_Paths(stored), _Paths(ref))
+            found = np.zeros(k, bool)
+            found[m[m >= 0]] = True
+            links += 1
+            single += len(ref["tau"])
+            missing += int((m < 0).sum())
+            extra += int((~found).sum())
+            differing += int((m < 0).any() or not found.all())
+            repeats += len(find_repeats(_Paths(stored)))
+            tm, tc = top_missing(ref, stored, top_n)
+            n_top_missing += tm
+            top_checked += tc
     out = {"points": int(len(pick)), "indices": pick.tolist(),
-           "paths_grid": int(grid.sum()), "paths_single_calls": int(single.sum()),
-           "paths_missing": missing,
-           "links_differing": int((single != grid).sum()), "links": int(single.size),
+           "paths_grid": int(num_paths[pick].sum()), "paths_single_calls": int(single),
+           "paths_missing": int(missing), "paths_extra": int(extra),
+           "paths_repeated": int(repeats),
+           "links_differing": int(differing), "links": int(links),
            "top_n": int(top_n), "top_paths_checked": int(top_checked),
-           "top_paths_missing": int(top_missing)}
-    if missing or top_missing:
-        log.warning("grid verification: %d of %d paths (%d of the %d strongest per link) at "
-                    "%d re-traced points are missing in the chunked trace (Sionna "
-                    "de-duplicates candidates per call; use a smaller chunk_size or a larger "
-                    "spec_table_size)", missing, int(single.sum()), top_missing, top_checked,
-                    len(pick))
+           "top_paths_missing": int(n_top_missing)}
+    if missing or extra or repeats:
+        log.warning("grid verification at %d re-traced points: %d of %d paths missing "
+                    "(%d of the %d strongest per link), %d extra, %d repeated", len(pick),
+                    missing, single, n_top_missing, top_checked, extra, repeats)
     return out
 
 

@@ -38,6 +38,7 @@ import numpy as np
 
 from engine.pose import DevicePose, sionna_orientation
 from engine.raytrace.base import LinkPaths, empty_link
+from engine.raytrace.solver_core import load_sionna_rt
 
 log = logging.getLogger(__name__)
 
@@ -84,14 +85,6 @@ class EchoPaths:
     target: list
     clutter: LinkPaths
 
-
-def _rt():
-    import engine._llvm
-
-    engine._llvm.configure_llvm()
-    import sionna.rt as rt
-
-    return rt
 
 
 def _to_numpy_paths(paths, num_rx: int, num_tx: int, depth: int):
@@ -166,7 +159,7 @@ class SensingTracer:
         self._targets: dict[str, object] = {}
         self._specs: dict[str, TargetSpec] = {}
         self._clutter_cache: dict = {}
-        rt = _rt()
+        rt = load_sionna_rt()
         from sionna.rt.rcs import RCSSolver
 
         self._rcs = RCSSolver(deterministic=False)
@@ -214,7 +207,7 @@ class SensingTracer:
     # ------------------------------------------------------------------ trace
 
     def _sync(self, txs: Mapping[str, DevicePose], rxs: Mapping[str, DevicePose]) -> None:
-        rt = _rt()
+        rt = load_sionna_rt()
         sc = self.scene.sionna
         sc.tx_array = self._iso
         sc.rx_array = self._iso

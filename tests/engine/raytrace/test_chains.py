@@ -10,7 +10,9 @@ import pytest
 from engine.config import ConfigError, load_config
 from engine.raytrace.base import DevicePose, device_poses
 from engine.raytrace.chains import ChainTracer
-from engine.raytrace.sionna import SionnaTracer, SolverCore
+from engine.raytrace.conformance import find_repeats, match_paths
+from engine.raytrace.sionna import SionnaTracer
+from engine.raytrace.solver_core import SolverCore
 from engine.scene import load_scene
 
 from .conftest import furnished_room
@@ -18,37 +20,62 @@ from .conftest import furnished_room
 POSITIONS = [(2.1, 1.5, 0.25), (1.05, 0.62, 0.25), (3.3, 2.6, 0.25)]
 
 
-def _key(lp):
-    """Paths of a link as {(interactions, rounded delay): gain}."""
-    return {(tuple(map(tuple, lp.interactions[i:i + 1].reshape(1, -1))), round(lp.tau[i] * 1e15)):
-            lp.a[i] for i in range(lp.num_paths)}
+#: Points on the probe lattice's lines (0.5 m): x = 2.0, y = 1.0, both.
+LATTICE_POSITIONS = [(2.0, 1.3, 0.25), (1.2, 1.0, 0.25), (2.5, 2.0, 0.25)]
 
 
 @pytest.mark.slow
-def test_chains_hold_sionna_direct_paths_with_identical_values(room_scene):
-    """Every path of Sionna's direct shoot-and-bounce trace among the 24 strongest
-    is found by chain reuse, with the same gain and delay (same image method and
-    field calculator); chain reuse finds at least as many paths."""
+def test_chains_never_repeat_a_path(room_scene):
+    """No link traced by chain reuse holds the same path twice (issue 12: chains
+    keyed by triangle gave each wall's reflections once per triangle a probe's
+    ray hit; the old code failed here at the second point)."""
+    poses = device_poses(room_scene.config)
+    tr = SionnaTracer(replace(room_scene.config.tracer, method="chains"))
+    for pos in POSITIONS + LATTICE_POSITIONS:
+        for lk, lp in tr(room_scene, dict(poses, robot1=DevicePose(pos))).items():
+            assert lp.num_paths > 5
+            assert find_repeats(lp) == [], (pos, lk, find_repeats(lp))
+
+
+@pytest.mark.slow
+def test_chains_equal_sionna_direct_paths_with_identical_values(room_scene):
+    """Chain reuse returns the path set of Sionna's direct shoot-and-bounce trace
+    at a high ray count (1e6 rays per source): every path within 40 dB of its
+    link's strongest once, none that the direct trace lacks, the same gain and
+    delay (same image method and field calculator). The probes shoot 3e5 rays:
+    measured here, 2e4 missed 22 paths of the 1e6 trace (strongest -30.9 dB),
+    1e5 missed 12 (-30.9 dB), 3e5 missed 2 (-47.2 dB), none extra at any count."""
     cfg = room_scene.config.tracer
-    direct = SionnaTracer(replace(cfg, method="sbr"))
-    chains = SionnaTracer(replace(cfg, method="chains"))
+    direct = SionnaTracer(replace(cfg, method="sbr", samples_per_src=1_000_000))
+    chains = SionnaTracer(replace(cfg, method="chains", samples_per_src=300_000))
     assert chains.chains is not None and direct.chains is None
     poses = device_poses(room_scene.config)
-    for pos in POSITIONS:
+    for pos in POSITIONS + LATTICE_POSITIONS:
         p = dict(poses, robot1=DevicePose(pos))
         a, b = direct(room_scene, p), chains(room_scene, p)
         for lk in a:
-            ref, got = _key(a[lk]), _key(b[lk])
-            assert b[lk].num_paths >= a[lk].num_paths - 1
-            strongest = sorted(ref, key=lambda k: -abs(ref[k]))[:24]
-            missing = [k for k in strongest if k not in got]
-            assert not missing, (pos, lk, missing)
+            ref, got = a[lk], b[lk]
+            m = match_paths(got, ref)
+            assert find_repeats(got) == []
+            # every path of the 50x-ray direct trace within 40 dB of the link's
+            # strongest, and nothing the direct trace lacks
+            weak = 20 * np.log10(np.abs(ref.a) / np.abs(ref.a).max()) < -40
+            assert np.all((m >= 0) | weak), (pos, lk, ref.interactions[(m < 0) & ~weak])
+            assert got.num_paths == (m >= 0).sum(), (pos, lk, got.num_paths, (m >= 0).sum())
             # float32 kernels: the two traces run the image method in different
             # candidate batches, and Dr.Jit's LLVM code for this CPU (AVX2 on AMD
             # EPYC) rounds them differently: 2.4e-6 relative seen (~20 ulp), so
             # 1e-5 (~80 ulp); a wrong chain or interaction differs by orders more.
-            for k in strongest:
-                assert got[k] == pytest.approx(ref[k], rel=1e-5, abs=1e-12)
+            hit = m >= 0
+            # Both are Sionna's float32 kernels, fed different representatives of
+            # one chain (the direct trace keeps the first ray's hit point, chain
+            # reuse the plane's canonical triangle and point). Typical |a|
+            # differences are 3e-6; the worst seen, 8.1e-5, is a triple bounce in
+            # a ceiling corner whose first two vertices are 1 cm apart (ill-
+            # conditioned in float32). A wrong chain differs by orders more.
+            np.testing.assert_allclose(np.abs(got.a[m[hit]]), np.abs(ref.a[hit]), rtol=2e-4)
+            np.testing.assert_allclose(got.a[m[hit]], ref.a[hit], rtol=3e-4, atol=1e-12)
+            np.testing.assert_allclose(got.tau[m[hit]], ref.tau[hit], rtol=1e-6)
 
 
 def test_result_depends_on_position_only(room_scene):

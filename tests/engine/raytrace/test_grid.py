@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from engine.raytrace.base import device_poses
-from engine.raytrace.grid import (GRID_ARRAYS, GRID_FORMAT_VERSION, free_points, grid_points,
+from engine.raytrace.raw import free_points
+from engine.raytrace.grid import (GRID_ARRAYS, GRID_FORMAT_VERSION, grid_points,
                                   load_grid, save_grid, trace_grid)
 from engine.raytrace.sionna import SionnaTracer
 

@@ -28,7 +28,7 @@ def test_fast_path_bit_identical_to_legacy(room_scene):
 
 
 def test_small_buffer_regrows_to_same_result(room_scene, monkeypatch):
-    import engine.raytrace.sionna as S
+    import engine.raytrace.solver_core as S
 
     cfg = replace(room_scene.config.tracer, method="sbr")
     poses = device_poses(room_scene.config)

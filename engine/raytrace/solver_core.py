@@ -1,0 +1,560 @@
+"""Everything that touches Sionna RT's internals (Sionna 2.2, ``path_solvers/``).
+
+The stages of ``PathSolver.__call__`` run one by one (candidate generator,
+image method, field calculator), the candidate counter that detects
+truncation, the size of the specular-chain hash table, ``PathsBuffer``
+reads and writes (chain reuse builds buffers of cached chains and gathers
+(chain, target) pairs from them) and Sionna's line-of-sight test. Nothing
+above this module names a private Sionna attribute; a Sionna upgrade is
+checked here (and by ``tests/engine/raytrace/``).
+
+Truncation. Sionna's candidate generator stores at most
+``max_num_paths_per_src`` candidates per source and drops the rest without a
+word (``sb_candidate_generator.py``: the per-source counter is incremented
+for every candidate, but only those below the cap are stored;
+``sb_deterministic.py`` enforces the same budget). Nothing in the returned
+``Paths`` tells. :class:`SolverCore` therefore wraps the solver's candidate
+generator and counts the stored candidates per source
+(``paths_buffer.source_indices[:paths_counter]``) before the image method
+runs: a source that stored exactly the cap may have lost candidates, and the
+trace is reported as truncated (:func:`engine.raytrace.raw.grow_cap` decides
+what happens then).
+
+Speed (see ``bench/bench_retrace.py``). :class:`SolverCore` differs from
+``PathSolver.__call__`` in two ways that do not change the result
+(bit-identical in deterministic mode; ``legacy=True`` runs the original code
+path for comparison):
+
+- it reads the flat ``PathsBuffer`` into numpy (:func:`buffer_to_numpy`)
+  instead of building Sionna's ``Paths``, whose scatter kernels bake the path
+  count as a literal: every call with a new path count compiled three LLVM
+  kernels (~5 ms each) and ran ~25 extra kernels;
+- it allocates a candidate buffer sized from the candidates actually seen
+  (at least :data:`MIN_BUFFER_PER_SRC` per source, re-run with a larger one
+  if it overflows) rather than ``max_num_paths_per_src`` (10**6 per source by
+  default: ~800 MB of memset per call), while pinning the specular-chain hash
+  table to the size Sionna would use for the requested cap, so the candidates
+  are the same.
+
+Mitsuba variant: Sionna selects it on import (CUDA when available, else
+LLVM); nothing here forces one.
+"""
+
+from __future__ import annotations
+
+import threading
+import types
+from contextlib import contextmanager
+
+import numpy as np
+
+from engine.config import TracerConfig
+from engine.raytrace.raw import RawPaths, to_points
+
+__all__ = ["MIN_BUFFER_PER_SRC", "SolverCore", "buffer_columns", "buffer_to_numpy",
+           "chain_buffer", "gather_pairs", "load_sionna_rt", "paths_to_numpy",
+           "pinned_spec_table", "spec_table_default"]
+
+#: Smallest candidate buffer per source that :class:`SolverCore` allocates
+#: (see "Buffer size" in :class:`SolverCore`).
+MIN_BUFFER_PER_SRC = 4096
+
+_TABLE_LOCK = threading.Lock()
+
+
+@contextmanager
+def pinned_spec_table(size: int):
+    """Pin the size of Sionna's specular-chain hash table (per source).
+
+    Sionna sizes it ``max(max_num_paths_per_src, MIN_SPEC_COUNT_SIZE)``, read
+    from the class attribute ``SBCandidateGenerator.MIN_SPEC_COUNT_SIZE`` (both
+    generators). Raising that attribute for the duration of a call decouples
+    the table from the candidate buffer.
+    """
+    from sionna.rt.path_solvers.sb_candidate_generator import SBCandidateGenerator
+
+    with _TABLE_LOCK:
+        old = SBCandidateGenerator.MIN_SPEC_COUNT_SIZE
+        SBCandidateGenerator.MIN_SPEC_COUNT_SIZE = int(size)
+        try:
+            yield
+        finally:
+            SBCandidateGenerator.MIN_SPEC_COUNT_SIZE = old
+
+
+def spec_table_default(cap: int) -> int:
+    from sionna.rt.path_solvers.sb_candidate_generator import SBCandidateGenerator
+
+    return max(int(cap), int(SBCandidateGenerator.MIN_SPEC_COUNT_SIZE))
+
+
+def load_sionna_rt():
+    """``sionna.rt``, imported after Dr.Jit was pointed at an LLVM library."""
+    import engine._llvm
+
+    engine._llvm.configure_llvm()
+    import sionna.rt as rt
+
+    return rt
+
+
+class _CountingGenerator:
+    """Wraps a Sionna candidate generator; records stored candidates per source."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.counts: np.ndarray | None = None
+        self.cap: int | None = None
+
+    def __call__(self, **kw):
+        import drjit as dr
+
+        paths = self.inner(**kw)
+        paths.schedule()
+        dr.eval()
+        n = int(dr.minimum(dr.max(paths.paths_counter), paths.buffer_size)[0]) \
+            if paths.buffer_size else 0
+        num_src = dr.width(kw["src_positions"])
+        # Transfer only the stored candidates, not the whole buffer.
+        idx = dr.gather(type(paths.source_indices), paths.source_indices,
+                        dr.arange(type(paths.source_indices), n)) if n else None
+        src = np.asarray(idx.numpy(), dtype=np.int64) if n else np.zeros(0, np.int64)
+        self.counts = np.bincount(src, minlength=num_src)
+        self.cap = int(kw["max_num_paths_per_src"])
+        return paths
+
+    @property
+    def truncated(self) -> bool:
+        """Whether a source stored as many candidates as the cap allows."""
+        return bool(self.counts is not None and self.counts.size
+                    and self.counts.max() >= self.cap)
+
+
+def paths_to_numpy(paths, num_rx: int, num_tx: int, depth: int,
+                    counts: np.ndarray, cap: int) -> RawPaths:
+    tau = np.asarray(paths.tau.numpy(), np.float64).reshape(num_rx, num_tx, -1)
+    p = tau.shape[-1]
+    d = max(1, depth)
+    if p == 0:
+        return RawPaths.empty(num_rx, num_tx, d, counts, cap)
+    ar, ai = paths.a
+    a = (np.asarray(ar.numpy(), np.float64) + 1j * np.asarray(ai.numpy(), np.float64))
+    f = lambda x: np.asarray(x.numpy(), np.float64).reshape(num_rx, num_tx, p)  # noqa: E731
+    inter = np.asarray(paths.interactions.numpy()).reshape(-1, num_rx, num_tx, p)
+    vert = np.asarray(paths.vertices.numpy(), np.float32).reshape(-1, num_rx, num_tx, p, 3)
+    inter = np.moveaxis(inter, 0, -1).astype(np.int32)
+    vert = np.array(np.moveaxis(vert, 0, -2), copy=True)
+    vert[inter == 0] = 0.0  # Sionna leaves stale coordinates in unused slots
+    return RawPaths(
+        valid=np.asarray(paths.valid.numpy(), bool).reshape(num_rx, num_tx, p),
+        a=a.reshape(num_rx, num_tx, p), tau=tau, doppler=f(paths.doppler),
+        theta_t=f(paths.theta_t), phi_t=f(paths.phi_t),
+        theta_r=f(paths.theta_r), phi_r=f(paths.phi_r),
+        interactions=inter, vertices=vert,
+        candidates_per_source=counts, cap=cap)
+
+
+def buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
+                     depth: int, counts: np.ndarray, cap: int) -> RawPaths:
+    """Flat ``PathsBuffer`` (after ``discard_invalid``) -> :class:`RawPaths`.
+
+    Equivalent to building Sionna's ``Paths`` (synthetic single-element arrays)
+    and reading its tensors, without it: ``Paths`` scatters into
+    ``[depth, rx, tx, max_num_paths]`` tensors whose kernels bake the path
+    count as a literal (an LLVM compile, ~5 ms each, three per call whenever the
+    count changes) and costs a few ms of Python tracing. Here the per-path
+    quantities (angles and Doppler as in ``Paths._build_from_buffer``) are
+    evaluated in one ``dr.eval`` and arranged into ``[R, T, P]`` with numpy;
+    within a link, paths keep their buffer order. Invalid slots are zero.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    from sionna.rt.utils import theta_phi_from_unit_vec
+
+    d = max(1, depth)
+    n = int(buf.buffer_size) if buf.tau is not None else 0
+    if n == 0:
+        return RawPaths.empty(num_rx, num_tx, d, counts, cap)
+    src_i, tgt_i = buf.source_indices, buf.target_indices
+    k_tx, k_rx = buf.k_tx, buf.k_rx
+    theta_t, phi_t = theta_phi_from_unit_vec(k_tx)
+    theta_r, phi_r = theta_phi_from_unit_vec(k_rx)
+    # Paths._finalize_doppler_shift_compute
+    v_tx = dr.gather(mi.Vector3f, src_vel, src_i)
+    v_rx = dr.gather(mi.Vector3f, tgt_vel, tgt_i)
+    doppler = buf.doppler + dr.dot(k_tx, v_tx) / wavelength - dr.dot(-k_rx, v_rx) / wavelength
+    a = buf.a[0][0]
+    out = [src_i, tgt_i, dr.real(a), dr.imag(a), buf.tau, doppler, theta_t, phi_t,
+           theta_r, phi_r, buf.interaction_types.array, buf.vertices_x.array,
+           buf.vertices_y.array, buf.vertices_z.array]
+    dr.eval(*out)
+    (src_i, tgt_i, ar, ai, tau, dop, tht, pht, thr, phr, inter, vx, vy, vz) = \
+        [x.numpy() for x in out]
+    pair = tgt_i.astype(np.int64) * num_tx + src_i.astype(np.int64)
+    order = np.argsort(pair, kind="stable")
+    per_pair = np.bincount(pair, minlength=num_rx * num_tx)
+    p = int(per_pair.max())
+    start = np.concatenate([[0], np.cumsum(per_pair)[:-1]])
+    slot = np.empty(n, np.int64)
+    slot[order] = np.arange(n) - start[pair[order]]
+    r, t = tgt_i.astype(np.int64), src_i.astype(np.int64)
+
+    def place(v, dtype):
+        o = np.zeros((num_rx, num_tx, p) + v.shape[1:], dtype)
+        o[r, t, slot] = v
+        return o
+
+    inter = inter.reshape(n, d).astype(np.int32)
+    vert = np.stack([vx, vy, vz], -1).reshape(n, d, 3).astype(np.float32)
+    vert[inter == 0] = 0.0  # Sionna leaves stale coordinates in unused slots
+    f64 = np.float64
+    return RawPaths(
+        valid=place(np.ones(n, bool), bool),
+        a=place(ar.astype(f64) + 1j * ai.astype(f64), np.complex128),
+        tau=place(tau, f64), doppler=place(dop, f64),
+        theta_t=place(tht, f64), phi_t=place(pht, f64),
+        theta_r=place(thr, f64), phi_r=place(phr, f64),
+        interactions=place(inter, np.int32), vertices=place(vert, np.float32),
+        candidates_per_source=counts, cap=cap)
+
+
+class SolverCore:
+    """A Sionna ``PathSolver`` with truncation detection (callable helpers).
+
+    Args:
+        config: the ``[tracer]`` settings (depth, samples, cap, mechanisms, seed,
+            ``deterministic``).
+        deterministic: override ``config.deterministic``.
+        legacy: run ``PathSolver.__call__`` / build Sionna's ``Paths`` (the
+            original, slower code path; for benchmarks and cross-checks).
+        spec_table_size: entries per source of Sionna's specular-chain hash
+            table (None: Sionna's ``max(cap, 1e6)``). Grids use a larger one.
+
+    Buffer size: the candidate buffer is ``max(MIN_BUFFER_PER_SRC, 4 x the
+    largest per-source count seen so far)`` (power of two, at most ``cap``);
+    a call that fills it is re-run with 8 x the buffer (``buffer_regrows``),
+    so the result equals a trace with ``max_num_paths_per_src=cap``.
+    Truncation at ``cap`` itself is reported as before.
+    """
+
+    def __init__(self, config: TracerConfig, *, deterministic: bool | None = None,
+                 legacy: bool = False, spec_table_size: int | None = None):
+        rt = load_sionna_rt()
+        self.config = config
+        #: Specular-chain hash table entries per source (None: Sionna's own
+        #: choice, ``max(cap, 1e6)``). Larger tables lose fewer candidates to
+        #: collisions when many receivers share a call.
+        self.spec_table_size = spec_table_size
+        #: Largest per-source candidate count seen so far (sizes the buffer).
+        self.candidates_seen = 0
+        #: Calls re-run because the reduced buffer overflowed.
+        self.buffer_regrows = 0
+        self.deterministic = config.deterministic if deterministic is None else deterministic
+        #: True: run ``PathSolver.__call__`` and read Sionna's ``Paths`` (the
+        #: pre-optimization code path, kept for benchmarks and cross-checks).
+        self.legacy = bool(legacy)
+        self.solver = rt.PathSolver(deterministic=self.deterministic)
+        self._counter = _CountingGenerator(self.solver._candidate_generator)
+        # The one hook into Sionna internals: count candidates per source.
+        self.solver._candidate_generator = self._counter
+        self._iso = None
+
+    @property
+    def iso_array(self):
+        """Sionna ``PlanarArray(1, 1, "iso", "V")``."""
+        if self._iso is None:
+            self._iso = load_sionna_rt().PlanarArray(num_rows=1, num_cols=1, vertical_spacing=0.5,
+                                          horizontal_spacing=0.5, pattern="iso",
+                                          polarization="V")
+        return self._iso
+
+    def solver_kwargs(self, cap: int) -> dict:
+        c = self.config
+        return dict(max_depth=c.max_depth, max_num_paths_per_src=int(cap),
+                    samples_per_src=c.samples_per_src, los=c.los,
+                    specular_reflection=c.specular_reflection,
+                    diffuse_reflection=c.diffuse_reflection, refraction=c.refraction,
+                    diffraction=c.diffraction, seed=c.seed)
+
+    def _trace(self, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
+               src_patterns, tgt_patterns, cap: int) -> RawPaths:
+        """The stages of ``PathSolver.__call__`` (Sionna 2.2), then
+        :func:`_buffer_to_numpy` instead of building ``Paths``.
+
+        ``cap`` is the ``max_num_paths_per_src`` the result is equivalent to; the
+        buffer actually allocated is smaller (see the class doc)."""
+        import drjit as dr
+
+        dr.make_opaque(src, tgt, src_o, tgt_o)
+        table = self.spec_table_size or spec_table_default(cap)
+        buf_cap = min(int(cap), max(MIN_BUFFER_PER_SRC,
+                                    1 << int(4 * max(1, self.candidates_seen) - 1).bit_length()))
+        while True:
+            with pinned_spec_table(table):
+                raw = self._trace_once(mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                                       src_patterns, tgt_patterns, cap, buf_cap)
+            self.candidates_seen = max(self.candidates_seen, int(raw.candidates_per_source.max(
+                initial=0)))
+            if buf_cap >= cap or raw.candidates_per_source.max(initial=0) < buf_cap:
+                return raw
+            # The reduced buffer overflowed: not a truncation of the requested
+            # cap; re-run with a larger buffer (same hash table -> same result).
+            self.buffer_regrows += 1
+            buf_cap = min(int(cap), 8 * buf_cap)
+
+    def _trace_once(self, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                    src_patterns, tgt_patterns, cap: int, buf_cap: int) -> RawPaths:
+        buf = self.generate(mi_scene, src, tgt, buf_cap)
+        # (the counting wrapper has scheduled and evaluated the buffer)
+        return self.evaluate(buf, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                             src_patterns, tgt_patterns, self._counter.counts, cap)
+
+    def generate(self, mi_scene, src, tgt, buf_cap: int, *, max_depth: int | None = None,
+                 los: bool | None = None):
+        """Sionna's candidate generator (shoot-and-bounce) -> shrunk ``PathsBuffer``.
+
+        Candidates per source are counted (:attr:`last_counts`, truncation).
+        ``max_depth=0`` runs only the line-of-sight test; ``los=False`` skips it.
+        """
+        kw = self.solver_kwargs(buf_cap)
+        buf = self.solver._candidate_generator(
+            mi_scene=mi_scene, src_positions=src, tgt_positions=tgt,
+            samples_per_src=kw["samples_per_src"],
+            max_num_paths_per_src=kw["max_num_paths_per_src"],
+            max_depth=kw["max_depth"] if max_depth is None else int(max_depth),
+            los=kw["los"] if los is None else bool(los),
+            specular_reflection=kw["specular_reflection"],
+            diffuse_reflection=kw["diffuse_reflection"], refraction=kw["refraction"],
+            diffraction=kw["diffraction"], edge_diffraction=False, seed=kw["seed"])
+        buf.shrink()
+        return buf
+
+    @property
+    def candidate_generator(self):
+        """Sionna's candidate generator (unwrapped)."""
+        return self._counter.inner
+
+    @property
+    def last_counts(self) -> np.ndarray:
+        """Candidates per source that the last :meth:`generate` stored ``[S]``."""
+        return self._counter.counts
+
+    def evaluate(self, buf, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                 src_patterns, tgt_patterns, counts: np.ndarray, cap: int,
+                 depth: int | None = None) -> RawPaths:
+        """Image method and field calculator on candidates -> :class:`RawPaths`.
+
+        ``buf``: candidates whose ``valid`` flag is False (valid entries, e.g.
+        line-of-sight paths, skip the image method); ``depth``: the buffer's
+        max depth (default the configured one).
+        """
+        import drjit as dr
+
+        kw = self.solver_kwargs(cap)
+        s = self.solver
+        buf.detach_geometry()
+        buf = s._image_method(scene=mi_scene, paths=buf, src_positions=src,
+                              tgt_positions=tgt, diffraction=kw["diffraction"],
+                              diffraction_lit_region=True)
+        buf = s._field_calculator(
+            wavelength=wavelength, paths=buf, samples_per_src=kw["samples_per_src"],
+            diffraction=kw["diffraction"], src_positions=src, tgt_positions=tgt,
+            src_orientations=src_o, tgt_orientations=tgt_o,
+            src_antenna_patterns=src_patterns, tgt_antenna_patterns=tgt_patterns)
+        buf.discard_invalid()
+        return buffer_to_numpy(buf, v_tx, v_rx, wavelength, dr.width(tgt), dr.width(src),
+                                self.config.max_depth if depth is None else depth,
+                                counts, cap)
+
+    def solve_scene(self, sionna_scene, cap: int) -> RawPaths:
+        """Trace the Sionna scene's own transmitters and receivers."""
+        if self.legacy:
+            paths = self.solver(sionna_scene, synthetic_array=True,
+                                **self.solver_kwargs(cap))
+            return paths_to_numpy(paths, len(sionna_scene.receivers),
+                                   len(sionna_scene.transmitters), self.config.max_depth,
+                                   self._counter.counts, cap)
+        sionna_scene.all_set(radio_map=False)
+        src, src_o, _, v_tx = sionna_scene.sources(True, True)
+        tgt, tgt_o, _, v_rx = sionna_scene.targets(True, True)
+        return self._trace(sionna_scene.mi_scene, sionna_scene.wavelength, src, tgt, src_o,
+                           tgt_o, v_tx, v_rx, sionna_scene.tx_array.antenna_pattern.patterns,
+                           sionna_scene.rx_array.antenna_pattern.patterns, cap)
+
+    def solve_endpoints(self, sionna_scene, sources: np.ndarray, targets: np.ndarray,
+                        cap: int, source_orientations: np.ndarray | None = None,
+                        source_velocities: np.ndarray | None = None,
+                        target_orientations: np.ndarray | None = None,
+                        target_velocities: np.ndarray | None = None) -> RawPaths:
+        """Trace single-element endpoints given as arrays.
+
+        Used for grids (thousands of ``Receiver`` objects would cost a Python
+        loop of scatters in ``Scene._endpoints``) and by :class:`SionnaTracer`:
+        the positions go to the solver stages as evaluated arrays, never as
+        literals (``Scene._endpoints`` scatters each device's position as a
+        literal into a kernel, so every new pose compiled a new kernel).
+
+        Args:
+            sionna_scene: the ``sionna.rt.Scene`` (geometry and materials only).
+            sources: ``[S, 3]`` m.
+            targets: ``[T, 3]`` m.
+            cap: ``max_num_paths_per_src``.
+            source_orientations, target_orientations: ``[S|T, 3]`` Sionna
+                ``[yaw, pitch, roll]`` rad (default 0).
+            source_velocities, target_velocities: ``[S|T, 3]`` m/s (default 0).
+        """
+        import mitsuba as mi
+
+        arr = to_points
+        sources = np.asarray(sources, np.float32).reshape(-1, 3)
+        targets = np.asarray(targets, np.float32).reshape(-1, 3)
+        ns, nt = len(sources), len(targets)
+        src, tgt = arr(sources, ns, mi.Point3f), arr(targets, nt, mi.Point3f)
+        src_o = arr(source_orientations, ns, mi.Point3f)
+        tgt_o = arr(target_orientations, nt, mi.Point3f)
+        v_tx = arr(source_velocities, ns, mi.Vector3f)
+        v_rx = arr(target_velocities, nt, mi.Vector3f)
+        if not self.legacy:
+            pattern = self.iso_array.antenna_pattern.patterns
+            return self._trace(sionna_scene.mi_scene, sionna_scene.wavelength, src, tgt,
+                               src_o, tgt_o, v_tx, v_rx, pattern, pattern, cap)
+        return self._solve_endpoints_legacy(sionna_scene, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                                            cap)
+
+    def _solve_endpoints_legacy(self, sionna_scene, src, tgt, src_o, tgt_o, v_tx, v_rx,
+                                cap: int) -> RawPaths:
+        import drjit as dr
+        import mitsuba as mi
+
+        from sionna.rt.path_solvers.paths import Paths
+
+        ns, nt = dr.width(src), dr.width(tgt)
+        rel_tx, rel_rx = dr.zeros(mi.Point3f, ns), dr.zeros(mi.Point3f, nt)
+        pattern = self.iso_array.antenna_pattern.patterns
+        dr.make_opaque(src, tgt, src_o, tgt_o)
+        kw = self.solver_kwargs(cap)
+        s = self.solver
+        buf = s._candidate_generator(
+            mi_scene=sionna_scene.mi_scene, src_positions=src, tgt_positions=tgt,
+            samples_per_src=kw["samples_per_src"], max_num_paths_per_src=kw["max_num_paths_per_src"],
+            max_depth=kw["max_depth"], los=kw["los"],
+            specular_reflection=kw["specular_reflection"],
+            diffuse_reflection=kw["diffuse_reflection"], refraction=kw["refraction"],
+            diffraction=kw["diffraction"], edge_diffraction=False, seed=kw["seed"])
+        buf.schedule()
+        dr.eval()
+        buf.shrink()
+        buf.detach_geometry()
+        buf = s._image_method(scene=sionna_scene.mi_scene, paths=buf, src_positions=src,
+                              tgt_positions=tgt, diffraction=kw["diffraction"],
+                              diffraction_lit_region=True)
+        buf = s._field_calculator(
+            wavelength=sionna_scene.wavelength, paths=buf,
+            samples_per_src=kw["samples_per_src"], diffraction=kw["diffraction"],
+            src_positions=src, tgt_positions=tgt, src_orientations=src_o,
+            tgt_orientations=tgt_o, src_antenna_patterns=pattern,
+            tgt_antenna_patterns=pattern)
+        buf.discard_invalid()
+        # Paths only reads these attributes of the scene.
+        stand_in = types.SimpleNamespace(
+            tx_array=self.iso_array, rx_array=self.iso_array, transmitters=range(ns),
+            receivers=range(nt), wavelength=sionna_scene.wavelength,
+            frequency=sionna_scene.frequency)
+        paths = Paths(stand_in, src, tgt, v_tx, v_rx, True, buf, rel_tx, rel_rx)
+        return paths_to_numpy(paths, nt, ns, self.config.max_depth,
+                               self._counter.counts, cap)
+
+
+
+    def los_test(self, mi_scene, src, tgt, buf) -> None:
+        """Sionna's line-of-sight test: appends the visible LoS paths of every
+        (source, target) pair to ``buf`` as valid entries (after its
+        ``paths_counter``)."""
+        import drjit as dr
+        import mitsuba as mi
+
+        self.candidate_generator._los(mi_scene, src, tgt, buf,
+                                      dr.zeros(mi.UInt, dr.width(src)), None)
+
+
+def buffer_columns(buf) -> list[np.ndarray]:
+    """The stored candidates of a generator ``PathsBuffer`` (after ``shrink``) as
+    numpy: ``src, tgt, valid [n]``, ``types, shapes, prims, probs, vx, vy, vz
+    [n * D]`` (flat, depth-minor), ``kx, ky, kz [n]``."""
+    import drjit as dr
+
+    cols = [buf.source_indices, buf.target_indices, buf.valid,
+            buf.interaction_types.array, buf.shapes.array, buf.primitives.array,
+            buf.probs.array, buf.vertices_x.array, buf.vertices_y.array,
+            buf.vertices_z.array, *buf.k_tx]
+    dr.eval(*cols)
+    return [np.asarray(c.numpy()) for c in cols]
+
+
+def chain_buffer(cols: dict[str, np.ndarray], max_depth: int):
+    """A ``PathsBuffer`` holding chains ``cols`` (``src [C]``, ``types, shapes,
+    prims, probs, vx, vy, vz [C, D]``, ``k_tx [C, 3]``), none valid, followed
+    by empty chains (no interaction) up to a power of two (at least 1024
+    entries, at least one empty): the slots a line-of-sight path is written
+    into. The size rarely changes as a store grows (Dr.Jit recompiles kernels
+    that gather from the buffer when it does)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from sionna.rt.constants import INVALID_PRIMITIVE, INVALID_SHAPE, InteractionType
+    from sionna.rt.path_solvers.paths_buffer import PathsBuffer
+
+    d = max(1, int(max_depth))
+    n = max(1024, 1 << len(cols["src"]).bit_length())
+    empty = {"src": 0, "types": int(InteractionType.NONE), "shapes": INVALID_SHAPE,
+             "prims": INVALID_PRIMITIVE, "probs": 0.0, "vx": 0.0, "vy": 0.0,
+             "vz": 0.0, "k_tx": 0.0}
+    col = {k: np.concatenate([v, np.full((n - len(v),) + v.shape[1:], empty[k], v.dtype)])
+           for k, v in cols.items()}
+    b = PathsBuffer(n, int(max_depth), False)
+    t = lambda k, cls: cls(col[k].ravel(), shape=(n, d))  # noqa: E731
+    b._src_indices = mi.UInt(col["src"])
+    b._interaction_types = t("types", mi.TensorXu)
+    b._shapes = t("shapes", mi.TensorXu)
+    b._primitives = t("prims", mi.TensorXu)
+    b._probs = t("probs", mi.TensorXf)
+    b._vertices_x = t("vx", mi.TensorXf)
+    b._vertices_y = t("vy", mi.TensorXf)
+    b._vertices_z = t("vz", mi.TensorXf)
+    b._k_tx_x, b._k_tx_y, b._k_tx_z = (
+        mi.Float(np.ascontiguousarray(col["k_tx"][:, i])) for i in range(3))
+    b._paths_counter = mi.UInt(n)
+    dr.eval(b._src_indices, b._interaction_types, b._shapes, b._primitives)
+    return b
+
+
+def gather_pairs(buffer, empty_index: int, chain_idx: np.ndarray, target_idx: np.ndarray,
+                 spare: int = 0):
+    """Candidates for (chain, target) pairs gathered from a :func:`chain_buffer`.
+
+    Args:
+        buffer: the chains' ``PathsBuffer``.
+        empty_index: index of an empty chain in it (the number of chains).
+        chain_idx, target_idx: ``[M]`` the pairs.
+        spare: empty entries after the ``M`` candidates (the buffer's
+            ``paths_counter`` is ``M``, so a generator stage can append there,
+            e.g. :meth:`SolverCore.los_test`).
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    n = len(chain_idx)
+    idx = np.concatenate([np.asarray(chain_idx, np.int64),
+                          np.full(int(spare), empty_index, np.int64)]).astype(np.uint32)
+    b = buffer.gather(mi.UInt(idx))
+    b._tgt_indices = mi.UInt(np.concatenate([np.asarray(target_idx, np.uint32),
+                                             np.zeros(int(spare), np.uint32)]))
+    b._valid = dr.full(mi.Bool, False, len(idx))
+    b._paths_counter = mi.UInt(n)
+    # Evaluated arrays: a stage that scatters into them (the LoS test's
+    # scatter_inc on the counter) must not be split across kernels.
+    dr.make_opaque(b._valid, b._paths_counter, b._tgt_indices)
+    b.schedule()
+    dr.eval()
+    return b
