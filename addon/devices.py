@@ -13,12 +13,10 @@ from typing import Sequence
 
 import bpy
 
+from . import schema
 from .modelling import get_collection
 
 DEVICE_COLLECTION = "Devices"
-
-#: TurtleBot3 footprints (x, y, z) in m, for display only.
-ROBOT_SIZES = {"burger": (0.138, 0.178, 0.192), "waffle": (0.281, 0.306, 0.141)}
 
 
 def _set_array(props, rows, cols, vertical_spacing, horizontal_spacing, pattern, polarization):
@@ -49,10 +47,10 @@ def add_access_point(
     *,
     rows: int = 1,
     cols: int = 1,
-    vertical_spacing: float = 0.5,
-    horizontal_spacing: float = 0.5,
-    pattern: str = "iso",
-    polarization: str = "V",
+    vertical_spacing: float = schema.DEFAULT_ELEMENT_SPACING,
+    horizontal_spacing: float = schema.DEFAULT_ELEMENT_SPACING,
+    pattern: str = schema.DEFAULT_PATTERN,
+    polarization: str = schema.DEFAULT_POLARIZATION,
     power_dbm: float = 20.0,
     role: str = "tx",
     subcarriers: Sequence[int] | None = None,
@@ -67,8 +65,8 @@ def add_access_point(
         orientation: [roll, pitch, yaw], rad.
         rows, cols: planar array size (>= 1).
         vertical_spacing, horizontal_spacing: element spacing, wavelengths.
-        pattern: "iso" | "dipole" | "hw_dipole" | "tr38901".
-        polarization: "V" | "H" | "VH" | "cross".
+        pattern: a ``schema.PATTERNS`` name ("iso", "dipole", ...).
+        polarization: a ``schema.POLARIZATIONS`` name ("V", "H", ...).
         power_dbm: total transmit power, dBm.
         role: "tx" | "rx" | "txrx".
         subcarriers, symbols: resource set as half-open ``[start, stop)`` ranges
@@ -115,14 +113,14 @@ def add_robot(
     location: Sequence[float] = (0.0, 0.0, 0.0),
     yaw: float = 0.0,
     *,
-    model: str = "burger",
+    model: str = schema.DEFAULT_ROBOT_MODEL,
     rows: int = 1,
     cols: int = 1,
-    vertical_spacing: float = 0.5,
-    horizontal_spacing: float = 0.5,
-    pattern: str = "iso",
-    polarization: str = "V",
-    antenna_offset: Sequence[float] = (0.0, 0.0, 0.25),
+    vertical_spacing: float = schema.DEFAULT_ELEMENT_SPACING,
+    horizontal_spacing: float = schema.DEFAULT_ELEMENT_SPACING,
+    pattern: str = schema.DEFAULT_PATTERN,
+    polarization: str = schema.DEFAULT_POLARIZATION,
+    antenna_offset: Sequence[float] = schema.DEFAULT_ANTENNA_OFFSET,
     power_dbm: float = 10.0,
     role: str = "rx",
     scene=None,
@@ -131,11 +129,13 @@ def add_robot(
 
     Args:
         location: base_link position, m (z = 0 on the floor).
-        model: "burger" | "waffle" (TurtleBot3).
+        model: a ``schema.ROBOT_MODELS`` name (TurtleBot3 "burger", ...).
         antenna_offset: array centre in base_link, m.
         Other arguments as :func:`add_access_point`.
     """
-    size = max(ROBOT_SIZES.get(model, (0.2, 0.2, 0.2))) / 2
+    if model not in schema.ROBOT_MODELS:
+        raise ValueError(f"robot model {model!r}: expected one of {', '.join(schema.ROBOT_MODELS)}")
+    size = max(schema.ROBOT_MODELS[model].size) / 2
     obj = _new_empty(name, location, (0.0, 0.0, yaw), "CUBE", size, scene)
     p = obj.isac
     p.device_kind = "ROBOT"

@@ -28,6 +28,7 @@ from pathlib import Path
 import bpy
 from mathutils import Matrix, Vector
 
+from . import schema
 from .exporter import safe_name
 from .modelling import get_collection
 
@@ -45,8 +46,6 @@ TYPE_COLORS = {0: (1.0, 1.0, 1.0, 1.0), 1: (0.1, 0.6, 1.0, 1.0), 2: (0.9, 0.8, 0
 #: Colour-map stops (t, RGB) for power: weak = dark blue, strong = yellow/white.
 _POWER_STOPS = ((0.0, (0.05, 0.05, 0.4)), (0.4, (0.1, 0.5, 0.9)), (0.7, (0.2, 0.9, 0.4)),
                 (1.0, (1.0, 0.95, 0.2)))
-#: TurtleBot3 dimensions (m): body radius, body height, wheel radius, wheel width, track.
-_BOT = {"burger": (0.075, 0.19, 0.033, 0.018, 0.16), "waffle": (0.14, 0.14, 0.033, 0.018, 0.29)}
 
 
 # --------------------------------------------------------------------------- state holders
@@ -109,9 +108,14 @@ def _box(lo, hi):
     return v, f
 
 
-def robot_mesh(name: str, model: str = "burger"):
-    """A TurtleBot3-like proxy mesh in base_link (x forward, z up, origin on the floor)."""
-    r, h, wr, ww, track = _BOT.get(model, _BOT["burger"])
+def robot_mesh(name: str, model: str = schema.DEFAULT_ROBOT_MODEL):
+    """A TurtleBot3-like proxy mesh in base_link (x forward, z up, origin on the floor),
+    sized from the model's body (``schema.ROBOT_MODELS``; an unknown model: the default's):
+    a cylinder as wide as the base's narrower side, its top at the robot's height."""
+    body = schema.ROBOT_MODELS.get(model) or schema.ROBOT_MODELS[schema.DEFAULT_ROBOT_MODEL]
+    length, width, height = body.size
+    wr, ww, track = body.wheel_radius, body.wheel_width, body.wheel_separation
+    r, h = min(length, width) / 2, height - wr
     parts = [_cylinder(0.0, 0.0, wr + h / 2, r, h),
              _cylinder(0.0, track / 2, wr, wr, ww, axis="y"),
              _cylinder(0.0, -track / 2, wr, wr, ww, axis="y"),
@@ -161,7 +165,7 @@ def _object(scene, name: str, data):
     return obj
 
 
-def ensure_robot(scene, name: str, model: str = "burger"):
+def ensure_robot(scene, name: str, model: str = schema.DEFAULT_ROBOT_MODEL):
     """The proxy object of robot ``name`` (created on first use)."""
     oname = f"{PREFIX}{name}"
     obj = bpy.data.objects.get(oname)
@@ -353,7 +357,7 @@ def apply_scene(scene, msg: dict, view: LiveView) -> None:
     view.estimates.clear()
     for d in msg["devices"]:
         if d["kind"] == "robot":
-            view.robot_models[d["name"]] = d.get("model") or "burger"
+            view.robot_models[d["name"]] = d.get("model") or schema.DEFAULT_ROBOT_MODEL
             obj = ensure_robot(scene, d["name"], view.robot_models[d["name"]])
             obj.location = d["position"]
             obj.rotation_euler = d.get("orientation") or (0.0, 0.0, 0.0)
@@ -366,7 +370,7 @@ def apply_state(scene, msg: dict, view: LiveView) -> None:
     _set(p, "time_s", msg["time_s"])
     for r in msg["robots"]:
         name = r["name"]
-        obj = ensure_robot(scene, name, view.robot_models.get(name, "burger"))
+        obj = ensure_robot(scene, name, view.robot_models.get(name, schema.DEFAULT_ROBOT_MODEL))
         pose = r["pose"]
         obj.location = pose[:3]
         obj.rotation_euler = pose[3:]

@@ -7,7 +7,7 @@ import math
 import bpy
 from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, StringProperty
 
-from . import devices, live, live_view, materials, modelling
+from . import devices, live, live_view, materials, modelling, schema
 from .exporter import ExportError, export_scene
 from .properties import PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES, addon_preferences
 
@@ -95,8 +95,9 @@ class ISAC_OT_add_furniture(_Reporting, bpy.types.Operator):
 class _ArrayProps:
     rows: IntProperty(name="Rows", default=1, min=1)
     cols: IntProperty(name="Columns", default=1, min=1)
-    pattern: EnumProperty(name="Pattern", items=PATTERNS, default="iso")
-    polarization: EnumProperty(name="Polarization", items=POLARIZATIONS, default="V")
+    pattern: EnumProperty(name="Pattern", items=PATTERNS, default=schema.DEFAULT_PATTERN)
+    polarization: EnumProperty(name="Polarization", items=POLARIZATIONS,
+                               default=schema.DEFAULT_POLARIZATION)
 
 
 class ISAC_OT_add_access_point(_Reporting, _ArrayProps, bpy.types.Operator):
@@ -130,7 +131,7 @@ class ISAC_OT_add_robot(_Reporting, _ArrayProps, bpy.types.Operator):
     name: StringProperty(name="Name", default="robot")
     location: FloatVectorProperty(name="Location", size=3, subtype="TRANSLATION", unit="LENGTH")
     yaw: FloatProperty(name="Yaw", subtype="ANGLE", unit="ROTATION", default=math.pi / 2)
-    model: EnumProperty(name="Model", items=ROBOT_MODELS, default="burger")
+    model: EnumProperty(name="Model", items=ROBOT_MODELS, default=schema.DEFAULT_ROBOT_MODEL)
     role: EnumProperty(name="Role", items=ROLES, default="rx")
 
     def run(self, context):

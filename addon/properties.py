@@ -13,21 +13,24 @@ import bpy
 from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
                        FloatVectorProperty, IntProperty, PointerProperty, StringProperty)
 
-from . import materials
+from . import materials, schema
 
-DEVICE_KINDS = [
-    ("NONE", "Geometry", "Scene geometry (exported to scene.xml when it has a radio material)"),
-    ("ACCESS_POINT", "Access point", "Radio access point (not exported as geometry)"),
-    ("ROBOT", "Robot", "Mobile robot carrying an antenna array (not exported as geometry)"),
-]
-ROLES = [("tx", "Tx", "Transmitter"), ("rx", "Rx", "Receiver"),
-         ("txrx", "Tx/Rx", "Transmitter and receiver")]
-PATTERNS = [("iso", "Isotropic", ""), ("dipole", "Short dipole", ""),
-            ("hw_dipole", "Half-wave dipole", ""), ("tr38901", "3GPP TR 38.901", "")]
-POLARIZATIONS = [("V", "V", "Vertical"), ("H", "H", "Horizontal"),
-                 ("VH", "VH", "Dual: vertical and horizontal"),
-                 ("cross", "Cross", "Dual: +/-45 degrees")]
-ROBOT_MODELS = [("burger", "TurtleBot3 Burger", ""), ("waffle", "TurtleBot3 Waffle", "")]
+
+def _items(table: dict) -> list[tuple[str, str, str]]:
+    """Enum items ``(identifier, label, description)`` of a ``schema`` table."""
+    return [(k, label, desc) for k, (label, desc) in table.items()]
+
+
+# The value lists are the schema's (addon/schema.py, shared with the engine).
+#: device kinds: "NONE" (scene geometry), then the schema's kinds upper-cased
+DEVICE_KINDS = [("NONE", "Geometry",
+                 "Scene geometry (exported to scene.xml when it has a radio material)")] + [
+    (k.upper(), label, desc) for k, (label, desc) in schema.DEVICE_KINDS.items()]
+ROLES = _items(schema.ROLES)
+PATTERNS = _items(schema.PATTERNS)
+POLARIZATIONS = _items(schema.POLARIZATIONS)
+ROBOT_MODELS = [(k, body.label, "") for k, body in schema.ROBOT_MODELS.items()]
+PATH_DIRECTIONS = _items(schema.PATH_DIRECTIONS)
 
 _MATERIAL_ITEMS = materials.material_enum_items()  # keep a reference: bpy needs it alive
 
@@ -49,14 +52,19 @@ class ISAC_ObjectProps(bpy.types.PropertyGroup):
                              description="Total transmit power over the resource set, dBm")
     array_rows: IntProperty(name="Rows", default=1, soft_min=1, description="Array rows")
     array_cols: IntProperty(name="Columns", default=1, soft_min=1, description="Array columns")
-    vertical_spacing: FloatProperty(name="Vertical spacing", default=0.5, soft_min=0.01,
+    vertical_spacing: FloatProperty(name="Vertical spacing",
+                                    default=schema.DEFAULT_ELEMENT_SPACING, soft_min=0.01,
                                     description="Element spacing between rows, wavelengths")
-    horizontal_spacing: FloatProperty(name="Horizontal spacing", default=0.5, soft_min=0.01,
+    horizontal_spacing: FloatProperty(name="Horizontal spacing",
+                                      default=schema.DEFAULT_ELEMENT_SPACING, soft_min=0.01,
                                       description="Element spacing between columns, wavelengths")
-    pattern: EnumProperty(name="Pattern", items=PATTERNS, default="iso")
-    polarization: EnumProperty(name="Polarization", items=POLARIZATIONS, default="V")
-    robot_model: EnumProperty(name="Robot model", items=ROBOT_MODELS, default="burger")
-    antenna_offset: FloatVectorProperty(name="Antenna offset", size=3, default=(0.0, 0.0, 0.25),
+    pattern: EnumProperty(name="Pattern", items=PATTERNS, default=schema.DEFAULT_PATTERN)
+    polarization: EnumProperty(name="Polarization", items=POLARIZATIONS,
+                               default=schema.DEFAULT_POLARIZATION)
+    robot_model: EnumProperty(name="Robot model", items=ROBOT_MODELS,
+                              default=schema.DEFAULT_ROBOT_MODEL)
+    antenna_offset: FloatVectorProperty(name="Antenna offset", size=3,
+                                        default=schema.DEFAULT_ANTENNA_OFFSET,
                                         subtype="TRANSLATION", unit="LENGTH",
                                         description="Array centre in base_link, m")
     # resource set R_q (transmitters): half-open ranges; all four 0 = the whole grid
@@ -73,8 +81,8 @@ class ISAC_ObjectProps(bpy.types.PropertyGroup):
     path_centre: FloatVectorProperty(name="Centre", size=2, default=(0.0, 0.0),
                                      subtype="XYZ", unit="LENGTH")
     path_radius: FloatProperty(name="Radius", default=1.0, min=0.0, unit="LENGTH")
-    path_direction: EnumProperty(name="Direction", default="ccw", items=[
-        ("ccw", "Counter-clockwise", ""), ("cw", "Clockwise", "")])
+    path_direction: EnumProperty(name="Direction", default=schema.DEFAULT_PATH_DIRECTION,
+                                 items=PATH_DIRECTIONS)
     path_speed: FloatProperty(name="Speed", default=0.0, min=0.0,
                               description="Cruise speed, m/s (0 = the model's limit)")
 

@@ -1,7 +1,7 @@
 """The live link's wire format: the one definition the add-on and the engine share.
 
 Standard library only (no ``bpy``, no numpy): the engine loads this file by
-path (``engine/live/protocol.py``), the add-on imports it as ``.wire``.
+path (``engine/addon_shared.py``), the add-on imports it as ``.wire``.
 See ``docs/wire.md`` for the prose version of everything below.
 
 Framing:

@@ -14,13 +14,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-SCHEMA_VERSION = 1
+from engine.addon_shared import schema as shared
 
-DEVICE_KINDS = ("access_point", "robot")
-ROLES = ("tx", "rx", "txrx")
-ROBOT_MODELS = ("burger", "waffle")
-PATTERNS = ("iso", "dipole", "hw_dipole", "tr38901")
-POLARIZATIONS = ("V", "H", "VH", "cross")
+# The names each key may take and the defaults are the add-on's (addon/schema.py,
+# the one definition both sides read); these are the engine's views of them.
+SCHEMA_VERSION = shared.TWIN_TOML_SCHEMA
+
+DEVICE_KINDS = tuple(shared.DEVICE_KINDS)
+ROLES = tuple(shared.ROLES)
+ROBOT_MODELS = tuple(shared.ROBOT_MODELS)
+PATTERNS = tuple(shared.PATTERNS)
+POLARIZATIONS = tuple(shared.POLARIZATIONS)
 TRACER_METHODS = ("auto", "chains", "sbr")
 TRACER_BACKENDS = ("sionna", "grid")
 MCS_TABLES = ("he", "nr_cqi2")  #: see engine/phy/mcs.py
@@ -102,13 +106,13 @@ class ArrayConfig:
     cols: int
     vertical_spacing: float  #: wavelengths
     horizontal_spacing: float  #: wavelengths
-    pattern: str = "iso"
-    polarization: str = "V"
+    pattern: str = shared.DEFAULT_PATTERN
+    polarization: str = shared.DEFAULT_POLARIZATION
 
     @property
     def num_ant(self) -> int:
         """Antenna ports (dual polarization doubles the elements)."""
-        dual = self.polarization in ("VH", "cross")
+        dual = self.polarization in shared.DUAL_POLARIZATIONS
         return self.rows * self.cols * (2 if dual else 1)
 
 
@@ -322,17 +326,20 @@ MODELLED_POLARIZATIONS = ("V",)
 
 def _parse_array(r: _Reader, data: dict, prefix: str) -> ArrayConfig:
     r.check_keys(data, _ARRAY_KEYS, prefix)
-    pol = r.string(data, "polarization", prefix, "V", choices=POLARIZATIONS)
+    pol = r.string(data, "polarization", prefix, shared.DEFAULT_POLARIZATION,
+                   choices=POLARIZATIONS)
     if pol not in MODELLED_POLARIZATIONS:
         raise r.fail(f"{prefix}polarization", f"{pol!r} is not modelled (the tracer carries "
                      "no polarimetric transfer matrix; patterns are exact on V): use \"V\"")
     return ArrayConfig(
         rows=r.integer(data, "rows", prefix, minimum=1),
         cols=r.integer(data, "cols", prefix, minimum=1),
-        vertical_spacing=r.number(data, "vertical_spacing", prefix, 0.5, positive=True),
-        horizontal_spacing=r.number(data, "horizontal_spacing", prefix, 0.5, positive=True),
-        pattern=r.string(data, "pattern", prefix, "iso", choices=PATTERNS),
-        polarization=r.string(data, "polarization", prefix, "V", choices=POLARIZATIONS),
+        vertical_spacing=r.number(data, "vertical_spacing", prefix,
+                                  shared.DEFAULT_ELEMENT_SPACING, positive=True),
+        horizontal_spacing=r.number(data, "horizontal_spacing", prefix,
+                                    shared.DEFAULT_ELEMENT_SPACING, positive=True),
+        pattern=r.string(data, "pattern", prefix, shared.DEFAULT_PATTERN, choices=PATTERNS),
+        polarization=pol,
     )
 
 
@@ -346,7 +353,8 @@ def _parse_path(r: _Reader, data: dict, prefix: str) -> dict:
         out["centre"] = list(r.vector(data, "centre", prefix, 2))
     if kind == "circle":
         out["radius"] = r.number(data, "radius", prefix, positive=True)
-        out["direction"] = r.string(data, "direction", prefix, "ccw", choices=("ccw", "cw"))
+        out["direction"] = r.string(data, "direction", prefix, shared.DEFAULT_PATH_DIRECTION,
+                                    choices=tuple(shared.PATH_DIRECTIONS))
     elif kind == "figure_eight":
         out["size"] = r.number(data, "size", prefix, positive=True)
     elif kind == "goal":
@@ -373,8 +381,10 @@ def _parse_device(r: _Reader, data: Any, i: int, ofdm: OFDMConfig) -> DeviceConf
     path = None
     offset = (0.0, 0.0, 0.0)
     if kind == "robot":
-        model = r.string(data, "model", prefix, "burger", choices=ROBOT_MODELS)
-        offset = r.vector(data, "antenna_offset", prefix, 3, [0.0, 0.0, 0.25])
+        model = r.string(data, "model", prefix, shared.DEFAULT_ROBOT_MODEL,
+                         choices=ROBOT_MODELS)
+        offset = r.vector(data, "antenna_offset", prefix, 3,
+                          list(shared.DEFAULT_ANTENNA_OFFSET))
         if "path" in data:
             path = _parse_path(r, r.table(data, "path", prefix), f"{prefix}path.")
     else:

@@ -65,6 +65,7 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.addon_shared import schema
 from engine.bus import Bus
 from engine.msgs import (BatteryState, Header, Imu, LaserScan, Odometry, Pose, PoseStamped, Twist,
                          quaternion_to_yaw, yaw_to_quaternion)
@@ -85,7 +86,7 @@ class RobotConfig:
     """A parsed ``robot.toml`` (see the module docstring for the file format)."""
 
     name: str = "robot1"
-    model: str = "burger"
+    model: str = schema.DEFAULT_ROBOT_MODEL
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)  #: x m, y m, yaw rad (map)
     emulated: bool = False
     opencr: str = "/dev/ttyACM0"
@@ -148,9 +149,10 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
     if not isinstance(name, str) or not name or "/" in name:
         raise RobotConfigError(f"{where}: [robot] name = {name!r}: expected a non-empty name "
                                "without '/'")
-    model = r.get("model", "burger")
-    if model not in ("burger", "waffle"):
-        raise RobotConfigError(f"{where}: [robot] model = {model!r}: expected burger or waffle")
+    model = r.get("model", schema.DEFAULT_ROBOT_MODEL)
+    if model not in schema.ROBOT_MODELS:
+        raise RobotConfigError(f"{where}: [robot] model = {model!r}: expected "
+                               f"{' or '.join(schema.ROBOT_MODELS)}")
     pose = r.get("initial_pose", [0.0, 0.0, 0.0])
     if not (isinstance(pose, list) and len(pose) == 3
             and all(isinstance(x, (int, float)) for x in pose)):

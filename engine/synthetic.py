@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.addon_shared import schema
+
 #: the add-on's exporter package, loaded under this name without its bpy-bound __init__
 EXPORTER_MODULE = "isac_twin_addon_exporter"
 EXPORTER_DIR = Path(__file__).resolve().parents[1] / "addon" / "exporter"
@@ -103,7 +105,7 @@ def write_scene_folder(folder: str | Path, objects: list[SyntheticObject],
     exporter("mitsuba_xml").write_scene_xml(
         folder / "scene.xml", [(o.name, o.material, float(o.thickness)) for o in objects])
     data: dict = {
-        "schema": 1,
+        "schema": schema.TWIN_TOML_SCHEMA,
         "scene": {"name": name, "file": "scene.xml", "frequency_hz": float(frequency_hz)},
         "ofdm": {"num_subcarriers": int(num_subcarriers),
                  "subcarrier_spacing_hz": float(subcarrier_spacing_hz),
@@ -116,8 +118,11 @@ def write_scene_folder(folder: str | Path, objects: list[SyntheticObject],
          "position": [float(x) for x in d.position],
          "orientation": [float(x) for x in d.orientation], "power_dbm": float(d.power_dbm),
          **d.extra,
-         "array": {"rows": d.rows, "cols": d.cols, "vertical_spacing": 0.5,
-                   "horizontal_spacing": 0.5, "pattern": "iso", "polarization": "V"}}
+         "array": {"rows": d.rows, "cols": d.cols,
+                   "vertical_spacing": schema.DEFAULT_ELEMENT_SPACING,
+                   "horizontal_spacing": schema.DEFAULT_ELEMENT_SPACING,
+                   "pattern": schema.DEFAULT_PATTERN,
+                   "polarization": schema.DEFAULT_POLARIZATION}}
         for d in devices]
     if links:
         data["links"] = [{"tx": tx, "rx": rx} for tx, rx in links]
@@ -125,7 +130,8 @@ def write_scene_folder(folder: str | Path, objects: list[SyntheticObject],
     return folder
 
 
-ROBOT_EXTRA = {"model": "burger", "antenna_offset": [0.0, 0.0, 0.25]}
+ROBOT_EXTRA = {"model": schema.DEFAULT_ROBOT_MODEL,
+               "antenna_offset": list(schema.DEFAULT_ANTENNA_OFFSET)}
 
 
 def room_objects(size=(6.0, 4.0, 3.0), furniture=None, *, material: str = "concrete",

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.addon_shared import wire
 from engine.bus import Bus
 from engine.msgs import Csi, Header, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
@@ -222,8 +223,8 @@ class Twin:
             ValueError: naming the edit (op and target) and the field at fault.
         """
         what = f"edit {edit.op} {edit.target!r}"
-        if edit.op not in ("move", "material", "remove", "add"):
-            raise ValueError(f"{what}: op: expected move, material, remove or add")
+        if edit.op not in wire.EDIT_OPS:
+            raise ValueError(f"{what}: op: expected one of {', '.join(wire.EDIT_OPS)}")
         objects = self.scene.objects
         devices = set(self.ap_poses) | set(self.agents)
 

@@ -21,7 +21,7 @@ from types import SimpleNamespace
 
 import bpy
 
-from .. import materials
+from .. import materials, schema
 from .geometry import WorldMesh, world_mesh, write_ply
 from .interchange import write_dae, write_stl, write_usd
 from .mitsuba_xml import material_id, write_scene_xml
@@ -30,8 +30,9 @@ from .twin_toml import write_twin_toml
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
-_KIND = {"ACCESS_POINT": "access_point", "ROBOT": "robot"}
+SCHEMA_VERSION = schema.TWIN_TOML_SCHEMA
+#: the add-on's device_kind enum identifiers -> twin.toml kinds (properties.DEVICE_KINDS)
+_KIND = {k.upper(): k for k in schema.DEVICE_KINDS}
 
 
 class ExportError(ValueError):

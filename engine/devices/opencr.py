@@ -28,6 +28,7 @@ import serial
 from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
 
 import engine.devices.ptyserial  # noqa: F401  (registers the pty:// URL handler)
+from engine.addon_shared import schema
 from engine.devices.base import DeviceDriver, DeviceError, DeviceTimeout, Publish
 from engine.msgs import BatteryState, Header, Imu, Odometry, Pose, Twist
 
@@ -71,10 +72,11 @@ BLOCK_LEN = 172
 CMD_VEL_LEN = 24
 TICK_TO_RAD = 0.001533981  #: rad per encoder tick (2 pi / 4096)
 RPM_PER_UNIT = 0.229  #: rev/min per present_velocity unit
-WHEEL_RADIUS = 0.033  #: m
-WHEEL_SEPARATION = {"burger": 0.160, "waffle": 0.287}  #: m
-MAX_LINEAR = {"burger": 0.211, "waffle": 0.266}  #: m/s (firmware limits)
-MAX_ANGULAR = {"burger": 2.63, "waffle": 1.85}  #: rad/s
+# the robots' bodies and firmware limits are the shared schema's (addon/schema.py)
+WHEEL_RADIUS = schema.ROBOT_MODELS["burger"].wheel_radius  #: m (both models)
+WHEEL_SEPARATION = {m: b.wheel_separation for m, b in schema.ROBOT_MODELS.items()}  #: m
+MAX_LINEAR = {m: b.max_linear for m, b in schema.ROBOT_MODELS.items()}  #: m/s (firmware)
+MAX_ANGULAR = {m: b.max_angular for m, b in schema.ROBOT_MODELS.items()}  #: rad/s (firmware)
 
 
 def velocity_units_to_rad_s(units) -> np.ndarray:

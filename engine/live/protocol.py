@@ -1,45 +1,19 @@
-"""The engine's side of the wire format: load ``addon/wire.py``, convert records.
+"""The engine's side of the wire format: convert records to and from messages.
 
-Why load by path: ``addon/wire.py`` is the one definition of the protocol
-(stdlib only). Importing it as ``addon.wire`` would run ``addon/__init__.py``,
-which imports the ``bpy`` glue, and would need the repository root on
-``sys.path`` (only ``engine`` is installed). Loading the single file by path
-under a private module name keeps the add-on's registration untouched (legacy
-and extension loading work as before) and gives the engine exactly the bytes
-the add-on uses. ``ISAC_TWIN_WIRE`` may point to another copy of the file.
+The format itself is ``addon/wire.py``, the one definition the add-on and the
+engine share (stdlib only); ``engine.addon_shared`` loads it (from the
+repository's ``addon/`` folder, or from the copy a built wheel carries) and
+this module re-exports it as :data:`wire`.
 """
 
 from __future__ import annotations
 
-import importlib.util
-import os
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
+from engine.addon_shared import wire
 from engine.state import Command, Edit, StepResult
-
-_MODULE_NAME = "isac_twin_wire"
-
-
-def _load_wire():
-    if _MODULE_NAME in sys.modules:
-        return sys.modules[_MODULE_NAME]
-    path = Path(os.environ.get("ISAC_TWIN_WIRE") or
-                Path(__file__).resolve().parents[2] / "addon" / "wire.py")
-    if not path.is_file():
-        raise ImportError(f"the wire format definition {path} is missing (set ISAC_TWIN_WIRE "
-                          "to the add-on's wire.py)")
-    spec = importlib.util.spec_from_file_location(_MODULE_NAME, path)
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[_MODULE_NAME] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-wire = _load_wire()
 
 _ROUND = 4  # coordinates on the wire: 0.1 mm
 

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from engine.addon_shared import schema
 from engine.msgs import Twist
 from engine.pose import rotation_matrix
 
@@ -110,14 +111,20 @@ class RobotSpec:
         return r * (phi_r + phi_l) / 2.0, r * (phi_r - phi_l) / self.wheel_separation
 
 
+def _spec(model: str, **mounts) -> RobotSpec:
+    """A model's spec: the body (wheels, footprint, firmware limits) is the shared
+    schema's (``addon/schema.py``), the sensor mounts are the engine's."""
+    body = schema.ROBOT_MODELS[model]
+    return RobotSpec(model, body.wheel_radius, body.wheel_separation, body.max_linear,
+                     body.max_angular, footprint_radius=body.footprint_radius, **mounts)
+
+
 #: The two TurtleBot3 models (dimensions from ROBOTIS' URDFs and e-Manual).
 ROBOT_SPECS: dict[str, RobotSpec] = {
-    "burger": RobotSpec("burger", 0.033, 0.160, 0.211, 2.63, footprint_radius=0.113,
-                        lidar_mount=(-0.032, 0.0, 0.172), imu_mount=(-0.032, 0.0, 0.068),
-                        camera_mount=(0.04, 0.0, 0.20)),
-    "waffle": RobotSpec("waffle", 0.033, 0.287, 0.266, 1.85, footprint_radius=0.208,
-                        lidar_mount=(-0.064, 0.0, 0.122), imu_mount=(-0.032, 0.0, 0.068),
-                        camera_mount=(0.064, -0.065, 0.094)),
+    "burger": _spec("burger", lidar_mount=(-0.032, 0.0, 0.172), imu_mount=(-0.032, 0.0, 0.068),
+                    camera_mount=(0.04, 0.0, 0.20)),
+    "waffle": _spec("waffle", lidar_mount=(-0.064, 0.0, 0.122), imu_mount=(-0.032, 0.0, 0.068),
+                    camera_mount=(0.064, -0.065, 0.094)),
 }
 
 

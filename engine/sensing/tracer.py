@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from engine.addon_shared import schema
 from engine.pose import DevicePose, sionna_orientation
 from engine.raytrace.base import LinkPaths, empty_link
 from engine.raytrace.solver_core import load_sionna_rt
@@ -44,8 +45,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["TargetSpec", "EchoPaths", "SensingTracer", "BURGER_SIZE"]
 
-#: TurtleBot3 Burger footprint and height (length, width, height) [m].
-BURGER_SIZE = (0.138, 0.178, 0.192)
+#: TurtleBot3 Burger footprint and height (length, width, height) [m] (addon/schema.py).
+BURGER_SIZE = schema.ROBOT_MODELS["burger"].size
 
 SENSING_INTERACTION = 16
 
