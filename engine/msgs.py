@@ -172,3 +172,35 @@ class Csi:
 
 
 MESSAGE_TYPES[Csi.ROS_TYPE] = Csi
+
+
+@dataclass
+class TransformStamped:
+    """``header.frame_id`` -> ``child_frame_id``: translation (m) ``[3]`` and rotation
+    quaternion ``[x, y, z, w]`` of the child frame in the parent frame."""
+
+    ROS_TYPE = "geometry_msgs/msg/TransformStamped"
+    header: Header = field(default_factory=Header)
+    child_frame_id: str = ""
+    translation: np.ndarray = _zeros(3)
+    rotation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
+
+
+@dataclass
+class TFMessage:
+    """A batch of transforms (``/tf``, ``/tf_static``)."""
+
+    ROS_TYPE = "tf2_msgs/msg/TFMessage"
+    transforms: list[TransformStamped] = field(default_factory=list)
+
+
+@dataclass
+class Clock:
+    """``/clock``: the current (simulated) time, s."""
+
+    ROS_TYPE = "rosgraph_msgs/msg/Clock"
+    clock: float = 0.0
+
+
+for _cls in (TransformStamped, TFMessage, Clock):
+    MESSAGE_TYPES[_cls.ROS_TYPE] = _cls
