@@ -68,7 +68,7 @@ class Twist:
 class Odometry:
     ROS_TYPE = "nav_msgs/msg/Odometry"
     header: Header = field(default_factory=lambda: Header(frame_id="odom"))
-    child_frame_id: str = "base_link"
+    child_frame_id: str = "base_footprint"
     pose: Pose = field(default_factory=Pose)
     pose_covariance: np.ndarray = _cov(6)
     twist: Twist = field(default_factory=Twist)
