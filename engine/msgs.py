@@ -204,3 +204,26 @@ class Clock:
 
 for _cls in (TransformStamped, TFMessage, Clock):
     MESSAGE_TYPES[_cls.ROS_TYPE] = _cls
+
+
+def shift_stamps(msg, offset_s: float):
+    """A copy of ``msg`` with every ``Header.stamp`` (nested ones and those in lists, e.g.
+    a TFMessage's transforms) and ``Clock.clock`` moved by ``offset_s`` s; other fields
+    are shared, not copied. Used at the recording/network edge to put the twin's
+    simulated time on a wall-clock epoch."""
+    import dataclasses
+
+    if isinstance(msg, Header):
+        return dataclasses.replace(msg, stamp=msg.stamp + offset_s)
+    if isinstance(msg, Clock):
+        return Clock(msg.clock + offset_s)
+    if not dataclasses.is_dataclass(msg) or isinstance(msg, type):
+        return msg
+    changes = {}
+    for f in dataclasses.fields(msg):
+        v = getattr(msg, f.name)
+        if isinstance(v, Header) or dataclasses.is_dataclass(v):
+            changes[f.name] = shift_stamps(v, offset_s)
+        elif isinstance(v, list) and v and dataclasses.is_dataclass(v[0]):
+            changes[f.name] = [shift_stamps(x, offset_s) for x in v]
+    return dataclasses.replace(msg, **changes) if changes else msg
