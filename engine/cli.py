@@ -445,7 +445,7 @@ def _record_args(p: argparse.ArgumentParser) -> None:
                    help="CSI: 1 symbol in 14, 1 subcarrier in 16 (default) or everything")
     p.add_argument("--connect", action="append", default=None,
                    help="zenoh endpoint of real robots to mirror (repeatable), "
-                        "e.g. tcp/127.0.0.1:7447")
+                        "e.g. tcp/127.0.0.1:7448")
 
 
 @command("record", "run the twin and record all its topics, link metrics and paths to MCAP",

@@ -39,7 +39,7 @@ OpenCR firmware would also zero it after 500 ms).
 
     [network]                  # zenoh (see engine.transport.zenoh_transport)
     mode = "peer"
-    listen = ["tcp/127.0.0.1:7447"]
+    listen = ["tcp/127.0.0.1:7448"]
     connect = []
     domain_id = 0
     distro = "jazzy"
@@ -163,7 +163,7 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
         eps = n.get(key, [])
         if not (isinstance(eps, list) and all(isinstance(x, str) and "/" in x for x in eps)):
             raise RobotConfigError(f"{where}: [network] {key} = {eps!r}: expected a list of "
-                                   "endpoints like \"tcp/127.0.0.1:7447\"")
+                                   "endpoints like \"tcp/127.0.0.1:7448\"")
     net = ZenohConfig(mode=n.get("mode", "peer"), listen=list(n.get("listen", [])),
                       connect=list(n.get("connect", [])), multicast=bool(n.get("multicast", False)),
                       domain_id=int(n.get("domain_id", 0)), distro=n.get("distro", "jazzy"))

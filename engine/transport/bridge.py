@@ -31,7 +31,7 @@ twin runs the robot on its own motion model (synthetic source only) and
 
 Use::
 
-    bridge = TwinBridge(twin, ZenohTransport(ZenohConfig(connect=["tcp/127.0.0.1:7447"])))
+    bridge = TwinBridge(twin, ZenohTransport(ZenohConfig(connect=["tcp/127.0.0.1:7448"])))
     for _ in range(n):
         result = bridge.step()       # sync(); twin.step(); publish_step(result)
     bridge.close()

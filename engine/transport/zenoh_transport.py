@@ -6,7 +6,7 @@ encapsulation header (:mod:`engine.transport.cdr`), and every sample carries
 the rmw_zenoh attachment (sequence number, source timestamp, GID).
 
 Sessions default to **peer mode on loopback with multicast scouting off**:
-endpoints are explicit (``listen=["tcp/127.0.0.1:7447"]`` on one side,
+endpoints are explicit (``listen=["tcp/127.0.0.1:7448"]`` on one side,
 ``connect=[...]`` on the other) so tests never touch another address. A
 router (``rmw_zenohd`` / ``zenohd``) is just a ``connect`` endpoint; ``mode``
 may be ``"client"`` to go through it only.
@@ -60,7 +60,7 @@ class ZenohConfig:
 
     Attributes:
         mode: ``"peer"`` (default), ``"client"`` (through a router) or ``"router"``.
-        listen: endpoints to listen on, e.g. ``["tcp/127.0.0.1:7447"]``.
+        listen: endpoints to listen on, e.g. ``["tcp/127.0.0.1:7448"]``.
         connect: endpoints to connect to (peers or a router), retried forever.
         multicast: multicast scouting (off by default: explicit endpoints only).
         domain_id: ROS_DOMAIN_ID, the first key chunk.
@@ -129,8 +129,8 @@ class ZenohTransport:
 
     Example::
 
-        robot = Bus(transport=ZenohTransport(ZenohConfig(listen=["tcp/127.0.0.1:7447"])))
-        twin = Bus(transport=ZenohTransport(ZenohConfig(connect=["tcp/127.0.0.1:7447"])))
+        robot = Bus(transport=ZenohTransport(ZenohConfig(listen=["tcp/127.0.0.1:7448"])))
+        twin = Bus(transport=ZenohTransport(ZenohConfig(connect=["tcp/127.0.0.1:7448"])))
 
     Args:
         config: :class:`ZenohConfig` (default: an isolated peer, no endpoints).

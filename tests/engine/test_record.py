@@ -254,6 +254,11 @@ def test_cli_record_then_replay(tmp_path, capsys):
     assert topics[LINKS_TOPIC] >= 2 and topics[PATHS_TOPIC] >= 2
     assert topics["/robot1/ground_truth"] == 2
     assert read_metadata(out)["scene"].endswith("scene")
+    # REP-105 frames and a compact file: the lab's CSI decimated, zstd chunks
+    assert topics["/tf"] == 2 and topics["/tf_static"] == 1 and topics["/clock"] == 2
+    assert out.stat().st_size / 2 <= 100_000
+    csi = next(m.decode() for m in read_messages(out, ["/robot1/csi"]))
+    assert csi.h.shape[0] == 1 and csi.h.shape[1] == 1024 // 16
     assert main(["replay", str(out), "--speed", "0"]) == 0
     lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("step")]
     assert len(lines) == 2 and "AP1->robot1" in lines[0]
