@@ -446,6 +446,11 @@ def _record_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", action="append", default=None,
                    help="zenoh endpoint of real robots to mirror (repeatable), "
                         "e.g. tcp/127.0.0.1:7448")
+    p.add_argument("--share", action="store_true",
+                   help="also publish every twin topic on zenoh (rmw_zenoh format, "
+                        "wall-clock stamps) for ROS 2 nodes; needs --connect")
+    p.add_argument("--share-prefix", default="/twin",
+                   help="prefix of shared topic names (default /twin; '' keeps the names)")
 
 
 @command("record", "run the twin and record all its topics, link metrics and paths to MCAP",
@@ -456,13 +461,24 @@ def cmd_record(args) -> int:
     from engine.record import CsiRecording, record_twin
     from engine.twin import Twin
 
+    if args.share and not args.connect:
+        print("isac-twin: error: --share needs --connect (the zenoh router or peer to "
+              "publish to)", file=sys.stderr)
+        return 2
     twin = Twin.from_scene(scene_path(args), seed=args.seed)
     bridge = None
     if args.connect:
         from engine.transport.bridge import TwinBridge
         from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
 
-        bridge = TwinBridge(twin, ZenohTransport(ZenohConfig(connect=args.connect)))
+        transport = ZenohTransport(ZenohConfig(connect=args.connect))
+        try:
+            bridge = TwinBridge(twin, transport, share="all" if args.share else None,
+                                share_prefix=args.share_prefix)
+        except ValueError as exc:
+            transport.close()
+            print(f"isac-twin: error: {exc}", file=sys.stderr)
+            return 2
     try:
         rec = record_twin(twin, args.steps, args.out, rate_hz=args.rate,
                           compression=args.compression, bridge=bridge,
