@@ -20,7 +20,8 @@ A :class:`QosProfile` is written in two places:
 :func:`qos_for` gives the twin's profile of a topic from REP-2003/rclcpp conventions:
 sensor streams (scan, imu, images) best-effort depth 5 (``SensorDataQoS``),
 ``/tf_static`` transient-local depth 1 (latched), ``/tf`` depth 100, ``/clock``
-best-effort depth 1 (``ClockQoS``), everything else reliable depth 10.
+best-effort depth 1 (``ClockQoS``), everything else reliable depth 10; the tf
+topics keep their QoS under a namespace (``/twin/tf_static``).
 """
 
 from __future__ import annotations
@@ -113,13 +114,13 @@ _SENSOR_LEAVES = {"scan", "imu", "image_raw", "image", "depth", "points", "csi"}
 
 def qos_for(topic: str) -> QosProfile:
     """The twin's QoS of ``topic`` (a ROS name) by convention (see the module docstring)."""
-    if topic == "/tf_static":
-        return LATCHED
-    if topic == "/tf":
-        return QosProfile(depth=100)
-    if topic == "/clock":
-        return QosProfile("best_effort", "volatile", "keep_last", 1)
     parts = topic.strip("/").split("/")
+    if parts[-1] == "tf_static":  # also a namespaced one (/twin/tf_static)
+        return LATCHED
+    if parts[-1] == "tf":
+        return QosProfile(depth=100)
+    if parts[-1] == "clock" and len(parts) <= 2:
+        return QosProfile("best_effort", "volatile", "keep_last", 1)
     if parts[-1] in _SENSOR_LEAVES or (len(parts) > 1 and parts[-2] in ("camera", "depth")):
         return SENSOR_DATA
     return DEFAULT

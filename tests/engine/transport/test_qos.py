@@ -28,6 +28,8 @@ def test_conventions():
     assert qos_for("/robot1/scan").reliability == "best_effort"
     assert qos_for("/robot1/odom") == QosProfile()
     assert qos_for("/clock").reliability == "best_effort"
+    assert qos_for("/twin/tf_static").transient_local  # shared under a prefix: still latched
+    assert qos_for("/isac/clock/ping") == QosProfile()
 
 
 def test_rosbag2_yaml_is_a_list_of_profiles():
