@@ -438,32 +438,77 @@ def _record_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="output .mcap")
     p.add_argument("--rate", type=float, default=None, help="steps per second (default: max)")
     p.add_argument("--seed", type=int, default=0, help="seed of the twin's noise")
-    p.add_argument("--compression", choices=("none", "zstd", "lz4"), default="none")
+    p.add_argument("--compression", choices=("none", "zstd", "lz4"), default="zstd")
+    p.add_argument("--stamps", choices=("sim", "wall"), default="sim",
+                   help="header stamps and log times: simulated s from 0 (default) or "
+                        "wall clock (Unix epoch of the start + simulated s)")
+    p.add_argument("--csi", choices=("compact", "full"), default="compact",
+                   help="CSI: 1 symbol in 14, 1 subcarrier in 16 (default) or everything")
     p.add_argument("--connect", action="append", default=None,
                    help="zenoh endpoint of real robots to mirror (repeatable), "
-                        "e.g. tcp/127.0.0.1:7447")
+                        "e.g. tcp/127.0.0.1:7448")
+    p.add_argument("--share", action="store_true",
+                   help="also publish every twin topic on zenoh (rmw_zenoh format, "
+                        "wall-clock stamps) for ROS 2 nodes; needs --connect")
+    p.add_argument("--share-prefix", default="/twin",
+                   help="prefix of shared topic names (default /twin; '' keeps the names)")
 
 
 @command("record", "run the twin and record all its topics, link metrics and paths to MCAP",
          _record_args)
 def cmd_record(args) -> int:
-    from engine.record import record_twin
+    import time
+
+    from engine.record import CsiRecording, record_twin
     from engine.twin import Twin
 
+    if args.share and not args.connect:
+        print("isac-twin: error: --share needs --connect (the zenoh router or peer to "
+              "publish to)", file=sys.stderr)
+        return 2
     twin = Twin.from_scene(scene_path(args), seed=args.seed)
     bridge = None
     if args.connect:
         from engine.transport.bridge import TwinBridge
         from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
 
-        bridge = TwinBridge(twin, ZenohTransport(ZenohConfig(connect=args.connect)))
+        transport = ZenohTransport(ZenohConfig(connect=args.connect))
+        try:
+            bridge = TwinBridge(twin, transport, share="all" if args.share else None,
+                                share_prefix=args.share_prefix)
+        except ValueError as exc:
+            transport.close()
+            print(f"isac-twin: error: {exc}", file=sys.stderr)
+            return 2
     try:
         rec = record_twin(twin, args.steps, args.out, rate_hz=args.rate,
-                          compression=args.compression, bridge=bridge)
+                          compression=args.compression, bridge=bridge,
+                          stamp_epoch_s=time.time() if args.stamps == "wall" else 0.0,
+                          csi=CsiRecording() if args.csi == "compact" else CsiRecording.full())
     finally:
         if bridge is not None:
             bridge.close()
     print(f"recorded {rec.messages} messages of {args.steps} steps to {args.out}")
+    return 0
+
+
+def _recover_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("recording", type=Path, help="an .mcap whose writer was killed")
+    p.add_argument("--out", type=Path, default=None,
+                   help="output (default <name>.recovered.mcap next to it)")
+
+
+@command("recover", "rewrite a killed recording's complete chunks as a finished MCAP",
+         _recover_args)
+def cmd_recover(args) -> int:
+    from engine.record import recover
+
+    try:
+        out, n = recover(args.recording, args.out)
+    except (OSError, ValueError) as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"recovered {n} messages of {args.recording} to {out}")
     return 0
 
 

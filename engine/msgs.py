@@ -68,7 +68,7 @@ class Twist:
 class Odometry:
     ROS_TYPE = "nav_msgs/msg/Odometry"
     header: Header = field(default_factory=lambda: Header(frame_id="odom"))
-    child_frame_id: str = "base_link"
+    child_frame_id: str = "base_footprint"
     pose: Pose = field(default_factory=Pose)
     pose_covariance: np.ndarray = _cov(6)
     twist: Twist = field(default_factory=Twist)
@@ -172,3 +172,58 @@ class Csi:
 
 
 MESSAGE_TYPES[Csi.ROS_TYPE] = Csi
+
+
+@dataclass
+class TransformStamped:
+    """``header.frame_id`` -> ``child_frame_id``: translation (m) ``[3]`` and rotation
+    quaternion ``[x, y, z, w]`` of the child frame in the parent frame."""
+
+    ROS_TYPE = "geometry_msgs/msg/TransformStamped"
+    header: Header = field(default_factory=Header)
+    child_frame_id: str = ""
+    translation: np.ndarray = _zeros(3)
+    rotation: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
+
+
+@dataclass
+class TFMessage:
+    """A batch of transforms (``/tf``, ``/tf_static``)."""
+
+    ROS_TYPE = "tf2_msgs/msg/TFMessage"
+    transforms: list[TransformStamped] = field(default_factory=list)
+
+
+@dataclass
+class Clock:
+    """``/clock``: the current (simulated) time, s."""
+
+    ROS_TYPE = "rosgraph_msgs/msg/Clock"
+    clock: float = 0.0
+
+
+for _cls in (TransformStamped, TFMessage, Clock):
+    MESSAGE_TYPES[_cls.ROS_TYPE] = _cls
+
+
+def shift_stamps(msg, offset_s: float):
+    """A copy of ``msg`` with every ``Header.stamp`` (nested ones and those in lists, e.g.
+    a TFMessage's transforms) and ``Clock.clock`` moved by ``offset_s`` s; other fields
+    are shared, not copied. Used at the recording/network edge to put the twin's
+    simulated time on a wall-clock epoch."""
+    import dataclasses
+
+    if isinstance(msg, Header):
+        return dataclasses.replace(msg, stamp=msg.stamp + offset_s)
+    if isinstance(msg, Clock):
+        return Clock(msg.clock + offset_s)
+    if not dataclasses.is_dataclass(msg) or isinstance(msg, type):
+        return msg
+    changes = {}
+    for f in dataclasses.fields(msg):
+        v = getattr(msg, f.name)
+        if isinstance(v, Header) or dataclasses.is_dataclass(v):
+            changes[f.name] = shift_stamps(v, offset_s)
+        elif isinstance(v, list) and v and dataclasses.is_dataclass(v[0]):
+            changes[f.name] = [shift_stamps(x, offset_s) for x in v]
+    return dataclasses.replace(msg, **changes) if changes else msg

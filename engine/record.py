@@ -6,11 +6,17 @@ included), channels with message encoding ``cdr``, payloads CDR with the
 encapsulation header. Foxglove, ``ros2 bag`` (rosbag2_storage_mcap) and
 ``mcap_ros2.reader`` read them.
 
-Crash safety: the writer is chunked (``chunk_size`` bytes, default 64 KiB)
-and the file is flushed after every completed chunk, so a process killed at
-any point leaves a file whose complete chunks are readable:
-:func:`read_messages` streams the file and stops cleanly at the first
-truncated record (no footer or summary needed).
+Channels carry rosbag2's ``offered_qos_profiles`` (the topic's
+:func:`engine.transport.qos.qos_for` profile, e.g. ``/tf_static`` transient-local),
+so ``ros2 bag play`` re-offers them. Chunks are zstd-compressed by default.
+
+Crash safety: the writer is chunked (``chunk_size`` bytes, default 64 KiB,
+and at most ``max_chunk_s`` = 1 s of log time per chunk) and the file is
+flushed after every completed chunk, so a process killed at any point leaves
+a file whose complete chunks are readable: :func:`read_messages` streams the
+file and stops cleanly at the first truncated record, and :func:`recover`
+rewrites it as a finished MCAP (summary, footer) that indexed readers
+(``mcap.reader.make_reader``, rosbags ``AnyReader``) open.
 
 Times: ``log_time`` is the recorder's clock (wall clock ns by default; the
 twin's simulated time for :func:`record_twin`), ``publish_time`` is the
@@ -28,6 +34,7 @@ Replay:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
@@ -39,11 +46,13 @@ from pathlib import Path
 import numpy as np
 from mcap.stream_reader import StreamReader
 from mcap.records import Channel, Message, Metadata, Schema
+from mcap.records import Header as McapHeader
 from mcap.writer import CompressionType, Writer
 
 from engine.bus import Bus
-from engine.msgs import MESSAGE_TYPES, PoseStamped, quaternion_to_yaw
+from engine.msgs import MESSAGE_TYPES, Csi, PoseStamped, quaternion_to_yaw, shift_stamps
 from engine.transport import cdr
+from engine.transport.qos import qos_for, rosbag2_qos_yaml
 from engine.transport.twin_msgs import link_metrics_msg, link_paths_msg
 
 log = logging.getLogger(__name__)
@@ -61,17 +70,35 @@ class McapRecorder:
     Args:
         path: output ``.mcap``.
         chunk_size: bytes per chunk (smaller = less lost when killed, larger files).
-        compression: ``"none"`` (default), ``"zstd"`` or ``"lz4"``.
+        compression: ``"zstd"`` (default), ``"lz4"`` or ``"none"``.
         clock_ns: the log-time clock, ns (default wall clock).
         metadata: written as an MCAP metadata record named ``isac_twin``.
+        max_chunk_s: close the open chunk once it spans this much log time (s), so a
+            killed recording loses at most about that much; None: by size only.
+        stamp_offset_s: added to every ``header.stamp`` (and ``/clock``) before writing,
+            e.g. the wall-clock epoch of the twin's t = 0, so the recording lines up
+            with real robots' logs; 0 keeps the stamps as published.
+        transforms: ``{ROS type: f(msg) -> msg}`` applied before writing (e.g.
+            :class:`CsiRecording` for ``isac_twin_msgs/msg/Csi``).
     """
 
     def __init__(self, path: str | Path, *, chunk_size: int = 64 * 1024,
-                 compression: str = "none", clock_ns: Callable[[], int] = time.time_ns,
-                 metadata: dict | None = None):
+                 compression: str = "zstd", clock_ns: Callable[[], int] = time.time_ns,
+                 metadata: dict | None = None, max_chunk_s: float | None = 1.0,
+                 stamp_offset_s: float = 0.0, transforms: dict[str, Callable] | None = None):
         if compression not in _COMPRESSION:
             raise ValueError(f"compression: expected one of {sorted(_COMPRESSION)}, "
                              f"got {compression!r}")
+        if not (isinstance(stamp_offset_s, (int, float)) and math.isfinite(stamp_offset_s)):
+            raise ValueError(f"stamp_offset_s: expected a finite number of s, "
+                             f"got {stamp_offset_s!r}")
+        if max_chunk_s is not None and not max_chunk_s > 0:
+            raise ValueError(f"max_chunk_s: expected a positive duration in s or None, "
+                             f"got {max_chunk_s!r}")
+        self.stamp_offset_s = float(stamp_offset_s)
+        self.transforms = dict(transforms or {})
+        self.max_chunk_ns = None if max_chunk_s is None else int(max_chunk_s * 1e9)
+        self._chunk_start_ns: int | None = None
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")
@@ -94,6 +121,11 @@ class McapRecorder:
               publish_time_ns: int | None = None) -> None:
         """Record ``msg`` (an engine.msgs / isac_twin_msgs dataclass) on ``topic``."""
         type_name = msg.ROS_TYPE
+        f = self.transforms.get(type_name)
+        if f is not None:
+            msg = f(msg)
+        if self.stamp_offset_s:
+            msg = shift_stamps(msg, self.stamp_offset_s)
         data = cdr.encode(msg)
         lt = self.clock_ns() if log_time_ns is None else int(log_time_ns)
         if publish_time_ns is None:
@@ -109,12 +141,22 @@ class McapRecorder:
                     sid = self._schemas[type_name] = self._writer.register_schema(
                         type_name, "ros2msg", cdr.msgdef(type_name).encode())
                 ch = self._channels[topic] = self._writer.register_channel(
-                    topic, "cdr", sid, {"offered_qos_profiles": ""})
+                    topic, "cdr", sid,
+                    {"offered_qos_profiles": rosbag2_qos_yaml([qos_for(topic)])})
                 self._seq[topic] = 0
             self._seq[topic] += 1
+            if self._chunk_start_ns is None:
+                self._chunk_start_ns = lt
+            elif self.max_chunk_ns is not None and lt - self._chunk_start_ns >= self.max_chunk_ns:
+                self._end_chunk()
+                self._chunk_start_ns = lt
             self._writer.add_message(ch, lt, data, int(publish_time_ns), self._seq[topic])
             self.messages += 1
             self._file.flush()  # no-op unless a chunk was just written
+
+    def _end_chunk(self) -> None:
+        """Write the open chunk now (``Writer.flush`` finishes it and flushes the file)."""
+        self._writer.flush()
 
     def attach(self, bus: Bus, topics: list[str] | None = None, *, prefix: str = "") -> None:
         """Record every topic of ``bus`` (or only ``topics``); :meth:`refresh` picks up
@@ -147,6 +189,111 @@ class McapRecorder:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+@dataclass(frozen=True)
+class CsiRecording:
+    """How CSI (``isac_twin_msgs/Csi``, ``h[K, N, Nr, Nt]``) is recorded.
+
+    The default keeps one OFDM symbol in 14 and one subcarrier in 16: within a
+    14-symbol slot the channel changes only by Doppler (~1e-3 rad at walking speed)
+    and the lab's 1024 subcarriers over-sample its delay spread; the lab's CSI
+    goes from 3.78 MB to ~17 kB a message. The kept indices are
+    ``k = 0, symbol_step, ...`` and ``n = 0, subcarrier_step, ...`` (recorded in the
+    file's metadata); :meth:`full` records everything.
+
+    Attributes:
+        symbol_step, subcarrier_step: keep every ``step``-th symbol / subcarrier (>= 1).
+    """
+
+    symbol_step: int = 14
+    subcarrier_step: int = 16
+
+    def __post_init__(self):
+        for name in ("symbol_step", "subcarrier_step"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+                raise ValueError(f"CsiRecording.{name}: expected an integer >= 1, got {v!r}")
+
+    @classmethod
+    def full(cls) -> CsiRecording:
+        return cls(1, 1)
+
+    def describe(self) -> str:
+        return f"symbols[::{self.symbol_step}], subcarriers[::{self.subcarrier_step}]"
+
+    def __call__(self, msg):
+        if self.symbol_step == self.subcarrier_step == 1:
+            return msg
+        h = np.asarray(msg.h)
+        if h.ndim != 4:
+            return msg
+        return dataclasses.replace(
+            msg, h=np.ascontiguousarray(h[::self.symbol_step, ::self.subcarrier_step]))
+
+
+# ------------------------------------------------------------------ recovery
+
+def recover(path: str | Path, out: str | Path | None = None) -> tuple[Path, int]:
+    """Rewrite a killed (unfinished) recording as a finished MCAP.
+
+    Copies the header, schemas, channels, metadata and every message of the complete
+    chunks of ``path`` into ``out`` (default ``<name>.recovered.mcap`` next to it) and
+    writes the summary and footer, so indexed readers open it. ``path`` is not
+    modified.
+
+    Returns:
+        ``(out, messages copied)``.
+    Raises:
+        ValueError: ``path`` is not an MCAP file (bad magic), naming it.
+    """
+    path = Path(path)
+    out = Path(out) if out is not None else path.with_name(path.stem + ".recovered.mcap")
+    if out.resolve() == path.resolve():
+        raise ValueError(f"recover: the output must differ from the input ({path})")
+    with open(path, "rb") as f:
+        magic = f.read(8)
+    if magic != b"\x89MCAP0\r\n":
+        raise ValueError(f"{path}: not an MCAP file (first bytes {magic[:8]!r}, "
+                         f"expected the MCAP magic 89 4d 43 41 50 30 0d 0a)")
+    n = 0
+    compression = CompressionType.ZSTD
+    with open(path, "rb") as f, open(out, "wb") as g:
+        w = Writer(g, compression=compression)
+        started = False
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        it = iter(StreamReader(f, skip_magic=False, emit_chunks=False).records)
+        while True:
+            try:
+                rec = next(it)
+            except StopIteration:
+                break
+            except Exception as exc:  # noqa: BLE001 - the truncated tail of a killed file
+                log.info("%s: recovered %d messages; stopped at %s: %s", path, n,
+                         type(exc).__name__, exc)
+                break
+            if isinstance(rec, McapHeader):
+                w.start(profile=rec.profile, library=rec.library)
+                started = True
+            elif not started:
+                continue
+            elif isinstance(rec, Schema):
+                schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+            elif isinstance(rec, Channel):
+                channel_ids[rec.id] = w.register_channel(
+                    rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0),
+                    dict(rec.metadata))
+            elif isinstance(rec, Metadata):
+                w.add_metadata(rec.name, dict(rec.metadata))
+            elif isinstance(rec, Message) and rec.channel_id in channel_ids:
+                w.add_message(channel_ids[rec.channel_id], rec.log_time, rec.data,
+                              rec.publish_time, rec.sequence)
+                n += 1
+        if not started:
+            w.start(profile="ros2", library="isac-twin recover")
+        w.finish()
+    return out, n
 
 
 # ------------------------------------------------------------------ reading
@@ -227,9 +374,10 @@ def read_metadata(path: str | Path) -> dict[str, str]:
 # ------------------------------------------------------------------ twin recording
 
 def record_twin(twin, steps: int, out: str | Path, *, rate_hz: float | None = None,
-                chunk_size: int = 64 * 1024, compression: str = "none",
+                chunk_size: int = 64 * 1024, compression: str = "zstd",
                 metadata: dict | None = None, bridge=None,
-                on_step: Callable | None = None) -> McapRecorder:
+                on_step: Callable | None = None, stamp_epoch_s: float = 0.0,
+                csi: CsiRecording | None = None) -> McapRecorder:
     """Run ``twin`` for ``steps`` steps and record every topic of its bus plus, per
     step, one ``isac_twin_msgs/LinkMetrics`` per link on ``/twin/link_metrics`` and
     one ``isac_twin_msgs/LinkPaths`` per traced link on ``/twin/paths``.
@@ -238,17 +386,26 @@ def record_twin(twin, steps: int, out: str | Path, *, rate_hz: float | None = No
 
     Args:
         rate_hz: pace the steps in real time (default as fast as possible).
+        stamp_epoch_s: the Unix time (s) of the twin's t = 0: stamps and log times
+            become ``stamp_epoch_s + t`` (e.g. ``time.time()`` at the start, so the file
+            lines up with real robots' logs); 0 keeps simulated seconds.
+        csi: how ``/<robot>/csi`` is recorded (default :class:`CsiRecording`: compact).
+        compression, chunk_size: see :class:`McapRecorder`.
         bridge: a :class:`~engine.transport.bridge.TwinBridge` to step through
             (real robots mirrored; their ``/<robot>/real/*`` topics are recorded too).
     Returns:
         the closed recorder (``.messages`` counts what was written).
     """
-    now = {"ns": int(round(twin.time_s * 1e9))}
+    epoch = float(stamp_epoch_s)
+    csi = csi if csi is not None else CsiRecording()
+    now = {"ns": int(round((epoch + twin.time_s) * 1e9))}
     meta = {"kind": "twin", "dt": twin.dt, "seed": getattr(twin, "seed", 0),
-            "scene": str(getattr(getattr(twin, "config", None), "folder", "") or "")}
+            "scene": str(getattr(getattr(twin, "config", None), "folder", "") or ""),
+            "stamp_epoch_s": repr(epoch), "csi": csi.describe()}
     meta.update(metadata or {})
     rec = McapRecorder(out, chunk_size=chunk_size, compression=compression,
-                       clock_ns=lambda: now["ns"], metadata=meta)
+                       clock_ns=lambda: now["ns"], metadata=meta, stamp_offset_s=epoch,
+                       transforms={Csi.ROS_TYPE: csi})
     period = 1.0 / rate_hz if rate_hz else 0.0
     try:
         bus = None
@@ -257,7 +414,7 @@ def record_twin(twin, steps: int, out: str | Path, *, rate_hz: float | None = No
             if twin.bus is not bus:  # reset() replaces the bus
                 bus = twin.bus
                 rec.attach(bus)
-            now["ns"] = int(round((twin.time_s + twin.dt) * 1e9))
+            now["ns"] = int(round((epoch + twin.time_s + twin.dt) * 1e9))
             if bridge is not None:
                 bridge.sync()
                 rec.refresh()

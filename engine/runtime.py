@@ -26,6 +26,7 @@ OpenCR firmware would also zero it after 500 ms).
     model = "burger"           # burger | waffle
     initial_pose = [1.0, 1.0, 0.0]   # x m, y m, yaw rad in the twin's map frame
     emulated = false           # true: pty emulators fed by a simulated robot
+    frame_prefix = false       # true: frames "<name>/odom", ... (several robots, one domain)
 
     [drivers]                  # real devices (ignored when emulated = true)
     opencr = "/dev/ttyACM0"    # path or pyserial URL
@@ -39,7 +40,7 @@ OpenCR firmware would also zero it after 500 ms).
 
     [network]                  # zenoh (see engine.transport.zenoh_transport)
     mode = "peer"
-    listen = ["tcp/127.0.0.1:7447"]
+    listen = ["tcp/127.0.0.1:7448"]
     connect = []
     domain_id = 0
     distro = "jazzy"
@@ -69,7 +70,10 @@ from engine.addon_shared import schema
 from engine.bus import Bus
 from engine.msgs import (BatteryState, Header, Imu, LaserScan, Odometry, Pose, PoseStamped, Twist,
                          quaternion_to_yaw, yaw_to_quaternion)
+from engine import frames
+from engine.msgs import TFMessage
 from engine.robots.control import controller_from_spec
+from engine.robots.kinematics import robot_spec
 from engine.transport.clock import ClockResponder
 from engine.transport.twin_msgs import Fingerprint, PathCommand
 from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
@@ -89,6 +93,7 @@ class RobotConfig:
     model: str = schema.DEFAULT_ROBOT_MODEL
     initial_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)  #: x m, y m, yaw rad (map)
     emulated: bool = False
+    frame_prefix: bool = False  #: frames "<name>/odom", ... (engine.frames)
     opencr: str = "/dev/ttyACM0"
     rplidar: str | None = "/dev/ttyUSB0"
     rplidar_baudrate: int = 115200
@@ -116,7 +121,7 @@ def load_robot_config(path: str | Path) -> RobotConfig:
     return robot_config_from_dict(doc, str(path))
 
 
-_KEYS = {"robot": {"name", "model", "initial_pose", "emulated"},
+_KEYS = {"robot": {"name", "model", "initial_pose", "emulated", "frame_prefix"},
          "drivers": {"opencr", "rplidar", "rplidar_baudrate", "oakd"},
          "emulation": {"room", "lidar_rate_hz"},
          "network": {"mode", "listen", "connect", "domain_id", "distro", "multicast"},
@@ -157,6 +162,10 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
     if not (isinstance(pose, list) and len(pose) == 3
             and all(isinstance(x, (int, float)) for x in pose)):
         raise RobotConfigError(f"{where}: [robot] initial_pose = {pose!r}: expected [x, y, yaw]")
+    prefix = r.get("frame_prefix", False)
+    if not isinstance(prefix, bool):
+        raise RobotConfigError(f"{where}: [robot] frame_prefix = {prefix!r}: expected true or "
+                               "false")
     room = e.get("room", [6.0, 4.0])
     if not (isinstance(room, list) and len(room) == 2 and all(
             isinstance(x, (int, float)) and x > 0 for x in room)):
@@ -165,7 +174,7 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
         eps = n.get(key, [])
         if not (isinstance(eps, list) and all(isinstance(x, str) and "/" in x for x in eps)):
             raise RobotConfigError(f"{where}: [network] {key} = {eps!r}: expected a list of "
-                                   "endpoints like \"tcp/127.0.0.1:7447\"")
+                                   "endpoints like \"tcp/127.0.0.1:7448\"")
     net = ZenohConfig(mode=n.get("mode", "peer"), listen=list(n.get("listen", [])),
                       connect=list(n.get("connect", [])), multicast=bool(n.get("multicast", False)),
                       domain_id=int(n.get("domain_id", 0)), distro=n.get("distro", "jazzy"))
@@ -180,7 +189,7 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
         raise RobotConfigError(f"{where}: [estimation] fingerprint_gain = {gain}: expected 0..1")
     return RobotConfig(
         name=name, model=model, initial_pose=tuple(float(x) for x in pose),
-        emulated=bool(r.get("emulated", False)), opencr=str(d.get("opencr", "/dev/ttyACM0")),
+        emulated=bool(r.get("emulated", False)), frame_prefix=prefix, opencr=str(d.get("opencr", "/dev/ttyACM0")),
         rplidar=d.get("rplidar", "/dev/ttyUSB0") or None,
         rplidar_baudrate=int(d.get("rplidar_baudrate", 115200)), oakd=d.get("oakd", False),
         room=(float(room[0]), float(room[1])),
@@ -303,6 +312,10 @@ class RobotRuntime:
         for key, typ in (("odom", Odometry), ("imu", Imu), ("battery_state", BatteryState),
                          ("scan", LaserScan), ("pose_estimate", PoseStamped)):
             self.node.advertise(self.topics[key], typ)
+        #: REP-105 frame ids (engine.frames, the twin's convention)
+        self.frames = frames.RobotFrames(f"{cfg.name}/" if cfg.frame_prefix else "")
+        self.node.advertise("/tf", TFMessage)
+        self.node.advertise("/tf_static", TFMessage)
         self.estimator = PoseEstimator(cfg.initial_pose, cfg.fingerprint_gain)
         self.stats = RuntimeStats()
         self._lock = threading.Lock()
@@ -346,12 +359,16 @@ class RobotRuntime:
             opencr_url, lidar_url = board.url, lidar.url
             log.info("%s: emulated OpenCR at %s, RPLIDAR at %s", cfg.name, board.path, lidar.path)
         publish = self.node.publish
+        fr = self.frames
+        self.node.publish("/tf_static", TFMessage(frames.static_tf(
+            time.time(), fr, robot_spec(cfg.model))))
         self.opencr = OpenCR(opencr_url, publish, model=cfg.model,
-                             topics={k: self.topics[k] for k in ("odom", "imu", "battery_state")}
-                             ).start()
+                             topics={k: self.topics[k] for k in ("odom", "imu", "battery_state")},
+                             odom_frame=fr.odom, base_frame=fr.base_footprint,
+                             imu_frame=fr.imu_link).start()
         if lidar_url:
             self.lidar = RPLidar(lidar_url, publish, baudrate=cfg.rplidar_baudrate,
-                                 topic=self.topics["scan"]).start()
+                                 topic=self.topics["scan"], frame_id=fr.base_scan).start()
         if cfg.oakd:
             try:
                 from engine.devices.oakd import OakD
@@ -409,8 +426,12 @@ class RobotRuntime:
         self.estimator.on_odom(msg)
         x, y, yaw = self.estimator.pose()
         self.node.publish(self.topics["pose_estimate"], PoseStamped(
-            header=Header(stamp=msg.header.stamp, frame_id="map"),
+            header=Header(stamp=msg.header.stamp, frame_id=frames.MAP),
             pose=Pose(position=np.array([x, y, 0.0]), orientation=yaw_to_quaternion(yaw))))
+        odom = (msg.pose.position[0], msg.pose.position[1],
+                quaternion_to_yaw(msg.pose.orientation))
+        self.node.publish("/tf", TFMessage(frames.dynamic_tf(
+            msg.header.stamp, self.frames, (x, y, yaw), odom)))
 
     def _on_cmd_vel(self, msg: Twist) -> None:
         with self._lock:

@@ -25,9 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
+from engine import frames
 from engine.addon_shared import wire
 from engine.bus import Bus
-from engine.msgs import Csi, Header, quaternion_to_yaw
+from engine.msgs import Clock, Csi, Header, TFMessage, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
 from engine.phy.patterns import AntennaPatterns
 from engine.pose import DevicePose, antenna_pose
@@ -152,6 +153,10 @@ class Twin:
             # The robot's radio is a sensor too: the CSI of every link it receives.
             agent.topics["csi"] = f"/{name}/csi"
             agent.node.advertise(agent.topics["csi"], Csi)
+        # REP-105 frames and the simulated clock (engine.frames)
+        self._tf_node = self.bus.node("twin_tf")
+        for topic, typ in (("/tf", TFMessage), ("/tf_static", TFMessage), ("/clock", Clock)):
+            self._tf_node.advertise(topic, typ)
         for name, ctl in self._controllers.items():
             if hasattr(ctl, "reset"):
                 ctl.reset()
@@ -408,6 +413,7 @@ class Twin:
                 agent.step(t_next, self.dt, control=False)
             else:
                 agent.place(source(t_next, self.dt), t_next)
+        self._publish_frames(t_next)
         t1 = clock()
         timings["agents"] = t1 - t0
         if self.trace_schedule is None or self.trace_schedule(self.step_index):
@@ -465,6 +471,25 @@ class Twin:
         self.time_s = t_next
         self.last = result
         return result
+
+    def _publish_frames(self, t: float) -> None:
+        """``/clock``, every robot's ``/tf`` (map -> odom -> base_footprint) and, on the
+        first step after a (re)build, ``/tf_static`` (the sensor mounts), stamped ``t`` s."""
+        node = self._tf_node
+        node.publish("/clock", Clock(t))
+        dyn = []
+        for agent in self.agents.values():
+            st = agent.state
+            odo = agent.odometry.pose if "odom" in agent.topics else None
+            dyn += frames.dynamic_tf(t, agent.frames, (st.x, st.y, st.yaw), odo)
+        if dyn:
+            node.publish("/tf", TFMessage(dyn))
+        if self.step_index == 0 and self.agents:
+            static = []
+            for agent in self.agents.values():
+                static += frames.static_tf(t, agent.frames, agent.spec,
+                                           camera=agent.camera is not None)
+            node.publish("/tf_static", TFMessage(static))
 
     def run(self, steps: int, *, rate_hz: float | None = None,
             on_step: Callable[[StepResult], None] | None = None) -> Iterator[StepResult]:

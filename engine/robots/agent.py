@@ -17,11 +17,14 @@ topic                      type                            publisher
 /<name>/cmd_vel            geometry_msgs/msg/Twist         controller (subscribed)
 /<name>/ground_truth       geometry_msgs/msg/PoseStamped   robot [map]
 /<name>/joint_states       sensor_msgs/msg/JointState      robot [base_link]
-/<name>/odom               nav_msgs/msg/Odometry           robot [odom]
+/<name>/odom               nav_msgs/msg/Odometry           robot [odom -> base_footprint]
 /<name>/imu                sensor_msgs/msg/Imu             robot [imu_link]
 /<name>/scan               sensor_msgs/msg/LaserScan       robot [base_scan]
 /<name>/camera/depth       sensor_msgs/msg/Image           robot, when enabled
 =========================  ==============================  ======================
+
+Frame ids follow :mod:`engine.frames` (``<name>/`` prefixed when the twin has
+several robots); the twin publishes their ``/tf`` and ``/tf_static``.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from engine.bus import Bus
+from engine.frames import RobotFrames, robot_prefix
 from engine.msgs import Header, Pose, PoseStamped, Twist
 from engine.robots.kinematics import DiffDriveRobot, ProcessNoise, robot_spec
 from engine.robots.sensors import (DepthCamera, ImuNoise, ImuSensor, Lidar2D, WheelEncoders,
@@ -72,11 +76,13 @@ class RobotAgent:
             ``None`` disables them.
         seed: one seed; the robot and each sensor derive their own streams from it.
         options: :class:`SensorOptions`.
+        frame_prefix: prefix of its frame ids (``"robot1/"``; see :mod:`engine.frames`).
     """
 
     def __init__(self, name: str, model: str, pose, bus: Bus, scene=None, *, seed: int = 0,
-                 options: SensorOptions | None = None):
+                 options: SensorOptions | None = None, frame_prefix: str = ""):
         self.name = name
+        self.frames = RobotFrames(frame_prefix)
         self.spec = robot_spec(model)
         opt = options or SensorOptions()
         self.options = opt
@@ -101,6 +107,14 @@ class RobotAgent:
         if opt.camera and scene is not None:
             self.camera = DepthCamera(scene, self.spec, enabled=True, rng=rng[5],
                                       **({} if noisy else {"depth_noise_rel": 0.0}))
+
+        fr = self.frames
+        self.encoders.frame_id = fr.base_link
+        self.odometry.odom_frame, self.odometry.base_frame = fr.odom, fr.base_footprint
+        for sensor, frame in ((self.imu, fr.imu_link), (self.lidar, fr.base_scan),
+                              (self.camera, fr.camera_optical)):
+            if sensor is not None:
+                sensor.frame_id = frame
 
         self.bus = bus
         self.node = bus.node(name)
@@ -248,11 +262,11 @@ def build_robots(config, bus: Bus, scene=None, *, seed: int = 0,
         scene: :class:`~engine.scene.TwinScene` for LiDAR/camera, or ``None``.
     """
     agents = {}
-    for d in config.devices:
-        if d.kind != "robot":
-            continue
+    robots = [d for d in config.devices if d.kind == "robot"]
+    for d in robots:
         pose = (*d.position, *d.orientation)
         agents[d.name] = RobotAgent(d.name, d.model or "burger", pose, bus, scene, seed=seed,
-                                    options=options)
+                                    options=options,
+                                    frame_prefix=robot_prefix(d.name, len(robots)))
         log.info("robot %s (%s) at %s", d.name, d.model, d.position)
     return agents

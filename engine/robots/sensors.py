@@ -179,6 +179,8 @@ class WheelOdometry:
         self.radius = self.spec.wheel_radius * np.asarray(radius_scale, float)  # [2] l, r
         self.separation = self.spec.wheel_separation * float(separation_scale)
         self.pose = np.array(initial_pose, float)  # x, y, yaw
+        #: frame ids (REP-105; the OpenCR driver's and turtlebot3_node's convention)
+        self.odom_frame, self.base_frame = "odom", "base_footprint"
         self.v = self.w = 0.0
         self._last: np.ndarray | None = None
         self._last_t: float | None = None
@@ -203,7 +205,7 @@ class WheelOdometry:
     def message(self, t: float) -> Odometry:
         cov = np.diag([1e-3, 1e-3, 1e6, 1e6, 1e6, 1e-2])  # planar: z/roll/pitch unknown
         return Odometry(
-            header=Header(stamp=t, frame_id="odom"), child_frame_id="base_link",
+            header=Header(stamp=t, frame_id=self.odom_frame), child_frame_id=self.base_frame,
             pose=Pose(position=np.array([self.pose[0], self.pose[1], 0.0]),
                       orientation=euler_to_quaternion(0.0, 0.0, self.pose[2])),
             pose_covariance=cov,

@@ -12,7 +12,13 @@ a second bus whose transport is the network (zenoh) and, per real robot
 * **sends** the twin's control ``/<name>/cmd_vel`` (what the twin's controller
   for that robot publishes, when ``send_cmd_vel``), path commands
   (:meth:`TwinBridge.send_path`) and fingerprints (the step's localization
-  estimate, :meth:`TwinBridge.publish_step`).
+  estimate, :meth:`TwinBridge.publish_step`);
+* **shares** (``share``) the twin's own topics with the network, so a stock ROS 2
+  node on rmw_zenoh sees the twin: ``share="all"`` or a list of topics (``/tf``,
+  ``/tf_static``, ``/clock``, ``/robot2/scan``, ...), renamed ``share_prefix +
+  topic`` (``/twin/robot1/scan``; ``""`` keeps the names, refused for a topic the
+  bridge itself exchanges with a real robot) and, with ``share_stamps="wall"``,
+  stamped on the wall clock (the twin's t = 0 is the bridge's creation time).
 
 Fusion (stage 1 of Algorithm 1, before each step, :meth:`TwinBridge.sync`):
 the twin's simulated pose of a mirrored robot is corrected towards the real
@@ -31,7 +37,7 @@ twin runs the robot on its own motion model (synthetic source only) and
 
 Use::
 
-    bridge = TwinBridge(twin, ZenohTransport(ZenohConfig(connect=["tcp/127.0.0.1:7447"])))
+    bridge = TwinBridge(twin, ZenohTransport(ZenohConfig(connect=["tcp/127.0.0.1:7448"])))
     for _ in range(n):
         result = bridge.step()       # sync(); twin.step(); publish_step(result)
     bridge.close()
@@ -48,7 +54,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from engine.bus import Bus
-from engine.msgs import Header, LaserScan, Odometry, PoseStamped, Twist, quaternion_to_yaw
+from engine.msgs import (Header, LaserScan, Odometry, PoseStamped, Twist, quaternion_to_yaw,
+                         shift_stamps)
 from engine.transport.clock import ClockProbe
 from engine.transport.twin_msgs import Fingerprint, PathCommand
 
@@ -111,11 +118,17 @@ class TwinBridge:
         fusion: :class:`FusionConfig`.
         send_cmd_vel: forward the twin's ``cmd_vel`` of each robot to the real robot.
         clock_period_s: s between clock pings (0 disables the probe).
+        share: the twin's topics to publish on the network: ``"all"``, a list, or None.
+        share_prefix: prepended to shared topic names (``"/twin"``; ``""`` keeps them).
+        share_stamps: ``"wall"`` (stamps + the wall-clock time of the twin's t = 0)
+            or ``"sim"`` (simulated seconds, with ``/clock`` for ``use_sim_time`` nodes).
     """
 
     def __init__(self, twin, transport, *, robots: list[str] | None = None,
                  fusion: FusionConfig | None = None, send_cmd_vel: bool = True,
-                 clock_period_s: float = 0.5, name: str = "twin"):
+                 clock_period_s: float = 0.5, name: str = "twin",
+                 share: str | list[str] | None = None, share_prefix: str = "/twin",
+                 share_stamps: str = "wall"):
         self.twin = twin
         self.transport = transport
         self.fusion = fusion or FusionConfig()
@@ -124,6 +137,22 @@ class TwinBridge:
         for r in self.robots:
             if r not in twin.agents:
                 raise KeyError(f"no robot named {r!r} in the twin (robots: {', '.join(twin.agents)})")
+        if share is not None and share != "all" and not isinstance(share, (list, tuple)):
+            raise ValueError(f"share: expected 'all', a list of topics or None, got {share!r}")
+        if share_stamps not in ("wall", "sim"):
+            raise ValueError(f"share_stamps: expected 'wall' or 'sim', got {share_stamps!r}")
+        if share_prefix and (not share_prefix.startswith("/") or share_prefix.endswith("/")):
+            raise ValueError(f"share_prefix: expected '' or '/name', got {share_prefix!r}")
+        self.share, self.share_prefix = share, share_prefix
+        #: added to shared stamps, s (the wall-clock time of the twin's t = 0)
+        self.share_offset_s = (time.time() - float(getattr(twin, "time_s", 0.0))
+                               if share_stamps == "wall" else 0.0)
+        self._own_net = {f"/{r}/{k}" for r in self.robots
+                         for k in ("cmd_vel", "path", "fingerprint", "pose_estimate", "odom",
+                                   "scan")}
+        if isinstance(share, (list, tuple)):
+            for t in share:
+                self._check_share(t)
         self.net = Bus(transport=transport)
         self.node = self.net.node(f"{name}/bridge")
         self.mirrors: dict[str, MirrorState] = {r: MirrorState() for r in self.robots}
@@ -147,6 +176,7 @@ class TwinBridge:
         self.clock = ClockProbe(self.net, name, period_s=clock_period_s or 1.0)
         if clock_period_s:
             self.clock.start()
+        self._shared: set[str] = set()
         self._twin_bus = None
         self._attach_twin_bus()
 
@@ -166,6 +196,47 @@ class TwinBridge:
             if self.send_cmd_vel:
                 self._tnode.subscribe(f"{ns}/cmd_vel", Twist,
                                       lambda m, r=r: self._forward_cmd(r, m))
+        self._shared = set()
+        self.refresh_shared()
+
+    def _check_share(self, topic: str) -> bool:
+        """Whether ``topic`` may be shared; ValueError for a name clash with a real robot."""
+        if "/real/" in topic:
+            return False  # the real robots' own data, re-published on the twin's bus
+        if self.share_prefix + topic in self._own_net:
+            raise ValueError(f"share: {topic!r} would be published as "
+                             f"{self.share_prefix + topic!r}, which the bridge exchanges with "
+                             f"the real robot; use share_prefix (e.g. '/twin')")
+        return True
+
+    def refresh_shared(self) -> None:
+        """Start sharing topics of the twin's bus that appeared since the last call
+        (called on every :meth:`sync` and :meth:`publish_step`)."""
+        if self.share is None:
+            return
+        for t in self._twin_bus.registry().topics:
+            if t.name in self._shared:
+                continue
+            if self.share != "all" and t.name not in self.share:
+                continue
+            self._shared.add(t.name)
+            if self.share == "all":
+                try:
+                    if not self._check_share(t.name):
+                        continue
+                except ValueError:
+                    log.info("not sharing %s: it is exchanged with the real robot", t.name)
+                    continue
+            elif not self._check_share(t.name):
+                continue
+            out = self.share_prefix + t.name
+            self.node.advertise(out, t.type_name)
+            self._tnode.subscribe(t.name, t.type_name, lambda m, out=out: self._share_out(out, m))
+
+    def _share_out(self, topic: str, msg) -> None:
+        if self.share_offset_s:
+            msg = shift_stamps(msg, self.share_offset_s)
+        self.node.publish(topic, msg)
 
     def _forward_cmd(self, robot: str, msg: Twist) -> None:
         self.node.publish(f"/{robot}/cmd_vel", msg)
@@ -196,6 +267,7 @@ class TwinBridge:
         """Before a twin step: re-publish received real data on the twin's bus and fuse
         the newest real estimates into the twin's robot poses (see the module doc)."""
         self._attach_twin_bus()
+        self.refresh_shared()
         with self._lock:
             inbox, self._inbox = self._inbox, []
         for robot, kind, msg in inbox:
@@ -234,6 +306,7 @@ class TwinBridge:
     def publish_step(self, result) -> None:
         """After a twin step: send each mirrored robot the step's localization estimate
         as a :class:`Fingerprint` (when the twin's estimators produced one)."""
+        self.refresh_shared()
         for robot in self.robots:
             rs = result.robots.get(robot)
             if rs is None or rs.estimate is None:

@@ -155,6 +155,19 @@ _IMAGE_LAYOUT = {"rgb8": (np.uint8, 3), "bgr8": (np.uint8, 3), "rgba8": (np.uint
                  "mono16": (np.uint16, 1), "16UC1": (np.uint16, 1), "32FC1": (np.float32, 1)}
 
 
+def _transform(t: m.TransformStamped):
+    return _t("geometry_msgs/msg/TransformStamped")(
+        header=_header(t.header), child_frame_id=t.child_frame_id,
+        transform=_t("geometry_msgs/msg/Transform")(translation=_vec3(t.translation),
+                                                    rotation=_quat(t.rotation)))
+
+
+def _transform_from(o) -> m.TransformStamped:
+    return m.TransformStamped(header=_header_from(o.header), child_frame_id=o.child_frame_id,
+                              translation=_arr3(o.transform.translation),
+                              rotation=_arr4(o.transform.rotation))
+
+
 # ------------------------------------------------------------------ to ROS
 
 def to_ros(msg: Any):
@@ -206,6 +219,12 @@ def to_ros(msg: Any):
         return R(header=_header(msg.header), name=[str(n) for n in msg.name],
                  position=_f64(msg.position), velocity=_f64(msg.velocity),
                  effort=_f64(msg.effort))
+    if isinstance(msg, m.TransformStamped):
+        return _transform(msg)
+    if isinstance(msg, m.TFMessage):
+        return R(transforms=[_transform(t) for t in msg.transforms])
+    if isinstance(msg, m.Clock):
+        return R(clock=stamp_to_ros(msg.clock))
     if isinstance(msg, tm.LinkMetrics):
         return R(header=_header(msg.header), tx=msg.tx, rx=msg.rx, snr_db=float(msg.snr_db),
                  rate_bps=float(msg.rate_bps), num_paths=int(msg.num_paths), los=bool(msg.los),
@@ -301,6 +320,12 @@ def from_ros(obj: Any, type_name: str):
                             position=np.asarray(obj.position, float),
                             velocity=np.asarray(obj.velocity, float),
                             effort=np.asarray(obj.effort, float))
+    if t == "geometry_msgs/msg/TransformStamped":
+        return _transform_from(obj)
+    if t == "tf2_msgs/msg/TFMessage":
+        return m.TFMessage(transforms=[_transform_from(x) for x in obj.transforms])
+    if t == "rosgraph_msgs/msg/Clock":
+        return m.Clock(clock=stamp_from_ros(obj.clock))
     if t == tm.LinkMetrics.ROS_TYPE:
         return tm.LinkMetrics(header=_header_from(obj.header), tx=obj.tx, rx=obj.rx,
                               snr_db=float(obj.snr_db), rate_bps=float(obj.rate_bps),

@@ -13,10 +13,17 @@ Data key expression of a topic (what ``rmw_zenoh_cpp`` publishes on)::
 Subscriptions use ``*`` for the hash chunk, so a peer of another distro (other
 hash) is still received; a hash that differs from ours is logged once.
 
-Attachment (rmw_zenoh >= 0.2 on Jazzy, zenoh-ext serialization): ``int64``
-sequence number, ``int64`` source timestamp (ns since the Unix epoch, the
-publisher's clock), 16-byte source GID -- 32 bytes little endian. Readers here
-also accept the GID with a 1-byte length prefix (33 bytes).
+Attachment (rmw_zenoh on Jazzy and later, ``AttachmentData::serialize_to_zbytes``:
+zenoh-ext serialization of ``int64, int64, std::array<uint8_t, 16>``), 33 bytes::
+
+    offset  0  int64 LE   sequence number (per publisher, from 1)
+    offset  8  int64 LE   source timestamp, ns since the Unix epoch (publisher's clock)
+    offset 16  uint8      GID length, LEB128 (always 16 = 0x10)
+    offset 17  16 bytes   publisher GID
+
+``zenoh.ext.z_deserialize(tuple[Int64, Int64, bytes], ...)`` reads it (the
+tests check against that independent decoder). rmw_zenoh's subscriber parses
+the attachment of every sample without recovery, so anything else is refused.
 """
 
 from __future__ import annotations
@@ -27,6 +34,9 @@ from dataclasses import dataclass
 from engine.transport.cdr import dds_type_name, type_hash
 
 HUMBLE_HASH = "TypeHashNotSupported"
+#: bytes of a GID (RMW_GID_STORAGE_SIZE on Jazzy) and of a whole attachment
+GID_SIZE = 16
+ATTACHMENT_SIZE = 8 + 8 + 1 + GID_SIZE
 
 
 def topic_key(topic: str, type_name: str, *, domain_id: int = 0, distro: str = "jazzy",
@@ -78,14 +88,23 @@ class Attachment:
     source_gid: bytes
 
     def to_bytes(self) -> bytes:
-        return struct.pack("<qq", self.sequence_number, self.source_timestamp_ns) \
-            + self.source_gid[:16].ljust(16, b"\0")
+        """The 33-byte zenoh-ext serialization (see the module docstring)."""
+        if len(self.source_gid) != GID_SIZE:
+            raise ValueError(f"rmw_zenoh attachment: source_gid must be {GID_SIZE} bytes, "
+                             f"got {len(self.source_gid)}")
+        return struct.pack("<qqB", self.sequence_number, self.source_timestamp_ns, GID_SIZE) \
+            + bytes(self.source_gid)
 
     @classmethod
     def from_bytes(cls, data: bytes) -> Attachment:
-        if len(data) == 33 and data[16] == 16:
-            data = data[:16] + data[17:]
-        if len(data) != 32:
-            raise ValueError(f"rmw_zenoh attachment: expected 32 bytes, got {len(data)}")
+        """Parse the 33-byte attachment; ``ValueError`` naming the offending byte otherwise."""
+        data = bytes(data)
+        if len(data) != ATTACHMENT_SIZE:
+            raise ValueError(f"rmw_zenoh attachment: expected {ATTACHMENT_SIZE} bytes "
+                             f"(int64 seq, int64 stamp, GID length byte, 16-byte GID), "
+                             f"got {len(data)}")
+        if data[16] != GID_SIZE:
+            raise ValueError(f"rmw_zenoh attachment: byte 16 (GID length) is {data[16]}, "
+                             f"expected {GID_SIZE}")
         seq, ts = struct.unpack_from("<qq", data)
-        return cls(seq, ts, bytes(data[16:32]))
+        return cls(seq, ts, data[17:])

@@ -6,10 +6,23 @@ encapsulation header (:mod:`engine.transport.cdr`), and every sample carries
 the rmw_zenoh attachment (sequence number, source timestamp, GID).
 
 Sessions default to **peer mode on loopback with multicast scouting off**:
-endpoints are explicit (``listen=["tcp/127.0.0.1:7447"]`` on one side,
+endpoints are explicit (``listen=["tcp/127.0.0.1:7448"]`` on one side,
 ``connect=[...]`` on the other) so tests never touch another address. A
 router (``rmw_zenohd`` / ``zenohd``) is just a ``connect`` endpoint; ``mode``
 may be ``"client"`` to go through it only.
+
+Graph: the transport is one ROS 2 node (``name`` in ``config.namespace``) and
+declares rmw_zenoh liveliness tokens (:mod:`engine.transport.liveliness`) for
+the node and for every publisher and subscriber, so ``ros2 node list`` and
+``ros2 topic list`` on an rmw_zenoh machine show it; it also follows every
+token of its domain (:meth:`ZenohTransport.graph`), so it sees ROS 2 nodes.
+
+QoS (:mod:`engine.transport.qos`, per topic by convention or
+``config.qos``): reliability goes to the zenoh publisher, KEEP_ALL + RELIABLE
+blocks on congestion (otherwise samples are dropped), TRANSIENT_LOCAL topics
+(``/tf_static``) use zenoh-ext's advanced publisher with a cache of ``depth``
+samples and advanced subscribers that query it, as rmw_zenoh does, so a late
+joiner gets the latched messages.
 
 Faults: :meth:`ZenohTransport.partition` closes the session (the network is
 gone for this process: publications are dropped, nothing arrives) and
@@ -31,9 +44,12 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
+import zenoh.ext
 
 from engine.transport import cdr
+from engine.transport import liveliness as lv
 from engine.transport.keyexpr import Attachment, parse_topic_key, topic_key
+from engine.transport.qos import QosProfile, qos_for
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +60,14 @@ class ZenohConfig:
 
     Attributes:
         mode: ``"peer"`` (default), ``"client"`` (through a router) or ``"router"``.
-        listen: endpoints to listen on, e.g. ``["tcp/127.0.0.1:7447"]``.
+        listen: endpoints to listen on, e.g. ``["tcp/127.0.0.1:7448"]``.
         connect: endpoints to connect to (peers or a router), retried forever.
         multicast: multicast scouting (off by default: explicit endpoints only).
         domain_id: ROS_DOMAIN_ID, the first key chunk.
         distro: ``"jazzy"`` (RIHS01 type hashes) or ``"humble"``.
         retry_period_s: s between reconnection attempts to ``connect`` endpoints.
+        namespace: ROS namespace of this process's node (``/`` or ``/name``).
+        qos: per-topic :class:`QosProfile` overrides of :func:`qos_for`.
     """
 
     mode: str = "peer"
@@ -59,6 +77,12 @@ class ZenohConfig:
     domain_id: int = 0
     distro: str = "jazzy"
     retry_period_s: float = 0.2
+    namespace: str = "/"
+    qos: dict[str, QosProfile] = field(default_factory=dict)
+
+    def qos_of(self, topic: str) -> QosProfile:
+        """The QoS profile of ``topic`` (override, else convention)."""
+        return self.qos.get(topic) or qos_for(topic)
 
     def to_zenoh(self) -> zenoh.Config:
         if self.mode not in ("peer", "client", "router"):
@@ -68,6 +92,9 @@ class ZenohConfig:
         c.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         c.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
         c.insert_json5("scouting/multicast/enabled", json.dumps(bool(self.multicast)))
+        # rmw_zenoh's session config timestamps samples (advanced subscribers order by them)
+        c.insert_json5("timestamping/enabled", json.dumps(
+            {"router": True, "peer": True, "client": True}))
         # keep trying endpoints that are not up yet (the other process may start later)
         c.insert_json5("connect/timeout_ms", "-1")
         c.insert_json5("connect/exit_on_failure", "false")
@@ -102,12 +129,12 @@ class ZenohTransport:
 
     Example::
 
-        robot = Bus(transport=ZenohTransport(ZenohConfig(listen=["tcp/127.0.0.1:7447"])))
-        twin = Bus(transport=ZenohTransport(ZenohConfig(connect=["tcp/127.0.0.1:7447"])))
+        robot = Bus(transport=ZenohTransport(ZenohConfig(listen=["tcp/127.0.0.1:7448"])))
+        twin = Bus(transport=ZenohTransport(ZenohConfig(connect=["tcp/127.0.0.1:7448"])))
 
     Args:
         config: :class:`ZenohConfig` (default: an isolated peer, no endpoints).
-        name: for the publishers' GIDs and logs.
+        name: the ROS node name this process appears as (letters, digits, ``_``).
         on_sample: optional ``f(topic, msg, attachment | None, receive_ns)`` called for
             every received sample before delivery (clock-offset estimation, stats).
     """
@@ -115,7 +142,11 @@ class ZenohTransport:
     def __init__(self, config: ZenohConfig | None = None, *, name: str = "isac_twin",
                  on_sample: Callable[[str, Any, Attachment | None, int], None] | None = None):
         self.config = config or ZenohConfig()
-        self.name = name
+        self.name = lv.check_node_name(name)
+        lv.check_namespace(self.config.namespace)
+        for t, q in self.config.qos.items():
+            if not isinstance(q, QosProfile):
+                raise ValueError(f"ZenohConfig.qos[{t!r}]: expected a QosProfile, got {q!r}")
         self.on_sample = on_sample
         self.stats: dict[str, TopicStats] = {}
         self._lock = threading.RLock()
@@ -126,6 +157,11 @@ class ZenohTransport:
         self._seq: dict[str, int] = {}
         self._last_seq: dict[tuple[str, bytes], int] = {}
         self._warned_hash: set[str] = set()
+        self._eids: dict[tuple[str, str], int] = {}  # (kind, topic) -> entity id
+        self._tokens: dict[tuple[str, str], Any] = {}
+        self._token_keys: dict[tuple[str, str], str] = {}
+        self._graph: dict[str, lv.GraphEntity] = {}
+        self._graph_sub = None
         self._session: zenoh.Session | None = None
         self._closed = False
         self._open()
@@ -163,6 +199,13 @@ class ZenohTransport:
         self._session = zenoh.open(self.config.to_zenoh())
         log.info("zenoh session %s open (%s, listen %s, connect %s)", self._session.zid(),
                  self.config.mode, self.config.listen, self.config.connect)
+        self._tokens.clear()
+        self._token_keys.clear()
+        with self._lock:
+            self._graph.clear()
+        self._declare_token("NN", "")
+        self._graph_sub = self._session.liveliness().declare_subscriber(
+            lv.subscription_key(self.config.domain_id), self._on_token, history=True)
         for topic, type_name in list(self._adverts.items()):
             self._declare_publisher(topic, type_name)
         for topic, (type_name, deliver) in list(self._subs.items()):
@@ -175,6 +218,9 @@ class ZenohTransport:
             s, self._session = self._session, None
             self._publishers.clear()
             self._subscribers.clear()
+            self._tokens.clear()
+            self._graph_sub = None
+            self._graph.clear()
         if s is not None:
             s.close()
             log.warning("zenoh transport %s: partitioned (session closed)", self.name)
@@ -230,8 +276,61 @@ class ZenohTransport:
             s, self._session = self._session, None
             self._publishers.clear()
             self._subscribers.clear()
+            self._tokens.clear()
+            self._graph_sub = None
+            self._graph.clear()
         if s is not None:
             s.close()
+
+    # ------------------------------------------------------------ ROS 2 graph
+    def graph(self, *, remote_only: bool = False) -> list[lv.GraphEntity]:
+        """Every entity of the ROS 2 graph in this domain (from liveliness tokens),
+        ours included unless ``remote_only``."""
+        me = self.zid()
+        with self._lock:
+            ents = list(self._graph.values())
+        return [e for e in ents if not (remote_only and e.zid == me)]
+
+    def ros_nodes(self) -> list[str]:
+        """Fully qualified node names, as ``ros2 node list`` prints them."""
+        return sorted({e.node_fqn for e in self.graph() if e.kind == "NN"})
+
+    def ros_topics(self) -> dict[str, set[str]]:
+        """``{topic: {type, ...}}`` of every publisher and subscription, as
+        ``ros2 topic list -t`` prints them."""
+        out: dict[str, set[str]] = {}
+        for e in self.graph():
+            if e.kind in ("MP", "MS"):
+                out.setdefault(e.topic, set()).add(e.type_name)
+        return out
+
+    def token_key(self, kind: str, topic: str = "") -> str | None:
+        """The liveliness key expression this transport declared for ``(kind, topic)``."""
+        return self._token_keys.get((kind, topic))
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self._graph.pop(key, None)
+                return
+            try:
+                self._graph[key] = lv.parse_token(key)
+            except ValueError as exc:
+                log.warning("ignoring a malformed liveliness token: %s", exc)
+
+    def _declare_token(self, kind: str, topic: str, type_name: str = "") -> None:
+        """Declare the liveliness token of our node (``NN``) or of an endpoint."""
+        c = self.config
+        if kind == "NN":
+            key = lv.node_token(c.domain_id, self.zid(), 0, c.namespace, self.name)
+        else:
+            eid = self._eids.setdefault((kind, topic), len(self._eids) + 1)
+            h = self.key(topic, type_name).rsplit("/", 1)[1]
+            key = lv.endpoint_token(kind, c.domain_id, self.zid(), 0, eid, c.namespace,
+                                    self.name, topic, type_name, h, c.qos_of(topic))
+        self._token_keys[(kind, topic)] = key
+        self._tokens[(kind, topic)] = self._session.liveliness().declare_token(key)
 
     def __enter__(self) -> ZenohTransport:
         return self
@@ -246,11 +345,28 @@ class ZenohTransport:
                          distro=self.config.distro, any_hash=any_hash)
 
     def _gid(self, topic: str) -> bytes:
-        return hashlib.sha256(f"{self.zid()}|{topic}".encode()).digest()[:16]
+        """The publisher's 16-byte GID: a hash of its liveliness token (rmw_zenoh hashes the
+        same string with XXH3-128; any stable unique 16 bytes serve)."""
+        key = self._token_keys.get(("MP", topic)) or f"{self.zid()}|{topic}"
+        return hashlib.sha256(key.encode()).digest()[:16]
 
     def _declare_publisher(self, topic: str, type_name: str) -> None:
-        self._publishers[topic] = self._session.declare_publisher(
-            self.key(topic, type_name), congestion_control=zenoh.CongestionControl.DROP)
+        q = self.config.qos_of(topic)
+        key = self.key(topic, type_name)
+        cc = zenoh.CongestionControl.BLOCK if (q.history == "keep_all"
+                                              and q.reliability == "reliable") \
+            else zenoh.CongestionControl.DROP
+        rel = zenoh.Reliability.RELIABLE if q.reliability == "reliable" \
+            else zenoh.Reliability.BEST_EFFORT
+        if q.transient_local:
+            self._publishers[topic] = zenoh.ext.declare_advanced_publisher(
+                self._session, key, congestion_control=cc, reliability=rel,
+                cache=zenoh.ext.CacheConfig(q.depth), publisher_detection=True,
+                sample_miss_detection=zenoh.ext.MissDetectionConfig())
+        else:
+            self._publishers[topic] = self._session.declare_publisher(
+                key, congestion_control=cc, reliability=rel)
+        self._declare_token("MP", topic, type_name)
 
     def _declare_subscriber(self, topic: str, type_name: str, deliver) -> None:
         own_hash = self.key(topic, type_name).rsplit("/", 1)[1]
@@ -292,9 +408,17 @@ class ZenohTransport:
             except Exception:  # noqa: BLE001 - never let a callback kill zenoh's thread
                 log.exception("%s: delivering a remote sample failed", topic)
 
-        self._subscribers[topic] = self._session.declare_subscriber(
-            self.key(topic, type_name, any_hash=True), on_sample,
-            allowed_origin=zenoh.Locality.REMOTE)
+        key = self.key(topic, type_name, any_hash=True)
+        q = self.config.qos_of(topic)
+        if q.transient_local:
+            self._subscribers[topic] = zenoh.ext.declare_advanced_subscriber(
+                self._session, key, on_sample, allowed_origin=zenoh.Locality.REMOTE,
+                history=zenoh.ext.HistoryConfig(detect_late_publishers=True,
+                                                max_samples=q.depth))
+        else:
+            self._subscribers[topic] = self._session.declare_subscriber(
+                key, on_sample, allowed_origin=zenoh.Locality.REMOTE)
+        self._declare_token("MS", topic, type_name)
 
 
 __all__ = ["ZenohConfig", "ZenohTransport", "TopicStats", "parse_topic_key"]

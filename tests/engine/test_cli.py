@@ -47,3 +47,6 @@ def test_bad_input_exits_2_with_the_culprit(lab, tmp_path, capsys):
     bad.write_text((lab / "twin.toml").read_text().replace("rows = 2", "rows = 0"))
     assert main(["info", str(bad)]) == 2
     assert "array.rows: expected an integer >= 1" in capsys.readouterr().err
+    assert main(["record", str(lab), "--share", "--out", str(tmp_path / "x.mcap")]) == 2
+    assert "--share needs --connect" in capsys.readouterr().err
+    assert not (tmp_path / "x.mcap").exists()

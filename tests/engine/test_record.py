@@ -18,8 +18,9 @@ from mcap.reader import make_reader
 from engine.bus import Bus
 from engine.msgs import Header, LaserScan, Twist
 from engine.raytrace.base import LinkPaths
-from engine.record import (LINKS_TOPIC, PATHS_TOPIC, McapRecorder, TrajectoryReplay,
-                           read_messages, read_metadata, record_twin, replay_to_bus)
+from engine.record import (LINKS_TOPIC, PATHS_TOPIC, CsiRecording, McapRecorder,
+                           TrajectoryReplay, read_messages, read_metadata, record_twin, recover,
+                           replay_to_bus)
 from engine.robots.agent import RobotAgent, SensorOptions
 from engine.robots.control import CirclePath, PurePursuit
 from engine.state import LinkState, RobotState, StepResult
@@ -207,6 +208,31 @@ def test_recording_killed_mid_run_is_readable_up_to_its_last_chunk(tmp_path):
             pass
     assert seen == len(got)
 
+    # indexed readers need the summary the killed writer never wrote ...
+    with pytest.raises(Exception):
+        with open(out, "rb") as f:
+            list(make_reader(f).iter_messages())
+    # ... which recover() (and `isac-twin recover`) rewrites, losing nothing readable
+    from engine.cli import main
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    assert main(["recover", str(out)]) == 0
+    fixed = tmp_path / "killed.recovered.mcap"
+    assert out.read_bytes() == data  # the original is untouched
+    with open(fixed, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        assert reader.get_summary().statistics.message_count == len(got)
+        stamps = [m.header.stamp.sec for _, _, _, m in reader.iter_decoded_messages()]
+    assert stamps == list(range(len(got)))
+    with AnyReader([fixed], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as ar:
+        msgs = [ar.deserialize(raw, c.msgtype) for c, _, raw in ar.messages()]
+    assert [m.ranges[0] for m in msgs] == [float(i) for i in range(len(got))]
+    assert main(["recover", str(tmp_path / "nope.mcap")]) == 2
+    (tmp_path / "text.mcap").write_text("not an mcap")
+    with pytest.raises(ValueError, match="not an MCAP file"):
+        recover(tmp_path / "text.mcap")
+
     # cut inside a chunk: everything before that chunk still comes back
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(data[: len(data) - 5000])
@@ -228,8 +254,78 @@ def test_cli_record_then_replay(tmp_path, capsys):
     assert topics[LINKS_TOPIC] >= 2 and topics[PATHS_TOPIC] >= 2
     assert topics["/robot1/ground_truth"] == 2
     assert read_metadata(out)["scene"].endswith("scene")
+    # REP-105 frames and a compact file: the lab's CSI decimated, zstd chunks
+    assert topics["/tf"] == 2 and topics["/tf_static"] == 1 and topics["/clock"] == 2
+    assert out.stat().st_size / 2 <= 100_000
+    csi = next(m.decode() for m in read_messages(out, ["/robot1/csi"]))
+    assert csi.h.shape[0] == 1 and csi.h.shape[1] == 1024 // 16
     assert main(["replay", str(out), "--speed", "0"]) == 0
     lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("step")]
     assert len(lines) == 2 and "AP1->robot1" in lines[0]
     assert main(["replay", str(out), "--bus-only", "--speed", "0"]) == 0
     assert f"replayed {sum(topics.values())} messages" in capsys.readouterr().out
+
+
+def test_channels_offer_qos_profiles_that_rosbags_parses(tmp_path):
+    """rosbag2's offered_qos_profiles in each channel, read back by rosbags (an independent
+    rosbag2 implementation): /tf_static latched (transient local), scans best effort."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.interfaces import QosDurability, QosReliability
+
+    from engine.msgs import TFMessage, TransformStamped
+
+    out = tmp_path / "qos.mcap"
+    with McapRecorder(out) as rec:
+        rec.write("/tf_static", TFMessage([TransformStamped(Header(1.0, "base_link"),
+                                                            "base_scan")]))
+        rec.write("/robot1/scan", LaserScan(header=Header(1.0, "base_scan")))
+        rec.write("/robot1/cmd_vel", Twist())
+    with AnyReader([out]) as ar:
+        qos = {c.topic: c.ext.offered_qos_profiles[0] for c in ar.connections}
+    assert qos["/tf_static"].durability == QosDurability.TRANSIENT_LOCAL
+    assert qos["/tf_static"].depth == 1
+    assert qos["/robot1/scan"].reliability == QosReliability.BEST_EFFORT
+    assert qos["/robot1/cmd_vel"].reliability == QosReliability.RELIABLE
+    with open(out, "rb") as f:
+        assert make_reader(f).get_header().profile == "ros2"
+    with open(out, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert {ci.compression for ci in summary.chunk_indexes} == {"zstd"}  # the default
+
+
+def test_stamp_epoch_time_chunks_and_compact_csi(tmp_path):
+    """Stamps moved onto a wall-clock epoch (nested TF headers and /clock too); a chunk
+    spans at most max_chunk_s of log time; CSI decimated 1/14 symbols, 1/16 subcarriers."""
+    from engine.msgs import Clock, Csi, TFMessage, TransformStamped
+
+    epoch = 1_763_000_000.0
+    out = tmp_path / "epoch.mcap"
+    h = (np.arange(14 * 1024 * 2 * 4).reshape(14, 1024, 2, 4) * (1 + 1j)).astype(np.complex64)
+    with McapRecorder(out, stamp_offset_s=epoch, max_chunk_s=1.0,
+                      transforms={Csi.ROS_TYPE: CsiRecording()}) as rec:
+        for i in range(50):  # 5 s of log time at 10 Hz
+            t = 0.1 * i
+            lt = int((epoch + t) * 1e9)
+            rec.write("/clock", Clock(t), log_time_ns=lt)
+            rec.write("/tf", TFMessage([TransformStamped(Header(t, "map"), "odom")]),
+                      log_time_ns=lt)
+            if i == 0:
+                rec.write("/robot1/csi", Csi(Header(t, "robot1/base_link"), "AP1", "robot1", h),
+                          log_time_ns=lt)
+    got = {m.topic: [] for m in read_messages(out)}
+    for m in read_messages(out):
+        got[m.topic].append(m.decode())
+    assert got["/clock"][3].clock == pytest.approx(epoch + 0.3, abs=1e-6)
+    assert got["/tf"][3].transforms[0].header.stamp == pytest.approx(epoch + 0.3, abs=1e-6)
+    csi = got["/robot1/csi"][0]
+    assert csi.h.shape == (1, 64, 2, 4)
+    np.testing.assert_array_equal(csi.h, h[::14, ::16])
+    assert csi.header.stamp == pytest.approx(epoch, abs=1e-6)
+    with open(out, "rb") as f:
+        chunks = make_reader(f).get_summary().chunk_indexes
+    assert 5 <= len(chunks) <= 6
+    assert max(c.message_end_time - c.message_start_time for c in chunks) < 1e9
+    with pytest.raises(ValueError, match="subcarrier_step"):
+        CsiRecording(subcarrier_step=0)
+    with pytest.raises(ValueError, match="stamp_offset_s"):
+        McapRecorder(tmp_path / "x.mcap", stamp_offset_s=float("nan"))

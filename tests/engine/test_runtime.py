@@ -65,6 +65,7 @@ def test_robot_toml_parses_and_rejects_bad_values(tmp_path):
                        ({"network": {"mode": "mesh"}}, "mode"),
                        ({"control": {"rate_hz": 0}}, "rate_hz"),
                        ({"robot": {"colour": "red"}}, "unknown key 'colour'"),
+                       ({"robot": {"frame_prefix": "yes"}}, "frame_prefix"),
                        ({"lidar": {}}, r"unknown section \[lidar\]")):
         with pytest.raises(RobotConfigError, match=match):
             robot_config_from_dict(doc, "r.toml")
@@ -94,7 +95,8 @@ def test_runtime_in_process_follows_paths_and_times_out_cmd_vel():
     from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
 
     port = _free_port()
-    cfg = robot_config_from_dict({"robot": {"emulated": True, "initial_pose": [2.0, 2.0, 0.0]},
+    cfg = robot_config_from_dict({"robot": {"emulated": True, "initial_pose": [2.0, 2.0, 0.0],
+                                            "frame_prefix": True},
                                   "network": {"listen": [f"tcp/127.0.0.1:{port}"]}})
     twin_side = ZenohTransport(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]))
     rt = RobotRuntime(cfg).start()
@@ -104,10 +106,24 @@ def test_runtime_in_process_follows_paths_and_times_out_cmd_vel():
         est = node.subscribe("/robot1/pose_estimate", "geometry_msgs/msg/PoseStamped",
                              queue_size=1)
         scans = node.subscribe("/robot1/scan", "sensor_msgs/msg/LaserScan")
+        tfs = node.subscribe("/tf", "tf2_msgs/msg/TFMessage")
+        static = node.subscribe("/tf_static", "tf2_msgs/msg/TFMessage")  # joins late: latched
+        odoms = node.subscribe("/robot1/odom", "nav_msgs/msg/Odometry")
         node.advertise("/robot1/cmd_vel", Twist)
         node.advertise("/robot1/fingerprint", Fingerprint)
         assert _wait(lambda: len(scans) > 0 and len(est) > 0, 5.0)
         scan = scans.drain()[-1]
+        # REP-105 frames with the robot prefix, the same convention as the twin (engine.frames)
+        assert scan.header.frame_id == "robot1/base_scan"
+        assert _wait(lambda: len(tfs) > 0 and len(static) > 0 and len(odoms) > 0, 5.0)
+        tf = tfs.drain()[-1].transforms
+        assert [(t.header.frame_id, t.child_frame_id) for t in tf] == [
+            ("map", "robot1/odom"), ("robot1/odom", "robot1/base_footprint")]
+        np.testing.assert_allclose(tf[0].translation[:2], [2.0, 2.0], atol=1e-9)  # initial pose
+        assert {t.child_frame_id for t in static.drain()[0].transforms} == {
+            "robot1/base_link", "robot1/base_scan", "robot1/imu_link"}
+        o = odoms.drain()[-1]
+        assert (o.header.frame_id, o.child_frame_id) == ("robot1/odom", "robot1/base_footprint")
         assert len(scan.ranges) > 100 and np.nanmin(scan.ranges) == pytest.approx(2.0, abs=0.1)
         # twin teleop: the robot drives while commands are fresh, then stops by itself
         for _ in range(10):

@@ -58,6 +58,10 @@ def _sample(type_name: str):
              "speed": 0.15}, STAMP),
         "isac_twin_msgs/msg/ClockPing": tm.ClockPing("twin", "robot1", 7, 10, 20, 30),
         "isac_twin_msgs/msg/Detections": _detections(h, rng),
+        "geometry_msgs/msg/TransformStamped": m.TransformStamped(h, "c", np.array([1.0, 2, 3]), q),
+        "tf2_msgs/msg/TFMessage": m.TFMessage([m.TransformStamped(h, "c", np.array([1.0, 2, 3]),
+                                                                  q)] * 2),
+        "rosgraph_msgs/msg/Clock": m.Clock(STAMP),
     }[type_name]
 
 
@@ -81,6 +85,10 @@ def _assert_same(a, b, path="msg"):
             assert np.shape(vb) == va.shape, where
             tol = 1e-6 if va.dtype in (np.float32, np.complex64) else 1e-12
             np.testing.assert_allclose(np.asarray(vb), va, rtol=tol, atol=tol, err_msg=where)
+        elif isinstance(va, list) and va and hasattr(va[0], "__dataclass_fields__"):
+            assert len(vb) == len(va), where
+            for i, (x, y) in enumerate(zip(va, vb)):
+                _assert_same(x, y, f"{where}[{i}]")
         elif isinstance(va, float):
             assert vb == pytest.approx(va, rel=1e-6, abs=1e-6) or (math.isnan(va) and math.isnan(vb)), where
         else:

@@ -23,11 +23,33 @@ def test_parse_topic_key_inverts_topic_key():
         topic_key("//", "std_msgs/msg/String")
 
 
-def test_attachment_round_trip_and_length_prefixed_gid():
-    a = Attachment(42, 1_763_000_000_000_000_123, bytes(range(16)))
+def test_attachment_is_what_zenoh_ext_deserializes():
+    """rmw_zenoh's AttachmentData is zenoh-ext serialized (int64, int64, uint8[16] as a
+    sequence: a LEB128 length byte then the bytes), 33 bytes in all (rmw_zenoh
+    docs/design.md, "Publishers"). zenoh-ext's own deserializer is the reference."""
+    from zenoh.ext import Int64, z_deserialize, z_serialize
+
+    gid = bytes(range(0xA0, 0xB0))
+    a = Attachment(42, 1_763_000_000_000_000_123, gid)
     raw = a.to_bytes()
-    assert len(raw) == 32
-    assert Attachment.from_bytes(raw) == a
-    assert Attachment.from_bytes(raw[:16] + b"\x10" + raw[16:]) == a
+    assert len(raw) == 33
+    assert raw[16] == 16  # the GID length byte
+    import zenoh
+    seq, ts, g = z_deserialize(tuple[Int64, Int64, bytes], zenoh.ZBytes(raw))
+    assert (int(seq), int(ts), g) == (42, 1_763_000_000_000_000_123, gid)
+    # and what zenoh-ext writes, we read
+    ref = z_serialize((Int64(7), Int64(-5), gid)).to_bytes()
+    assert Attachment.from_bytes(ref) == Attachment(7, -5, gid)
+    assert ref == Attachment(7, -5, gid).to_bytes()
+
+
+def test_attachment_refuses_malformed_bytes_with_the_offending_byte():
+    good = Attachment(1, 2, bytes(16)).to_bytes()
+    with pytest.raises(ValueError, match="33 bytes"):
+        Attachment.from_bytes(good[:32])  # the old 32-byte layout without the length byte
+    with pytest.raises(ValueError, match="byte 16"):
+        Attachment.from_bytes(good[:16] + b"\x0f" + good[17:])
     with pytest.raises(ValueError):
         Attachment.from_bytes(b"\0" * 10)
+    with pytest.raises(ValueError, match="16 bytes"):
+        Attachment(1, 2, bytes(15)).to_bytes()

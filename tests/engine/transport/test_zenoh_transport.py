@@ -91,3 +91,40 @@ def test_clock_offset_estimate(pair):
     assert probe.rtt_s("robot1") < 0.05
     assert probe.to_local("robot1", 102.5) == pytest.approx(100.0, abs=0.02)
     assert probe.offset_s("nobody") is None
+
+
+def test_tf_static_is_latched_for_a_late_joiner(port):
+    """/tf_static is TRANSIENT_LOCAL: published before the subscriber exists, still delivered
+    (zenoh-ext advanced publisher cache + advanced subscriber history, as rmw_zenoh)."""
+    from engine.msgs import TFMessage, TransformStamped, Header
+
+    a = ZenohTransport(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"]), name="a")
+    b = None
+    try:
+        tf = TFMessage([TransformStamped(Header(1.5, "robot1/base_link"), "robot1/base_scan",
+                                         np.array([-0.032, 0.0, 0.172]))])
+        robot = Bus(transport=a).node("robot")
+        robot.advertise("/tf_static", TFMessage)
+        robot.advertise("/robot1/cmd_vel", Twist)
+        robot.publish("/tf_static", tf)
+        robot.publish("/robot1/cmd_vel", Twist())  # volatile: not for late joiners
+        time.sleep(0.2)
+        b = ZenohTransport(ZenohConfig(connect=[f"tcp/127.0.0.1:{port}"]), name="b")
+        bus = Bus(transport=b)
+        late = bus.node("late")
+        got = late.subscribe("/tf_static", TFMessage)
+        vol = late.subscribe("/robot1/cmd_vel", Twist)
+        deadline = time.monotonic() + 5
+        msgs = []
+        while not msgs and time.monotonic() < deadline:
+            msgs = got.drain()
+            time.sleep(0.02)
+        assert len(msgs) == 1
+        t = msgs[0].transforms[0]
+        assert (t.header.frame_id, t.child_frame_id) == ("robot1/base_link", "robot1/base_scan")
+        np.testing.assert_allclose(t.translation, [-0.032, 0.0, 0.172])
+        assert vol.drain() == []
+    finally:
+        a.close()
+        if b is not None:
+            b.close()
