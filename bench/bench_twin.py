@@ -19,6 +19,7 @@ otherwise. Rates of the variants are compared on the last step. No assertions
 on time.
 
     .venv/bin/python bench/bench_twin.py [--quick] [--steps 40] [--grid FILE]
+    .venv/bin/python bench/bench_twin.py --robots 4     # 4 robots, 8 downlinks vs 1 robot
 
 On a shared 2-core machine, ``OPENBLAS_NUM_THREADS=1`` makes every variant
 faster and steadier (OpenBLAS threads otherwise wait on descheduled peers).
@@ -86,6 +87,81 @@ def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
                                                         for lk, ls in last.links.items()}))
 
 
+#: Extra robots of the ``--robots`` variant: start pose and circle (the lab's
+#: robot1 drives the circle centre (4, 3) m, radius 1.5 m).
+EXTRA_ROBOTS = [((2.5, 1.5, 0.0), {"kind": "circle", "centre": [2.0, 1.5], "radius": 0.5}),
+                ((6.5, 4.5, 0.0), {"kind": "circle", "centre": [6.0, 4.5], "radius": 0.5}),
+                ((2.5, 4.5, 0.0), {"kind": "circle", "centre": [2.0, 4.5], "radius": 0.5}),
+                ((6.5, 1.5, 0.0), {"kind": "circle", "centre": [6.0, 1.5], "radius": 0.5})]
+
+
+def lab_with_robots(n: int, folder: Path) -> Path:
+    """A copy of the bundled lab with ``n`` robots (robot1 and n - 1 of
+    :data:`EXTRA_ROBOTS`), each the rx of a downlink from both APs."""
+    import shutil
+
+    src = engine.bundled_scene_dir()
+    shutil.copytree(src, folder, dirs_exist_ok=True)
+    text = (folder / "twin.toml").read_text()
+    blocks = []
+    for k, ((x, y, _), path) in enumerate(EXTRA_ROBOTS[:n - 1], start=2):
+        blocks.append(f"""
+[[devices]]
+name = "robot{k}"
+kind = "robot"
+role = "rx"
+model = "burger"
+antenna_offset = [0.0, 0.0, 0.25]
+position = [{x}, {y}, 0.0]
+orientation = [0.0, 0.0, 1.5707964]
+power_dbm = 10.0
+
+[devices.array]
+rows = 1
+cols = 2
+
+[devices.path]
+kind = "circle"
+centre = {path["centre"]}
+radius = {path["radius"]}
+""")
+    links = "".join(f'\n[[links]]\ntx = "{ap}"\nrx = "robot{k}"\n'
+                    for k in range(2, n + 1) for ap in ("AP1", "AP2"))
+    head, sep, tail = text.partition("\n[[links]]")
+    (folder / "twin.toml").write_text(head + "".join(blocks) + sep + tail + links)
+    return folder
+
+
+def run_robots_variant(n: int, steps: int, warmup: int) -> dict:
+    """The lab with ``n`` robots (2n downlinks) against the lab with one, same
+    seed, the ``fast`` PHY, sensing off; per-stage split and steps/s of both."""
+    import tempfile
+
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for label, folder in (("1 robot", engine.bundled_scene_dir()),
+                              (f"{n} robots", lab_with_robots(n, Path(tmp) / "lab"))):
+            tw = Twin.from_scene(folder, seed=0, sensing=False,
+                                 sensors=SensorOptions(lidar=True, imu=True, odometry=True,
+                                                       camera=False))
+            for _ in tw.run(warmup):
+                pass
+            tw.stats = type(tw.stats)()
+            t0 = time.perf_counter()
+            for _ in tw.run(steps):
+                pass
+            wall = time.perf_counter() - t0
+            out[label] = steps / wall
+            links = len(tw.config.links)
+            print(f"== {label} ({links} links, {steps} steps)\n{tw.stats.table()}")
+            print(f"  -> {steps / wall:.1f} steps/s, trace "
+                  f"{1e3 * tw.stats.stage_s['trace'] / steps:.1f} ms/step, PHY "
+                  f"{1e3 * tw.stats.stage_s['phy'] / steps:.1f} ms/step\n", flush=True)
+    print(f"{n} robots: {out[f'{n} robots']:.1f} steps/s = x{out[f'{n} robots'] / out['1 robot']:.2f} "
+          "of the 1-robot lab in the same run")
+    return out
+
+
 def run_sensing_variant(steps: int, warmup: int) -> dict:
     """The lab with its ``[[sensing]]`` radar (AP2 -> AP1, every 2nd step) against
     the same twin without it, same seed, both with the ``fast`` PHY. Prints the
@@ -114,7 +190,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--allocations", default="bundled,overlap")
     ap.add_argument("--sensing", action="store_true",
                     help="only the sensing variant (run_sensing_variant)")
+    ap.add_argument("--robots", type=int, default=0,
+                    help="only the many-robot variant: the lab with N robots (2N downlinks) "
+                         "against the lab with one")
     args = ap.parse_args(argv)
+    if args.robots:
+        run_robots_variant(args.robots, 10 if args.quick else args.steps,
+                           1 if args.quick else args.warmup)
+        return
     if args.sensing:
         run_sensing_variant(10 if args.quick else args.steps, 1 if args.quick else args.warmup)
         return
