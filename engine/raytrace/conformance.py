@@ -273,7 +273,10 @@ class PathSetComparison:
         repeats: pairs of repeated paths in the backend's result.
         missing_db: ``[M]`` dB relative to the link's strongest reference path,
             of each reference path the backend lacks.
-        extra_db: likewise for backend paths the reference lacks.
+        extra_db: likewise for backend paths the reference lacks (and, with a
+            ``confirm`` reference, that one lacks too).
+        found_more_db: backend paths the reference lacks but the ``confirm``
+            reference (more rays) holds: real paths the reference's rays missed.
         cfr_error: relative Frobenius error of the backend's eq.-4 channel
             against Sionna's ``Paths.cfr`` (single isotropic elements), NaN when
             the two path sets differ.
@@ -285,6 +288,7 @@ class PathSetComparison:
     missing_db: np.ndarray
     extra_db: np.ndarray
     cfr_error: float
+    found_more_db: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 class SionnaReference:
@@ -319,19 +323,22 @@ class SionnaReference:
         self.solver = rt.PathSolver(deterministic=True)
         self._rt = rt
 
-    def __call__(self, tx: DevicePose, rx: DevicePose, freqs_hz: np.ndarray):
-        """Paths of one link and Sionna's channel ``[S]`` at baseband ``freqs_hz``.
+    def __call__(self, txs: list[DevicePose], rx: DevicePose, freqs_hz: np.ndarray):
+        """Paths of the links ``txs[i] -> rx`` and Sionna's channels at baseband
+        ``freqs_hz`` (one solver call; Sionna de-duplicates chains per source,
+        so the transmitters do not share a hash table).
 
         Returns:
-            ``(LinkPaths, cfr [S] complex128)``.
+            per transmitter ``(LinkPaths, cfr [S] complex128)``.
         """
         from engine.raytrace.base import sionna_orientation
 
         rt, sc, t = self._rt, self.sc, self.config.tracer
         for n in list(sc.transmitters) + list(sc.receivers):
             sc.remove(n)
-        sc.add(rt.Transmitter("ref-tx", position=tx.position,
-                              orientation=sionna_orientation(tx.orientation)))
+        for k, tx in enumerate(txs):
+            sc.add(rt.Transmitter(f"ref-tx{k}", position=tx.position,
+                                  orientation=sionna_orientation(tx.orientation)))
         sc.add(rt.Receiver("ref-rx", position=rx.position,
                            orientation=sionna_orientation(rx.orientation)))
         p = self.solver(sc, max_depth=t.max_depth, max_num_paths_per_src=t.max_num_paths_per_src,
@@ -339,29 +346,38 @@ class SionnaReference:
                         specular_reflection=t.specular_reflection,
                         diffuse_reflection=t.diffuse_reflection, refraction=t.refraction,
                         diffraction=t.diffraction, seed=t.seed)
+        nt, d = len(txs), max(1, t.max_depth)
         h = np.asarray(p.cfr(frequencies=np.asarray(freqs_hz, np.float32),
-                             normalize_delays=False, out_type="numpy"), np.complex128)
-        valid = np.asarray(p.valid.numpy(), bool).reshape(-1)
+                             normalize_delays=False, out_type="numpy"),
+                       np.complex128).reshape(nt, -1)  # [1, 1, T, 1, 1, S]
+        valid = np.asarray(p.valid.numpy(), bool).reshape(nt, -1)
         ar, ai = p.a
-        a = (np.asarray(ar.numpy(), np.float64) + 1j * np.asarray(ai.numpy(), np.float64))
-        f = lambda x: np.asarray(x.numpy(), np.float64).reshape(-1)[valid]  # noqa: E731
-        inter = np.asarray(p.interactions.numpy()).reshape(t.max_depth or 1, -1).T[valid]
-        vert = np.asarray(p.vertices.numpy(), np.float64).reshape(t.max_depth or 1, -1, 3)
-        vert = np.moveaxis(vert, 0, 1)[valid]
-        vert[inter == 0] = 0.0
-        tau = f(p.tau)
-        order = np.argsort(tau, kind="stable")
-        lp = LinkPaths(tx="ref-tx", rx="ref-rx", tx_position=np.asarray(tx.position, float),
-                       rx_position=np.asarray(rx.position, float),
-                       tx_orientation=np.asarray(tx.orientation, float),
-                       rx_orientation=np.asarray(rx.orientation, float),
-                       frequency_hz=float(self.config.scene.frequency_hz),
-                       a=a.reshape(-1)[valid][order], tau=tau[order],
-                       doppler=np.zeros(len(tau)), theta_t=f(p.theta_t)[order],
-                       phi_t=f(p.phi_t)[order], theta_r=f(p.theta_r)[order],
-                       phi_r=f(p.phi_r)[order], vertices=vert[order],
-                       interactions=inter[order].astype(np.int32))
-        return lp, h.reshape(-1)
+        a = (np.asarray(ar.numpy(), np.float64)
+             + 1j * np.asarray(ai.numpy(), np.float64)).reshape(nt, -1)
+        f = lambda x: np.asarray(x.numpy(), np.float64).reshape(nt, -1)  # noqa: E731
+        tau, tht, pht, thr, phr = (f(x) for x in (p.tau, p.theta_t, p.phi_t, p.theta_r,
+                                                  p.phi_r))
+        inter = np.asarray(p.interactions.numpy()).reshape(d, nt, -1)
+        vert = np.asarray(p.vertices.numpy(), np.float64).reshape(d, nt, -1, 3)
+        out = []
+        for k, tx in enumerate(txs):
+            m = valid[k]
+            order = np.argsort(tau[k][m], kind="stable")
+            it = inter[:, k].T[m][order].astype(np.int32)
+            vt = np.moveaxis(vert[:, k], 0, 1)[m][order]
+            vt[it == 0] = 0.0
+            lp = LinkPaths(tx=f"ref-tx{k}", rx="ref-rx",
+                           tx_position=np.asarray(tx.position, float),
+                           rx_position=np.asarray(rx.position, float),
+                           tx_orientation=np.asarray(tx.orientation, float),
+                           rx_orientation=np.asarray(rx.orientation, float),
+                           frequency_hz=float(self.config.scene.frequency_hz),
+                           a=a[k][m][order], tau=tau[k][m][order],
+                           doppler=np.zeros(int(m.sum())), theta_t=tht[k][m][order],
+                           phi_t=pht[k][m][order], theta_r=thr[k][m][order],
+                           phi_r=phr[k][m][order], vertices=vt, interactions=it)
+            out.append((lp, h[k]))
+        return out
 
 
 def link_cfr(lp: LinkPaths, freqs_hz: np.ndarray) -> np.ndarray:
@@ -436,7 +452,8 @@ def robot_points(scene, n: int, height: float, *, clearance: float = 0.11, seed:
 
 def compare_path_sets(results: Iterable[Mapping[Link, LinkPaths]], reference: SionnaReference,
                       freqs_hz: np.ndarray | None = None,
-                      cache: dict | None = None) -> list[PathSetComparison]:
+                      cache: dict | None = None,
+                      confirm: SionnaReference | None = None) -> list[PathSetComparison]:
     """Each link of each backend result against Sionna's own trace of it.
 
     Args:
@@ -448,34 +465,51 @@ def compare_path_sets(results: Iterable[Mapping[Link, LinkPaths]], reference: Si
             (default: 64 offsets over +-40 MHz).
         cache: a dict that keeps reference traces between calls (keyed by the
             two poses; the same ``freqs_hz`` must be used).
+        confirm: a reference with more rays, asked only about links with paths
+            that ``reference`` lacks: those it holds are real paths that
+            ``reference``'s rays missed (``found_more_db``), not extra.
     """
     if freqs_hz is None:
         freqs_hz = np.linspace(-40e6, 40e6, 64)
+    cache = {} if cache is None else cache
+
+    def key(pose: DevicePose) -> tuple:
+        return tuple(np.round(np.r_[pose.position, pose.orientation], 9))
+
     out = []
     for res in results:
+        pose = {}
         for lk, lp in res.items():
-            tx = DevicePose(lp.tx_position, lp.tx_orientation)
-            rx = DevicePose(lp.rx_position, lp.rx_orientation)
-            key = (tuple(np.round(tx.position, 9)), tuple(np.round(tx.orientation, 9)),
-                   tuple(np.round(rx.position, 9)), tuple(np.round(rx.orientation, 9)))
-            if cache is not None and key in cache:
-                ref, h_ref = cache[key]
-            else:
-                ref, h_ref = reference(tx, rx, freqs_hz)
-                if cache is not None:
-                    cache[key] = (ref, h_ref)
+            pose[lk] = (DevicePose(lp.tx_position, lp.tx_orientation),
+                        DevicePose(lp.rx_position, lp.rx_orientation))
+        by_rx: dict[tuple, list] = {}
+        for lk, (tx, rx) in pose.items():
+            if (key(tx), key(rx)) not in cache:
+                by_rx.setdefault(key(rx), [rx, []])[1].append(tx)
+        for rx, txs in by_rx.values():
+            for tx, r in zip(txs, reference(txs, rx, freqs_hz)):
+                cache[(key(tx), key(rx))] = r
+        for lk, lp in res.items():
+            tx, rx = pose[lk]
+            ref, h_ref = cache[(key(tx), key(rx))]
             top = float(np.abs(ref.a).max(initial=0.0)) or 1.0
             m = match_paths(lp, ref)
             hit = np.zeros(lp.num_paths, bool)
             hit[m[m >= 0]] = True
             db = lambda a: 20 * np.log10(np.maximum(np.abs(a), 1e-300) / top)  # noqa: E731
-            missing, extra = db(ref.a[m < 0]), db(lp.a[~hit])
+            missing, extra, more = db(ref.a[m < 0]), db(lp.a[~hit]), np.zeros(0)
+            if extra.size and confirm is not None:
+                big, _ = confirm([tx], rx, freqs_hz)[0]
+                seen = np.zeros(lp.num_paths, bool)
+                mb = match_paths(lp, big)
+                seen[mb[mb >= 0]] = True
+                more, extra = db(lp.a[~hit & seen]), db(lp.a[~hit & ~seen])
             err = math.nan
-            if missing.size == 0 and extra.size == 0:
+            if missing.size == 0 and extra.size == 0 and more.size == 0:
                 h = link_cfr(lp, freqs_hz)
                 err = float(np.linalg.norm(h - h_ref) / max(np.linalg.norm(h_ref), 1e-300))
             out.append(PathSetComparison(lk, np.asarray(lp.rx_position, float),
-                                         find_repeats(lp), missing, extra, err))
+                                         find_repeats(lp), missing, extra, err, more))
     return out
 
 
@@ -508,6 +542,11 @@ def check_path_sets(comparisons: list[PathSetComparison], *, within_db: float = 
     rep.add("no extra", not bad, f"{len(bad)} of {n} links have paths the reference lacks"
             + ("; e.g. " + where(bad[0]) + f": {np.round(bad[0].extra_db, 1).tolist()[:5]} dB"
                if bad else ""))
+    more = [c for c in comparisons if c.found_more_db.size]
+    if more:
+        rep.add("found more", True, f"{len(more)} of {n} links hold paths the reference's rays "
+                "missed and its confirmation found; e.g. " + where(more[0])
+                + f": {np.round(more[0].found_more_db, 1).tolist()[:5]} dB")
     same = [c for c in comparisons if not math.isnan(c.cfr_error)]
     worst = max((c.cfr_error for c in same), default=0.0)
     rep.add("cfr", bool(same) and worst <= cfr_rtol,
