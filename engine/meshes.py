@@ -3,12 +3,20 @@
 Reads the binary little-endian and ASCII PLY files the add-on writes (and
 most others): vertex ``x y z`` plus any further scalar properties, and faces
 as a list property. Every error names the file and what was wrong.
+
+Mesh files are read only when they are regular files no larger than
+:data:`MAX_MESH_BYTES` (a FIFO, a device such as ``/dev/zero`` or a huge file
+is refused before a byte is read); :func:`confine` keeps a mesh path named by
+a scene or a viewer inside its folder.
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import stat
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
@@ -20,8 +28,85 @@ _PLY_TYPES = {
 }
 
 
+#: Largest mesh file read, bytes.
+MAX_MESH_BYTES = 256 * 1024 * 1024
+
+
 class MeshError(ValueError):
     """A mesh file is missing, truncated or not a PLY the engine can read."""
+
+
+def confine(name: str | Path, folder: str | Path, *, roots=()) -> Path:
+    """The file a mesh path names, kept inside ``folder``.
+
+    Args:
+        name: the path as written (scene.xml, an ``add`` edit): relative to
+            ``folder``; absolute only when it lies inside one of ``roots``.
+        folder: the folder relative paths start from (the scene folder).
+        roots: further folders absolute paths may point into (asset folders).
+
+    Returns:
+        the resolved path (symbolic links followed), inside ``folder`` or a root.
+
+    Raises:
+        MeshError: naming ``name`` and why: empty, absolute outside ``roots``,
+            a ``..`` component, or leaving the folder through a symbolic link.
+    """
+    text = str(name)
+    if not text.strip() or "\0" in text:
+        raise MeshError(f"mesh path {text!r}: empty or holds a NUL byte")
+    posix, win = PurePosixPath(text), PureWindowsPath(text)
+    if ".." in posix.parts or ".." in win.parts:
+        raise MeshError(f"mesh path {text!r}: '..' is not allowed (meshes stay inside the "
+                        "scene folder)")
+    allowed = [Path(folder).resolve()] + [Path(r).resolve() for r in roots]
+    if posix.is_absolute() or win.drive or win.root:
+        if not roots:
+            raise MeshError(f"mesh path {text!r}: absolute paths are not allowed (give it "
+                            "relative to the scene folder)")
+        target = Path(text).resolve()
+        allowed = allowed[1:]
+    else:
+        target = (allowed[0] / posix).resolve()
+    if not any(target == r or target.is_relative_to(r) for r in allowed):
+        raise MeshError(f"mesh path {text!r}: leaves the scene folder (through a symbolic "
+                        "link)" if not (posix.is_absolute() or win.drive)
+                        else f"mesh path {text!r}: not inside an asset folder")
+    return target
+
+
+def read_file(path: str | Path, max_bytes: int = MAX_MESH_BYTES) -> bytes:
+    """The bytes of a regular file of at most ``max_bytes`` bytes.
+
+    Opened without blocking and without following a final symbolic link, then
+    checked on the open descriptor, so a FIFO, a device or a file swapped in
+    meanwhile is refused before anything is read.
+
+    Raises:
+        MeshError: naming the file: missing/unreadable, not a regular file, too large.
+    """
+    path = Path(path)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise MeshError(f"{path}: cannot read mesh file ({exc.strerror})") from exc
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise MeshError(f"{path}: not a regular file (a mesh must be a PLY file)")
+        if st.st_size > max_bytes:
+            raise MeshError(f"{path}: {st.st_size} bytes exceeds the mesh size limit of "
+                            f"{max_bytes} bytes")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            blob = f.read(max_bytes + 1)
+    except OSError as exc:
+        raise MeshError(f"{path}: cannot read mesh file ({exc.strerror})") from exc
+    finally:
+        os.close(fd)
+    if len(blob) > max_bytes:
+        raise MeshError(f"{path}: grew past the mesh size limit of {max_bytes} bytes")
+    return blob
 
 
 @dataclass(frozen=True)
@@ -35,6 +120,8 @@ class Mesh:
 
     vertices: np.ndarray
     faces: np.ndarray
+    #: hex SHA-256 of the file's bytes ("" when not read from a file)
+    sha256: str = ""
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -42,18 +129,15 @@ class Mesh:
         return self.vertices.min(axis=0), self.vertices.max(axis=0)
 
 
-def read_ply(path: str | Path) -> Mesh:
-    """Read a PLY file.
+def read_ply(path: str | Path, max_bytes: int = MAX_MESH_BYTES) -> Mesh:
+    """Read a PLY file (a regular file of at most ``max_bytes`` bytes, :func:`read_file`).
 
     Raises:
-        MeshError: naming the file and the problem (missing, bad header,
-            truncated data, indices out of range, no triangles).
+        MeshError: naming the file and the problem (missing, not a regular file,
+            too large, bad header, truncated data, indices out of range, no triangles).
     """
     path = Path(path)
-    try:
-        blob = path.read_bytes()
-    except OSError as exc:
-        raise MeshError(f"{path}: cannot read mesh file ({exc.strerror})") from exc
+    blob = read_file(path, max_bytes)
     end = blob.find(b"end_header")
     if not blob.startswith(b"ply") or end < 0:
         raise MeshError(f"{path}: not a PLY file (expected 'ply' ... 'end_header')")
@@ -96,7 +180,7 @@ def read_ply(path: str | Path) -> Mesh:
         raise MeshError(f"{path}: face index out of range (0..{len(verts) - 1})")
     if not np.isfinite(verts).all():
         raise MeshError(f"{path}: vertex coordinates are not finite")
-    return Mesh(verts, faces)
+    return Mesh(verts, faces, hashlib.sha256(blob).hexdigest())
 
 
 def _fan(polys: list[np.ndarray]) -> np.ndarray:

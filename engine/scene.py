@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.config import ConfigError, TwinConfig, load_config
-from engine.meshes import MeshError, read_ply
+from engine.meshes import MeshError, confine, read_ply
 
 log = logging.getLogger(__name__)
 
@@ -225,7 +225,7 @@ class TwinScene:
         self.objects[name] = ObjectInfo(
             name=name, material=material, thickness=float(thickness), mesh_file=mesh_file,
             bounds_min=tuple(lo.tolist()), bounds_max=tuple(hi.tolist()),
-            mesh_sha256=hashlib.sha256(mesh_file.read_bytes()).hexdigest())
+            mesh_sha256=mesh.sha256)
         self.revision += 1
 
     def contains(self, point, tol: float = BOUNDS_TOLERANCE_M) -> bool:
@@ -285,8 +285,8 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
             bands = ", ".join(f"{lo:g}-{hi:g} GHz" for lo, hi in itu_bands(mtype))
             raise ConfigError(f"{xml_path}: object {name!r}: material {mtype!r} is not defined "
                               f"at {frequency_hz / 1e9:g} GHz (defined: {bands})")
-        mesh_path = (xml_path.parent / fname).resolve()
         try:
+            mesh_path = confine(fname, xml_path.parent)
             mesh = read_ply(mesh_path)
         except MeshError as exc:
             raise ConfigError(f"{xml_path}: object {name!r}: {exc}") from exc
@@ -296,7 +296,7 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
         objects[name] = ObjectInfo(
             name=name, material=mtype, thickness=thick, mesh_file=mesh_path,
             bounds_min=tuple(lo.tolist()), bounds_max=tuple(hi.tolist()),
-            mesh_sha256=hashlib.sha256(mesh_path.read_bytes()).hexdigest())
+            mesh_sha256=mesh.sha256)
     if not objects:
         raise ConfigError(f"{xml_path}: the scene has no objects")
     return objects

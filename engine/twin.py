@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.bus import Bus
+from engine.meshes import MeshError, confine, read_ply
 from engine.msgs import Csi, Header, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
 from engine.phy.patterns import AntennaPatterns
@@ -40,6 +41,11 @@ from engine.state import Command, Edit, LinkState, RobotState, StepResult
 log = logging.getLogger(__name__)
 
 STAGES = ("agents", "trace", "phy", "sense", "estimate", "control")
+
+#: Largest mesh an ``add`` edit may name, bytes.
+MAX_EDIT_MESH_BYTES = 32 * 1024 * 1024
+#: Most single steps one ``step`` command may request.
+MAX_STEP_COUNT = 100_000
 
 #: ``estimator(twin, result) -> None``: fills ``result.robots[name].estimate``.
 Estimator = Callable[["Twin", StepResult], None]
@@ -87,6 +93,8 @@ class Twin:
         estimators: stage-5 callables, run in order.
         sensing: run the config's ``[[sensing]]`` radar links (stage "sense",
             before the estimators; see :meth:`_build_sensing`).
+        asset_dirs: folders an ``add`` edit may name a mesh in by absolute path
+            (besides the scene folder, where paths are relative).
 
     Hooks (the supported way to change how a twin steps; never replace a method
     of a live twin or agent):
@@ -101,7 +109,8 @@ class Twin:
 
     def __init__(self, scene: TwinScene, *, seed: int = 0, dt: float = 0.05,
                  sensors: SensorOptions | None = None, tracer=None, phy: bool = True,
-                 estimators: list[Estimator] | None = None, sensing: bool = True) -> None:
+                 estimators: list[Estimator] | None = None, sensing: bool = True,
+                 asset_dirs: list[str | Path] | tuple = ()) -> None:
         if not dt > 0:
             raise ValueError(f"dt: expected a positive step in s, got {dt}")
         self.scene = scene
@@ -120,7 +129,11 @@ class Twin:
         self.trace_schedule: Callable[[int], bool] | None = None
         #: robot name -> ``source(t, dt) -> KinematicState`` replacing its motion model
         self.state_sources: dict[str, StateSource] = {}
+        #: keep stepping (a driver such as the live server reads it; ``run``/``pause``)
         self.running = True
+        #: steps requested by ``step`` commands and not yet taken (``pause`` clears them)
+        self.pending_steps = 0
+        self.asset_dirs = [Path(d) for d in asset_dirs]
         self._pending_edits: list[Edit] = []
         #: access points' array poses ``(position, orientation)``, movable by edits
         self.ap_poses = {d.name: (tuple(d.position), tuple(d.orientation))
@@ -263,6 +276,7 @@ class Twin:
             if not edit.mesh_file:
                 raise ValueError(f"{what}: mesh_file: required for add")
             material(required=True)
+            self._check_mesh(what, edit.mesh_file)
             return
         if edit.op == "move":
             if edit.target not in objects and edit.target not in devices:
@@ -283,6 +297,20 @@ class Twin:
             raise ValueError(f"{what}: target: no object of that name")
         if edit.op == "material":
             material(required=True)
+
+    def _check_mesh(self, what: str, mesh_file: str) -> None:
+        """An ``add`` edit's mesh: a readable PLY inside the scene folder (relative path)
+        or an asset folder (absolute), a regular file of at most
+        :data:`MAX_EDIT_MESH_BYTES`. One message whatever the reason, so an edit
+        reveals nothing about the host's files (the reason is logged)."""
+        try:
+            path = confine(mesh_file, self.config.scene.file.parent, roots=self.asset_dirs)
+            read_ply(path, MAX_EDIT_MESH_BYTES)
+        except MeshError as exc:
+            log.info("%s: mesh_file refused: %s", what, exc)
+            raise ValueError(
+                f"{what}: mesh_file: expected a PLY file inside the scene folder (a relative "
+                f"path) or an asset folder, at most {MAX_EDIT_MESH_BYTES} bytes") from None
 
     def apply_edit(self, edit: Edit) -> None:
         """Validate an edit (:meth:`validate_edit`) and queue it; it is applied before
@@ -317,7 +345,8 @@ class Twin:
         elif e.op == "remove":
             self.scene.remove_object(e.target)
         elif e.op == "add":
-            self.scene.add_object(e.target, e.mesh_file, e.material, e.thickness or 0.1)
+            path = confine(e.mesh_file, self.config.scene.file.parent, roots=self.asset_dirs)
+            self.scene.add_object(e.target, path, e.material, e.thickness or 0.1)
         log.info("applied edit %s %s; scene hash now %s", e.op, e.target,
                  self.scene.content_hash()[:12])
 
@@ -353,16 +382,82 @@ class Twin:
         now = self.scene.content_hash()
         return [n for n, (h, aps) in self.databases.items() if h != now or aps != self.ap_poses]
 
-    def command(self, cmd: Command) -> StepResult | None:
-        """Apply a command: run, pause, step (returns the step), reset, set_path,
-        set_goal, teleop."""
+    def validate_command(self, cmd: Command) -> None:
+        """Check a command completely (op, every argument) against the twin as it is now.
+
+        Raises:
+            ValueError: naming the command and the argument at fault.
+        """
+        what = f"command {cmd.op}"
+        a = cmd.args if isinstance(cmd.args, dict) else None
+        if a is None:
+            raise ValueError(f"{what}: args: expected an object")
+
+        def robot():
+            name = a.get("robot")
+            if name not in self.agents:
+                raise ValueError(f"{what}: robot: expected one of {', '.join(self.agents)}, "
+                                 f"got {name!r}")
+
+        def number(key, lo, hi, default=None):
+            v = a.get(key, default)
+            if type(v) not in (int, float) or not (np.isfinite(v) and lo <= v <= hi):
+                raise ValueError(f"{what}: {key}: expected a number in {lo:g}..{hi:g}, "
+                                 f"got {v!r}")
+
+        if cmd.op in ("run", "pause", "reset"):
+            return
+        if cmd.op == "step":
+            n = a.get("count", 1)
+            if type(n) is not int or not 1 <= n <= MAX_STEP_COUNT:
+                raise ValueError(f"{what}: count: expected an integer in 1..{MAX_STEP_COUNT}, "
+                                 f"got {n!r}")
+        elif cmd.op == "set_path":
+            robot()
+            if not isinstance(a.get("path"), dict):
+                raise ValueError(f"{what}: path: expected an object such as "
+                                 '{"kind": "circle", "centre": [x, y], "radius": r}')
+        elif cmd.op == "set_goal":
+            robot()
+            g = a.get("goal")
+            lo, hi = self.scene.bounds_min, self.scene.bounds_max
+            if not (isinstance(g, list) and len(g) == 2
+                    and all(type(x) in (int, float) and np.isfinite(x) for x in g)
+                    and lo[0] <= g[0] <= hi[0] and lo[1] <= g[1] <= hi[1]):
+                raise ValueError(f"{what}: goal: expected [x, y] inside the room, got {g!r}")
+        elif cmd.op == "teleop":
+            robot()
+            number("linear", -10.0, 10.0)
+            number("angular", -20.0, 20.0)
+        else:
+            raise ValueError(f"{what}: unknown op {cmd.op!r} (expected run, pause, step, "
+                             "reset, set_path, set_goal or teleop)")
+
+    def command(self, cmd: Command) -> None:
+        """Validate (:meth:`validate_command`) and apply a command; the one dispatch of
+        every command op.
+
+        * ``run`` / ``pause``: set :attr:`running` (``pause`` also drops
+          :attr:`pending_steps`);
+        * ``step`` (``count``, default 1): pause and request ``count`` single steps
+          (:attr:`pending_steps`; each :meth:`step` takes one);
+        * ``reset``: :meth:`reset`;
+        * ``set_path`` (``robot``, ``path``), ``set_goal`` (``robot``, ``goal [x, y]``),
+          ``teleop`` (``robot``, ``linear`` m/s, ``angular`` rad/s).
+
+        Raises:
+            ValueError: a bad command; nothing was changed.
+        """
+        self.validate_command(cmd)
         a = cmd.args
         if cmd.op == "run":
             self.running = True
         elif cmd.op == "pause":
             self.running = False
+            self.pending_steps = 0
         elif cmd.op == "step":
-            return self.step()
+            self.running = False
+            self.pending_steps += int(a.get("count", 1))
         elif cmd.op == "reset":
             self.reset()
         elif cmd.op == "set_path":
@@ -375,9 +470,6 @@ class Twin:
             tw = Twist(linear=np.array([float(a["linear"]), 0, 0]),
                        angular=np.array([0, 0, float(a["angular"])]))
             self.set_controller(a["robot"], lambda _state, tw=tw: tw)
-        else:
-            raise ValueError(f"command: unknown op {cmd.op!r}")
-        return None
 
     # ------------------------------------------------------------------ step
 
@@ -395,7 +487,9 @@ class Twin:
         return poses
 
     def step(self) -> StepResult:
-        """Run one step of Algorithm 1 and return what it produced."""
+        """Run one step of Algorithm 1 and return what it produced (takes one of the
+        :attr:`pending_steps`, if any)."""
+        self.pending_steps = max(0, self.pending_steps - 1)
         self._apply_pending()
         clock = time.perf_counter
         timings = {}
