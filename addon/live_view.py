@@ -23,7 +23,6 @@ from __future__ import annotations
 import collections
 import math
 import time
-from pathlib import Path
 
 import bpy
 from mathutils import Matrix, Vector
@@ -497,14 +496,14 @@ class EditTracker:
     ``[roll, pitch, yaw]`` of ``R_now R_base^T`` (rotation relative to the
     loaded geometry); for devices the object's location and XYZ Euler
     angles; ``material`` when the ITU material or thickness changed;
-    ``remove`` when the object was deleted; ``add`` (mesh written to a PLY in
-    ``mesh_dir``, world coordinates) for a new mesh once it has a radio material.
+    ``remove`` when the object was deleted; ``add`` (the world-coordinate mesh
+    as PLY bytes in the message: the engine reads no file a viewer names outside
+    its scene folder) for a new mesh once it has a radio material.
     """
 
-    def __init__(self, mesh_dir: str | None = None):
+    def __init__(self):
         self._base: dict[str, tuple] = {}    # object name -> (kind, wire name, M_base, c_base)
         self._sent: dict[str, tuple] = {}    # object name -> (matrix key, material key)
-        self._mesh_dir = mesh_dir
         self.active = False
 
     @property
@@ -536,9 +535,9 @@ class EditTracker:
         self._known = set(scene.objects.keys())
 
     def _added(self, scene) -> list[dict]:
-        """New radio-tagged meshes: world mesh written to a PLY, ``add`` edits."""
+        """New radio-tagged meshes: ``add`` edits carrying the world mesh as PLY bytes."""
         from . import materials, wire
-        from .exporter.geometry import world_mesh, write_ply
+        from .exporter.geometry import ply_bytes, world_mesh
 
         out = []
         names = scene.objects.keys()
@@ -550,15 +549,10 @@ class EditTracker:
                     or obj.isac.itu_material == materials.NO_MATERIAL
                     or not obj.isac.export_geometry):
                 continue  # not (yet) radio geometry: looked at again when tagged
-            if self._mesh_dir is None:
-                import tempfile
-
-                self._mesh_dir = tempfile.mkdtemp(prefix="isac-live-meshes-")
             wname = safe_name(name)
-            path = Path(self._mesh_dir) / f"{wname}.ply"
-            write_ply(path, world_mesh(obj, bpy.context.evaluated_depsgraph_get(), wname))
+            data = ply_bytes(world_mesh(obj, bpy.context.evaluated_depsgraph_get(), wname))
             out.append(wire.edit("add", wname, material=obj.isac.itu_material,
-                                 thickness=obj.isac.thickness, mesh_file=str(path)))
+                                 thickness=obj.isac.thickness, mesh_ply=data))
             self._track_object(obj, wname)
             self._known.add(name)
         self._known &= set(names) | set(self._base)

@@ -30,6 +30,7 @@ Z up. Poses are ``[x, y, z, roll, pitch, yaw]``.
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import math
@@ -250,7 +251,7 @@ MESSAGES: dict[str, tuple[frozenset, dict]] = {
         "op": (_one_of(*EDIT_OPS), _R), "target": (_str, _R),
         "position": (_opt(_vec(3)), _O), "orientation": (_opt(_vec(3)), _O),
         "material": (_opt(_str), _O), "thickness": (_opt(_num), _O),
-        "mesh_file": (_opt(_str), _O),
+        "mesh_file": (_opt(_str), _O), "mesh_ply": (_opt(_str), _O),
     }),
     "command": (frozenset({"v2e"}), {
         "op": (_one_of(*COMMAND_OPS), _R), "args": (_dict, _O),
@@ -521,8 +522,12 @@ def error(code: str, message: str, *, fatal: bool = False, ref: str | None = Non
 
 
 def edit(op: str, target: str, *, position=None, orientation=None, material=None,
-         thickness=None, mesh_file=None) -> dict:
-    """A scene edit (mirrors ``engine.state.Edit``); see docs/wire.md for ``move`` semantics."""
+         thickness=None, mesh_file=None, mesh_ply: bytes | None = None) -> dict:
+    """A scene edit (mirrors ``engine.state.Edit``); see docs/wire.md for ``move`` semantics.
+
+    An ``add`` names its mesh by ``mesh_file`` (a path relative to the engine's scene
+    folder) or carries it: ``mesh_ply``, the PLY file's bytes (sent base64-encoded).
+    """
     msg = {"type": "edit", "op": op, "target": target}
     for k, v in (("position", position), ("orientation", orientation)):
         if v is not None:
@@ -533,7 +538,25 @@ def edit(op: str, target: str, *, position=None, orientation=None, material=None
         msg["thickness"] = float(thickness)
     if mesh_file is not None:
         msg["mesh_file"] = str(mesh_file)
+    if mesh_ply is not None:
+        msg["mesh_ply"] = base64.b64encode(bytes(mesh_ply)).decode("ascii")
     return msg
+
+
+def edit_mesh(msg: dict) -> bytes | None:
+    """The PLY bytes an ``edit`` message carries (None without ``mesh_ply``).
+
+    Raises:
+        ValueError: ``mesh_ply`` is not base64.
+    """
+    text = msg.get("mesh_ply")
+    if text is None:
+        return None
+    try:
+        return base64.b64decode(text, validate=True)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"edit {msg.get('op')} {msg.get('target')!r}: mesh_ply: expected "
+                         f"base64 ({exc})") from None
 
 
 def command(op: str, **args) -> dict:

@@ -137,7 +137,15 @@ def read_ply(path: str | Path, max_bytes: int = MAX_MESH_BYTES) -> Mesh:
             too large, bad header, truncated data, indices out of range, no triangles).
     """
     path = Path(path)
-    blob = read_file(path, max_bytes)
+    return parse_ply(read_file(path, max_bytes), path)
+
+
+def parse_ply(blob: bytes, path: str | Path = "<mesh>") -> Mesh:
+    """Parse the bytes of a PLY file; ``path`` names it in errors.
+
+    Raises:
+        MeshError: naming ``path`` and the problem (see :func:`read_ply`).
+    """
     end = blob.find(b"end_header")
     if not blob.startswith(b"ply") or end < 0:
         raise MeshError(f"{path}: not a PLY file (expected 'ply' ... 'end_header')")

@@ -17,8 +17,12 @@ are applied before the next step starts.
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import shutil
+import tempfile
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.bus import Bus
-from engine.meshes import MeshError, confine, read_ply
+from engine.meshes import MeshError, confine, parse_ply, read_ply
 from engine.msgs import Csi, Header, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
 from engine.phy.patterns import AntennaPatterns
@@ -134,6 +138,7 @@ class Twin:
         #: steps requested by ``step`` commands and not yet taken (``pause`` clears them)
         self.pending_steps = 0
         self.asset_dirs = [Path(d) for d in asset_dirs]
+        self._upload_dir: Path | None = None
         self._pending_edits: list[Edit] = []
         #: access points' array poses ``(position, orientation)``, movable by edits
         self.ap_poses = {d.name: (tuple(d.position), tuple(d.orientation))
@@ -273,10 +278,19 @@ class Twin:
         if edit.op == "add":
             if edit.target in objects or edit.target in devices:
                 raise ValueError(f"{what}: target: an object or device of that name exists")
-            if not edit.mesh_file:
-                raise ValueError(f"{what}: mesh_file: required for add")
+            if bool(edit.mesh_file) == (edit.mesh_data is not None):
+                raise ValueError(f"{what}: mesh_file/mesh_data: give exactly one for add")
             material(required=True)
-            self._check_mesh(what, edit.mesh_file)
+            if edit.mesh_data is None:
+                self._check_mesh(what, edit.mesh_file)
+            elif len(edit.mesh_data) > MAX_EDIT_MESH_BYTES:
+                raise ValueError(f"{what}: mesh_data: {len(edit.mesh_data)} bytes exceeds "
+                                 f"the limit of {MAX_EDIT_MESH_BYTES}")
+            else:
+                try:
+                    parse_ply(edit.mesh_data, f"mesh_data of {edit.target!r}")
+                except MeshError as exc:
+                    raise ValueError(f"{what}: {exc}") from None
             return
         if edit.op == "move":
             if edit.target not in objects and edit.target not in devices:
@@ -345,10 +359,24 @@ class Twin:
         elif e.op == "remove":
             self.scene.remove_object(e.target)
         elif e.op == "add":
-            path = confine(e.mesh_file, self.config.scene.file.parent, roots=self.asset_dirs)
+            if e.mesh_data is not None:
+                path = self._store_mesh(e.mesh_data)
+            else:
+                path = confine(e.mesh_file, self.config.scene.file.parent,
+                               roots=self.asset_dirs)
             self.scene.add_object(e.target, path, e.material, e.thickness or 0.1)
         log.info("applied edit %s %s; scene hash now %s", e.op, e.target,
                  self.scene.content_hash()[:12])
+
+    def _store_mesh(self, data: bytes) -> Path:
+        """Write a mesh sent as bytes to the twin's own folder (private, removed with
+        the twin); the file is named by its SHA-256."""
+        if self._upload_dir is None:
+            self._upload_dir = Path(tempfile.mkdtemp(prefix="isac-twin-meshes-"))
+            weakref.finalize(self, shutil.rmtree, self._upload_dir, True)
+        path = self._upload_dir / f"{hashlib.sha256(data).hexdigest()}.ply"
+        path.write_bytes(data)
+        return path
 
     def _move_access_point(self, e: Edit) -> None:
         pos, ori = self.ap_poses[e.target]

@@ -544,7 +544,12 @@ class LiveServer:
             log.info("viewer %s (%s) ready", v.name, v.addr)
             return
         if t == "edit":
-            self._inbox.put((v, protocol.edit_from_message(msg)))
+            try:
+                edit = protocol.edit_from_message(msg)
+            except ValueError as exc:
+                self._send_to(v, wire.error("rejected", str(exc), ref=msg["target"]))
+                return
+            self._inbox.put((v, edit))
         elif t == "command":
             self._inbox.put((v, protocol.command_from_message(msg)))
         elif t == "error":

@@ -284,3 +284,32 @@ def test_a_viewer_cannot_make_the_engine_read_host_files(server, raw_viewer, wir
     assert len(texts) == 1 and "inside the scene folder" in texts.pop()
     v.send(wire.command("step"))
     assert v.until(lambda m: m["type"] == "state")  # the twin never met the edits
+
+
+def test_add_carries_its_mesh_and_the_twin_stores_it(server, raw_viewer, wire, box_scene_dir):
+    """The add-on sends a new object's mesh in the edit (``mesh_ply``); bad base64 or a
+    bad PLY is rejected to the sender with ``ref``; a good one is traced next step."""
+    from engine.synthetic import box_mesh, write_ply
+
+    v = raw_viewer(server.address)
+    v.hello()
+    v.until(lambda m: m["type"] == "scene")
+    bad = wire.edit("add", "crate", material="wood", mesh_ply=b"x")
+    bad["mesh_ply"] = "not base64!"
+    v.send(bad)
+    err = v.until(lambda m: m["type"] == "error")
+    assert err["ref"] == "crate" and "mesh_ply: expected base64" in err["message"]
+    v.send(wire.edit("add", "crate", material="wood", mesh_ply=b"ply\nnonsense"))
+    err = v.until(lambda m: m["type"] == "error")
+    assert err["ref"] == "crate" and "mesh_data of 'crate'" in err["message"]
+    ply = box_scene_dir.parent / "crate.ply"
+    write_ply(ply, *box_mesh((1.0, 1.0, 0.0), (1.5, 1.4, 0.6)))
+    v.send(wire.edit("add", "crate", material="wood", mesh_ply=ply.read_bytes()))
+    v.send(wire.command("step"))
+    assert v.until(lambda m: m["type"] == "state")
+    assert "crate" in server.twin.scene.objects
+    stored = server.twin.scene.objects["crate"].mesh_file
+    assert stored.read_bytes() == ply.read_bytes() and box_scene_dir not in stored.parents
+    v.send(wire.edit("remove", "crate"))  # leave the shared twin as it was
+    v.send(wire.command("step"))
+    v.until(lambda m: m["type"] == "status" and m["edits_applied"] >= 2)
