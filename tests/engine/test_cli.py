@@ -47,3 +47,32 @@ def test_bad_input_exits_2_with_the_culprit(lab, tmp_path, capsys):
     bad.write_text((lab / "twin.toml").read_text().replace("rows = 2", "rows = 0"))
     assert main(["info", str(bad)]) == 2
     assert "array.rows: expected an integer >= 1" in capsys.readouterr().err
+
+
+def test_serve_token_from_file_or_environment(tmp_path, monkeypatch, capsys):
+    """Issue 22: a token on the command line is visible in `ps`; a file or the
+    environment keep it out of the process list. A bad token file exits 2 naming it."""
+    monkeypatch.delenv("ISAC_TWIN_TOKEN", raising=False)
+    empty = tmp_path / "empty.token"
+    empty.write_text("\n")
+    assert main(["serve", "--host", "0.0.0.0", "--port", "0", "--token-file", str(empty)]) == 2
+    assert "empty.token: the token file is empty" in capsys.readouterr().err
+    missing = tmp_path / "missing.token"
+    assert main(["serve", "--port", "0", "--token-file", str(missing)]) == 2
+    assert "missing.token: cannot read the token file" in capsys.readouterr().err
+    assert main(["serve", "--host", "0.0.0.0", "--port", "0"]) == 2
+    assert "ISAC_TWIN_TOKEN" in capsys.readouterr().err
+
+    import argparse
+
+    from engine.cli import serve_token
+
+    ns = argparse.Namespace(token=None, token_file=None)
+    assert serve_token(ns) is None
+    monkeypatch.setenv("ISAC_TWIN_TOKEN", "from-env")
+    assert serve_token(ns) == "from-env"
+    good = tmp_path / "good.token"
+    good.write_text("from-file\nignored\n")
+    assert serve_token(argparse.Namespace(token=None, token_file=good)) == "from-file"
+    assert main(["serve", "--port", "0", "--asset-dir", str(missing)]) == 2
+    assert "--asset-dir" in (err := capsys.readouterr().err) and "not a folder" in err
