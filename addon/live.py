@@ -409,10 +409,49 @@ def timer_tick() -> float | None:
     return TICK_INTERVAL_S
 
 
+def network_refusal(host: str, online_access: bool | None = None) -> str | None:
+    """Why connecting to ``host`` is not allowed now (None: it is).
+
+    An engine on this machine (a loopback address) is always reachable; any other
+    host needs Blender's *Allow Online Access* (``bpy.app.online_access``).
+
+    Args:
+        online_access: the setting (None: read ``bpy.app.online_access``; True without bpy).
+    """
+    import ipaddress
+
+    try:
+        if host == "localhost" or ipaddress.ip_address(host).is_loopback:
+            return None
+    except ValueError:
+        pass
+    if online_access is None:
+        try:
+            import bpy
+
+            online_access = bool(getattr(bpy.app, "online_access", True))
+        except ImportError:
+            online_access = True
+    if online_access:
+        return None
+    return (f"not connecting to {host}: Blender's online access is off (Preferences > "
+            "System > Network); only an engine on this machine (127.0.0.1) can be reached")
+
+
 def open_session(scene, host: str, port: int, token: str | None = None,
                  engine: EngineProcess | None = None) -> LiveSession:
-    """Replace the GUI's session with a new one and register its timer."""
+    """Replace the GUI's session with a new one and register its timer.
+
+    Raises:
+        ValueError: :func:`network_refusal` (the reason is also shown in the panel).
+    """
     global _SESSION
+    why = network_refusal(host)
+    if why is not None:
+        from . import live_view
+
+        live_view.store_connection(scene, "refused", why, {})
+        raise ValueError(why)
     close_session()
     _SESSION = LiveSession(scene, host, port, token, engine)
     try:

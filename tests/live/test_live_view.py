@@ -271,3 +271,20 @@ def test_radar_detections_and_tracks_are_drawn(scene):
     bad = dict(msg, tracks=[{"id": 1, "position": [1.0]}])
     assert "tracks" in wire.validate(bad, "e2v")
     live_view.clear(scene)
+
+
+def test_no_remote_connection_while_online_access_is_off(scene):
+    """Issue 22: Blender's online-access setting is honoured: a remote engine is refused
+    with the reason in the panel (this bpy module runs with online access off); an
+    engine on this machine is always reachable."""
+    from addon import live
+
+    assert bpy.app.online_access is False
+    with pytest.raises(ValueError, match="online access is off"):
+        live.open_session(scene, "192.0.2.7", 8765)
+    assert scene.isac_live.connection == "refused"
+    assert "online access is off" in scene.isac_live.last_error
+    assert live.network_refusal("127.0.0.1") is None and live.network_refusal("::1") is None
+    assert live.network_refusal("localhost") is None
+    assert live.network_refusal("192.0.2.7", online_access=True) is None
+    assert live.session() is None  # nothing was opened
