@@ -336,6 +336,10 @@ class LiveSession:
         self.applied: collections.Counter = collections.Counter()
         self.last_tick_s = 0.0
         self._scene_hash = ""
+        #: the engine's scene content hash as it last reported it (``scene``/``state``)
+        self.engine_scene_hash = ""
+        #: a warning for the panel (e.g. edits re-sent after an engine restart)
+        self.notice = ""
         if engine is None:
             self.client.connect()
 
@@ -371,15 +375,34 @@ class LiveSession:
         for m in msgs:
             live_view.apply_message(scene, m, self.view)
             self.applied[m["type"]] += 1
-            if m["type"] == "scene" and (m["content_hash"] != self._scene_hash
-                                         or not self.tracker.tracked):
-                self._scene_hash = m["content_hash"]
-                self.tracker.baseline(scene, {o["name"] for o in m["objects"]},
-                                      {d["name"] for d in m["devices"]})
-        live_view.store_connection(scene, self.client.state, self.client.last_error,
+            if m["type"] == "state" and m.get("scene_hash"):
+                self.engine_scene_hash = m["scene_hash"]
+            elif m["type"] == "scene":
+                self._on_scene(scene, m)
+        live_view.store_connection(scene, self.client.state,
+                                   self.client.last_error or self.notice,
                                    dict(self.client.decoder.rejections))
         self.last_tick_s = time.perf_counter() - t0
         return msgs
+
+    def _on_scene(self, scene, m: dict) -> None:
+        """A ``scene`` (on every (re)connect and after a reset): keep Blender and the
+        engine one truth. The engine announcing the scene this session baselined while
+        it had reported another (edited) one since means it restarted and lost the
+        edits: they are sent again and the panel says so. Any other new scene becomes
+        the new baseline."""
+        h = m["content_hash"]
+        if (self.tracker.tracked and h == self._scene_hash
+                and self.engine_scene_hash not in ("", h)):
+            names = self.tracker.resend()
+            self.notice = (f"the engine came back without {len(names)} edit(s) made here "
+                           f"({', '.join(sorted(names)[:5])}): sent again")
+            log.warning("live: %s", self.notice)
+        elif h != self._scene_hash or not self.tracker.tracked:
+            self._scene_hash = h
+            self.tracker.baseline(scene, {o["name"] for o in m["objects"]},
+                                  {d["name"] for d in m["devices"]})
+        self.engine_scene_hash = h
 
     def close(self) -> None:
         self.client.disconnect()

@@ -499,11 +499,20 @@ class EditTracker:
     ``remove`` when the object was deleted; ``add`` (the world-coordinate mesh
     as PLY bytes in the message: the engine reads no file a viewer names outside
     its scene folder) for a new mesh once it has a radio material.
+
+    :meth:`resend` is for an engine that restarted with the scene as baselined
+    and so lost the edits: the next :meth:`poll` sends again every difference
+    from the baseline (moves, materials, removals, additions).
     """
 
     def __init__(self):
         self._base: dict[str, tuple] = {}    # object name -> (kind, wire name, M_base, c_base)
         self._sent: dict[str, tuple] = {}    # object name -> (matrix key, material key)
+        self._base_keys: dict[str, tuple] = {}  # object name -> keys as the engine loaded it
+        self._removed: list[str] = []        # wire names removed by edits since the baseline
+        self._new: set[str] = set()          # object names added by edits since the baseline
+        self._pending: list[dict] = []       # edits poll() sends first (resend)
+        self._known: set[str] = set()
         self.active = False
 
     @property
@@ -516,11 +525,16 @@ class EditTracker:
         lo = Vector([min(c[i] for c in corners) for i in range(3)])
         hi = Vector([max(c[i] for c in corners) for i in range(3)])
         self._base[obj.name] = ("object", wname, m, (lo + hi) / 2)
-        self._sent[obj.name] = (_m_key(obj.matrix_world), _mat_key(obj))
+        self._sent[obj.name] = self._base_keys[obj.name] = (_m_key(obj.matrix_world),
+                                                            _mat_key(obj))
 
     def baseline(self, scene, object_names, device_names) -> None:
         self._base.clear()
         self._sent.clear()
+        self._base_keys.clear()
+        self._removed.clear()
+        self._new.clear()
+        self._pending.clear()
         self.active = True
         for obj in scene.objects:
             if obj.name.startswith(PREFIX):
@@ -531,8 +545,28 @@ class EditTracker:
                 self._track_object(obj, wname)
             elif kind != "NONE" and obj.name in device_names:
                 self._base[obj.name] = ("device", obj.name, obj.matrix_world.copy(), None)
-                self._sent[obj.name] = (_m_key(obj.matrix_world), _mat_key(obj))
+                self._sent[obj.name] = self._base_keys[obj.name] = (
+                    _m_key(obj.matrix_world), _mat_key(obj))
         self._known = set(scene.objects.keys())
+
+    def resend(self) -> list[str]:
+        """Make the next :meth:`poll` send again every edit made since the baseline
+        (the engine restarted with the baselined scene). Returns the names concerned."""
+        names = []
+        for name in list(self._base):
+            if name in self._new:  # added by an edit: poll() adds it again
+                del self._base[name], self._sent[name], self._base_keys[name]
+                self._known.discard(name)
+                names.append(name)
+            elif self._sent[name] != self._base_keys[name]:
+                self._sent[name] = self._base_keys[name]
+                names.append(name)
+        self._new.clear()
+        from . import wire
+
+        self._pending = [wire.edit("remove", w) for w in self._removed]
+        names += self._removed
+        return names
 
     def _added(self, scene) -> list[dict]:
         """New radio-tagged meshes: ``add`` edits carrying the world mesh as PLY bytes."""
@@ -555,6 +589,7 @@ class EditTracker:
                                  thickness=obj.isac.thickness, mesh_ply=data))
             self._track_object(obj, wname)
             self._known.add(name)
+            self._new.add(name)
         self._known &= set(names) | set(self._base)
         return out
 
@@ -563,14 +598,18 @@ class EditTracker:
 
         if not self.active:
             return []
-        out = self._added(scene)
+        out, self._pending = self._pending, []
+        out += self._added(scene)
         objs = scene.objects
         for name, (kind, wname, m0, c0) in list(self._base.items()):
             obj = objs.get(name)
             if obj is None:
                 out.append(wire.edit("remove", wname))
-                del self._base[name]
-                del self._sent[name]
+                del self._base[name], self._sent[name], self._base_keys[name]
+                if name in self._new:
+                    self._new.discard(name)
+                else:
+                    self._removed.append(wname)
                 continue
             mk, matk = _m_key(obj.matrix_world), _mat_key(obj)
             last_m, last_mat = self._sent[name]

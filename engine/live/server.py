@@ -181,6 +181,7 @@ class LiveServer:
         self._viewers: dict[int, _Viewer] = {}
         self._latest: dict[str, bytes] = {}  # for viewers that join later
         self._scene_frame = b""
+        self._scene_hash = ""
         self._sel: selectors.BaseSelector | None = None
         self._lsock: socket.socket | None = None
         self._wake_r = self._wake_w = None
@@ -209,7 +210,7 @@ class LiveServer:
         self._sel = selectors.DefaultSelector()
         self._sel.register(ls, selectors.EVENT_READ, "listen")
         self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
-        self._scene_frame = wire.encode(protocol.scene_message(self.twin.scene))
+        self._refresh_scene()
         self._threads = [threading.Thread(target=self._io_main, name="live-io", daemon=True),
                          threading.Thread(target=self._loop_main, name="live-loop", daemon=True)]
         for t in self._threads:
@@ -327,6 +328,8 @@ class LiveServer:
             return
         self.steps_done += 1
         self.last_result = res
+        if res.scene_hash != self._scene_hash:  # an edit was applied in this step
+            self._refresh_scene()
         for build in (protocol.state_message, protocol.metrics_message):
             self.publish(build(res))
         self.publish(protocol.paths_message(res, self.max_paths))
@@ -341,6 +344,15 @@ class LiveServer:
             self.twin.running = False
             self.done.set()
         self.publish(self._status())
+
+    def _refresh_scene(self) -> bytes:
+        """The ``scene`` frame new viewers get: the room as it is now (edits included),
+        so its ``content_hash`` is the engine's truth on every (re)connect."""
+        msg = protocol.scene_message(self.twin.scene)
+        frame = wire.encode(msg)
+        with self._lock:
+            self._scene_frame, self._scene_hash = frame, msg["content_hash"]
+        return frame
 
     def _drain_inbox(self) -> None:
         """Apply queued edits and commands (the twin validates each; a bad one is
@@ -360,6 +372,7 @@ class LiveServer:
                     if item.op == "reset":
                         self.steps_done = 0
                         self.done.clear()
+                        self._refresh_scene()
                         self.publish(protocol.scene_message(self.twin.scene))
                 changed = True
             except Exception as exc:  # noqa: BLE001 - a bad edit must not stop the twin

@@ -118,6 +118,8 @@ def test_commands_and_edits_between_steps(server, raw_viewer, wire, twin):
     v.until(lambda m: m["type"] == "scene")
     v.send(wire.command("step"))
     before = v.until(lambda m: m["type"] == "paths")
+    before_hash = twin.scene.content_hash()
+
     # move the far wall 0.5 m outwards: its reflections get longer
     c = [float(x) for x in twin.scene.sionna.objects["wall_xmax"].position.numpy().reshape(-1)]
     v.send(wire.edit("move", "wall_xmax", position=(c[0] + 0.5, c[1], c[2])))
@@ -131,6 +133,12 @@ def test_commands_and_edits_between_steps(server, raw_viewer, wire, twin):
     assert taus_a != taus_b
     assert taus_a[0] == pytest.approx(taus_b[0])  # LOS unchanged
     assert st["running"] is False
+    # a viewer joining now is told the room as it is (the edited content hash), so an
+    # add-on reconnecting can tell an engine that kept its edits from one that restarted
+    late = raw_viewer(server.address)
+    late.hello()
+    h = late.until(lambda m: m["type"] == "scene")["content_hash"]
+    assert h == twin.scene.content_hash() == server.last_result.scene_hash != before_hash
     v.send(wire.command("run"))
     assert _wait(lambda: server.steps_done >= 3)
     v.send(wire.command("pause"))
