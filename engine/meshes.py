@@ -115,7 +115,8 @@ class Mesh:
 
     Attributes:
         vertices: ``[V, 3]`` float64, metres.
-        faces: ``[F, 3]`` int64 vertex indices (polygons are fan-triangulated).
+        faces: ``[F, 3]`` int64 vertex indices (triangles only: Mitsuba, which loads the
+            same files, refuses other polygons).
     """
 
     vertices: np.ndarray
@@ -162,13 +163,22 @@ def parse_ply(blob: bytes, path: str | Path = "<mesh>") -> Mesh:
         if tok[0] == "format":
             fmt = tok[1]
         elif tok[0] == "element":
+            if len(tok) != 3 or not tok[2].isdigit() or len(tok[2]) > 12:
+                raise MeshError(f"{path}: header line {line.strip()[:60]!r}: expected "
+                                "'element NAME COUNT' with COUNT a non-negative integer")
             elements.append((tok[1], int(tok[2]), []))
         elif tok[0] == "property" and elements:
+            ok = (len(tok) == 5 and tok[2] in _PLY_TYPES and tok[3] in _PLY_TYPES
+                  if tok[1] == "list" else len(tok) == 3 and tok[1] in _PLY_TYPES)
+            if not ok:
+                raise MeshError(f"{path}: header line {line.strip()[:60]!r}: expected "
+                                "'property TYPE NAME' or 'property list TYPE TYPE NAME' "
+                                f"(types: {', '.join(_PLY_TYPES)})")
             if tok[1] == "list":
-                elements[-1][2].append(("list", tok[4], _PLY_TYPES.get(tok[2]),
-                                        _PLY_TYPES.get(tok[3])))
+                elements[-1][2].append(("list", tok[4], _PLY_TYPES[tok[2]],
+                                        _PLY_TYPES[tok[3]]))
             else:
-                elements[-1][2].append(("scalar", tok[2], _PLY_TYPES.get(tok[1])))
+                elements[-1][2].append(("scalar", tok[2], _PLY_TYPES[tok[1]]))
     if fmt not in ("binary_little_endian", "ascii"):
         raise MeshError(f"{path}: unsupported PLY format {fmt!r} "
                         "(expected binary_little_endian or ascii)")
@@ -179,9 +189,15 @@ def parse_ply(blob: bytes, path: str | Path = "<mesh>") -> Mesh:
         if fmt == "ascii":
             verts, faces = _read_ascii(body, elements)
         else:
-            verts, faces = _read_binary(body, elements)
-    except (ValueError, IndexError, TypeError) as exc:
+            verts, faces, used = _read_binary(body, elements)
+    except (ValueError, IndexError, TypeError, KeyError) as exc:
         raise MeshError(f"{path}: truncated or corrupt PLY data ({exc})") from exc
+    if fmt != "ascii" and used != len(body):
+        raise MeshError(f"{path}: {len(body) - used} bytes after the last element "
+                        "(Mitsuba refuses such a file)")
+    if isinstance(faces, list):
+        raise MeshError(f"{path}: face {faces[0]} has {faces[1]} vertices: only triangles "
+                        "are accepted (Mitsuba's PLY loader refuses other polygons)")
     if len(faces) == 0:
         raise MeshError(f"{path}: mesh has no faces")
     if faces.min() < 0 or faces.max() >= len(verts):
@@ -191,13 +207,21 @@ def parse_ply(blob: bytes, path: str | Path = "<mesh>") -> Mesh:
     return Mesh(verts, faces, hashlib.sha256(blob).hexdigest())
 
 
+def _triangles(polys: list[np.ndarray]):
+    """``[F, 3]`` faces, or ``[index, n]`` of the first face that is not a triangle."""
+    for i, p in enumerate(polys):
+        if len(p) != 3:
+            return [i, len(p)]
+    return _fan(polys)
+
+
 def _fan(polys: list[np.ndarray]) -> np.ndarray:
     tris = [np.stack([p[[0] * (len(p) - 2)], p[1:-1], p[2:]], axis=1) for p in polys
             if len(p) >= 3]
     return np.concatenate(tris).astype(np.int64) if tris else np.zeros((0, 3), np.int64)
 
 
-def _read_binary(body: bytes, elements) -> tuple[np.ndarray, np.ndarray]:
+def _read_binary(body: bytes, elements) -> tuple[np.ndarray, np.ndarray, int]:
     off = 0
     verts = faces = None
     for name, count, props in elements:
@@ -231,10 +255,10 @@ def _read_binary(body: bytes, elements) -> tuple[np.ndarray, np.ndarray]:
                     raise ValueError("face list runs past the end of the file")
                 polys.append(np.frombuffer(body, idt, n, off).astype(np.int64))
                 off += n * idt.itemsize
-            faces = _fan(polys)
+            faces = _triangles(polys)
         else:
             raise ValueError(f"element '{name}' has list properties the reader does not handle")
-    return verts, faces
+    return verts, faces, off
 
 
 def _read_ascii(body: bytes, elements) -> tuple[np.ndarray, np.ndarray]:
@@ -250,6 +274,6 @@ def _read_ascii(body: bytes, elements) -> tuple[np.ndarray, np.ndarray]:
             idx = [i for i, p in enumerate(props) if p[1] in ("x", "y", "z")]
             verts = np.array([[float(r.split()[i]) for i in idx] for r in rows])
         elif name == "face":
-            faces = _fan([np.array(r.split()[1:1 + int(r.split()[0])], dtype=np.int64)
-                          for r in rows])
+            faces = _triangles([np.array(r.split()[1:1 + int(r.split()[0])], dtype=np.int64)
+                                for r in rows])
     return verts, faces
