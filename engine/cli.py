@@ -40,10 +40,18 @@ def scene_path(args) -> Path:
 
 @command("info", "load a scene folder, validate it and print a summary", _scene_arg)
 def cmd_info(args) -> int:
+    from engine.robots.control import controller_from_spec
     from engine.scene import load_scene
 
     scene = load_scene(scene_path(args))
     cfg = scene.config
+    bounds = (scene.bounds_min[:2], scene.bounds_max[:2])
+    for i, d in enumerate(cfg.devices):  # the check Twin makes when it builds the robots
+        if d.kind == "robot" and d.path is not None:
+            try:
+                controller_from_spec(d.path, d.model or "burger", bounds=bounds)
+            except ValueError as exc:
+                raise ConfigError(f"{cfg.path}: devices[{i}] ({d.name}).path: {exc}") from None
     print(f"scene {cfg.scene.name}: {cfg.scene.file}")
     print(f"  frequency {cfg.scene.frequency_hz / 1e9:g} GHz, OFDM N={cfg.ofdm.num_subcarriers} "
           f"x {cfg.ofdm.subcarrier_spacing_hz / 1e3:g} kHz, K={cfg.ofdm.num_symbols}")

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from engine.bus import Bus
+from engine.config import ConfigError
 from engine.meshes import MeshError, confine, parse_ply, read_ply
 from engine.msgs import Csi, Header, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
@@ -150,9 +151,13 @@ class Twin:
             self.register_database(str(grid.path or "grid tracer"), grid.meta["scene_hash"])
         self._controllers: dict[str, object] = {}
         self._build_agents()
-        for d in self.config.devices:
+        for i, d in enumerate(self.config.devices):
             if d.kind == "robot" and d.path is not None:
-                self.set_path(d.name, d.path)
+                try:
+                    self.set_path(d.name, d.path)
+                except ValueError as exc:  # e.g. a path leaving the room: the file's fault
+                    raise ConfigError(f"{self.config.path}: devices[{i}] ({d.name}).path: "
+                                      f"{exc}") from None
 
     @classmethod
     def from_scene(cls, path: str | Path, **kw) -> Twin:

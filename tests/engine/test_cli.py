@@ -127,6 +127,10 @@ _BAD_INPUTS = {
         r"floor\.ply: header line 'element vertex abc': expected 'element NAME COUNT'"),
     "PLY trailing bytes": ("meshes/floor.ply", lambda b: b + b"junk",
                            r"floor\.ply: 4 bytes after the last element"),
+    "robot path leaving the room": ("twin.toml", _sub(
+        b"antenna_offset = [0.0, 0.0, 0.25]\n", b"antenna_offset = [0.0, 0.0, 0.25]\n"
+        b'path = { kind = "circle", centre = [3.0, 2.0], radius = 5.0 }\n'),
+        r"twin\.toml: devices\[1\] \(robot1\)\.path: circle .* leaves the room"),
     "PLY 1e12 vertices": ("meshes/floor.ply", lambda b: re.sub(
         rb"element vertex \d+", b"element vertex 1000000000000", b), r"floor\.ply: "),
 }
