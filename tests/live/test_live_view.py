@@ -288,3 +288,35 @@ def test_no_remote_connection_while_online_access_is_off(scene):
     assert live.network_refusal("localhost") is None
     assert live.network_refusal("192.0.2.7", online_access=True) is None
     assert live.session() is None  # nothing was opened
+
+
+def test_edit_tracker_resends_every_edit_since_the_baseline(scene):
+    """After an engine restart (issue 22): moved, re-materialed, removed and added objects
+    are all sent again by the next poll, and only once."""
+    from addon import live_view, materials, modelling
+
+    a = modelling.add_furniture("table", (2.0, 1.0, 0.0), 0.0, scene=scene)
+    b = modelling.add_furniture("chair", (1.0, 2.0, 0.0), 0.0, scene=scene)
+    c = modelling.add_furniture("chair", (3.0, 2.0, 0.0), 0.0, scene=scene)
+    materials.tag_objects([a, b, c], "wood", 0.05)
+    bpy.context.view_layer.update()
+    from addon.exporter import safe_name
+
+    tr = live_view.EditTracker()
+    tr.baseline(scene, {safe_name(o.name) for o in (a, b, c)}, set())
+    a.location.x += 1.0
+    materials.tag_objects([b], "metal", 0.01)
+    c_name = safe_name(c.name)  # the wire name
+    bpy.data.objects.remove(c)
+    rack = modelling.add_furniture("rack", (1.0, 1.0, 0.0), 0.0, scene=scene)  # tagged metal
+    bpy.context.view_layer.update()
+    first = {(e["op"], e["target"]) for e in tr.poll(scene)}
+    assert first == {("move", a.name), ("material", b.name), ("remove", c_name),
+                     ("add", rack.name)}
+    assert tr.poll(scene) == []
+    names = tr.resend()
+    assert set(names) == {a.name, b.name, c_name, rack.name}
+    again = tr.poll(scene)
+    assert {(e["op"], e["target"]) for e in again} == first
+    assert next(e for e in again if e["op"] == "add")["mesh_ply"]
+    assert tr.poll(scene) == []
