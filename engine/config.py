@@ -616,6 +616,7 @@ def load_config(path: str | Path) -> TwinConfig:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
     except UnicodeDecodeError as exc:
-        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}: "
-                          f"{exc.object[exc.start:exc.start + 1]!r}); TOML files are UTF-8") from None
+        bad = exc.object[exc.start:exc.start + 1]
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}: {bad!r}); TOML files "
+                          "are UTF-8") from None
     return parse_config(data, path)

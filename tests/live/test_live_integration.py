@@ -90,7 +90,7 @@ def test_poses_rays_and_metrics_arrive_and_match_the_engine(lab):
     p = scene.isac_live
     tick_until(s, lambda: s.client.connected and s.applied["scene"], what="the scene")
     assert p.scene_name == "aces_lab" and "Lab_Wall_2" in s.tracker.tracked
-    # drive the lab's free circle (engine.twin.Twin; the LineTwin stand-in drives anyway)
+    # drive the lab's free circle
     s.send_command("set_path", robot="robot1",
                    path={"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5})
     s.send_command("run")
