@@ -336,6 +336,10 @@ class LiveSession:
         self.applied: collections.Counter = collections.Counter()
         self.last_tick_s = 0.0
         self._scene_hash = ""
+        #: the engine's scene content hash as it last reported it (``scene``/``state``)
+        self.engine_scene_hash = ""
+        #: a warning for the panel (e.g. edits re-sent after an engine restart)
+        self.notice = ""
         if engine is None:
             self.client.connect()
 
@@ -371,15 +375,34 @@ class LiveSession:
         for m in msgs:
             live_view.apply_message(scene, m, self.view)
             self.applied[m["type"]] += 1
-            if m["type"] == "scene" and (m["content_hash"] != self._scene_hash
-                                         or not self.tracker.tracked):
-                self._scene_hash = m["content_hash"]
-                self.tracker.baseline(scene, {o["name"] for o in m["objects"]},
-                                      {d["name"] for d in m["devices"]})
-        live_view.store_connection(scene, self.client.state, self.client.last_error,
+            if m["type"] == "state" and m.get("scene_hash"):
+                self.engine_scene_hash = m["scene_hash"]
+            elif m["type"] == "scene":
+                self._on_scene(scene, m)
+        live_view.store_connection(scene, self.client.state,
+                                   self.client.last_error or self.notice,
                                    dict(self.client.decoder.rejections))
         self.last_tick_s = time.perf_counter() - t0
         return msgs
+
+    def _on_scene(self, scene, m: dict) -> None:
+        """A ``scene`` (on every (re)connect and after a reset): keep Blender and the
+        engine one truth. The engine announcing the scene this session baselined while
+        it had reported another (edited) one since means it restarted and lost the
+        edits: they are sent again and the panel says so. Any other new scene becomes
+        the new baseline."""
+        h = m["content_hash"]
+        if (self.tracker.tracked and h == self._scene_hash
+                and self.engine_scene_hash not in ("", h)):
+            names = self.tracker.resend()
+            self.notice = (f"the engine came back without {len(names)} edit(s) made here "
+                           f"({', '.join(sorted(names)[:5])}): sent again")
+            log.warning("live: %s", self.notice)
+        elif h != self._scene_hash or not self.tracker.tracked:
+            self._scene_hash = h
+            self.tracker.baseline(scene, {o["name"] for o in m["objects"]},
+                                  {d["name"] for d in m["devices"]})
+        self.engine_scene_hash = h
 
     def close(self) -> None:
         self.client.disconnect()
@@ -409,10 +432,49 @@ def timer_tick() -> float | None:
     return TICK_INTERVAL_S
 
 
+def network_refusal(host: str, online_access: bool | None = None) -> str | None:
+    """Why connecting to ``host`` is not allowed now (None: it is).
+
+    An engine on this machine (a loopback address) is always reachable; any other
+    host needs Blender's *Allow Online Access* (``bpy.app.online_access``).
+
+    Args:
+        online_access: the setting (None: read ``bpy.app.online_access``; True without bpy).
+    """
+    import ipaddress
+
+    try:
+        if host == "localhost" or ipaddress.ip_address(host).is_loopback:
+            return None
+    except ValueError:
+        pass
+    if online_access is None:
+        try:
+            import bpy
+
+            online_access = bool(getattr(bpy.app, "online_access", True))
+        except ImportError:
+            online_access = True
+    if online_access:
+        return None
+    return (f"not connecting to {host}: Blender's online access is off (Preferences > "
+            "System > Network); only an engine on this machine (127.0.0.1) can be reached")
+
+
 def open_session(scene, host: str, port: int, token: str | None = None,
                  engine: EngineProcess | None = None) -> LiveSession:
-    """Replace the GUI's session with a new one and register its timer."""
+    """Replace the GUI's session with a new one and register its timer.
+
+    Raises:
+        ValueError: :func:`network_refusal` (the reason is also shown in the panel).
+    """
     global _SESSION
+    why = network_refusal(host)
+    if why is not None:
+        from . import live_view
+
+        live_view.store_connection(scene, "refused", why, {})
+        raise ValueError(why)
     close_session()
     _SESSION = LiveSession(scene, host, port, token, engine)
     try:

@@ -23,7 +23,6 @@ from __future__ import annotations
 import collections
 import math
 import time
-from pathlib import Path
 
 import bpy
 from mathutils import Matrix, Vector
@@ -501,14 +500,23 @@ class EditTracker:
     ``[roll, pitch, yaw]`` of ``R_now R_base^T`` (rotation relative to the
     loaded geometry); for devices the object's location and XYZ Euler
     angles; ``material`` when the ITU material or thickness changed;
-    ``remove`` when the object was deleted; ``add`` (mesh written to a PLY in
-    ``mesh_dir``, world coordinates) for a new mesh once it has a radio material.
+    ``remove`` when the object was deleted; ``add`` (the world-coordinate mesh
+    as PLY bytes in the message: the engine reads no file a viewer names outside
+    its scene folder) for a new mesh once it has a radio material.
+
+    :meth:`resend` is for an engine that restarted with the scene as baselined
+    and so lost the edits: the next :meth:`poll` sends again every difference
+    from the baseline (moves, materials, removals, additions).
     """
 
-    def __init__(self, mesh_dir: str | None = None):
+    def __init__(self):
         self._base: dict[str, tuple] = {}    # object name -> (kind, wire name, M_base, c_base)
         self._sent: dict[str, tuple] = {}    # object name -> (matrix key, material key)
-        self._mesh_dir = mesh_dir
+        self._base_keys: dict[str, tuple] = {}  # object name -> keys as the engine loaded it
+        self._removed: list[str] = []        # wire names removed by edits since the baseline
+        self._new: set[str] = set()          # object names added by edits since the baseline
+        self._pending: list[dict] = []       # edits poll() sends first (resend)
+        self._known: set[str] = set()
         self.active = False
 
     @property
@@ -521,11 +529,16 @@ class EditTracker:
         lo = Vector([min(c[i] for c in corners) for i in range(3)])
         hi = Vector([max(c[i] for c in corners) for i in range(3)])
         self._base[obj.name] = ("object", wname, m, (lo + hi) / 2)
-        self._sent[obj.name] = (_m_key(obj.matrix_world), _mat_key(obj))
+        self._sent[obj.name] = self._base_keys[obj.name] = (_m_key(obj.matrix_world),
+                                                            _mat_key(obj))
 
     def baseline(self, scene, object_names, device_names) -> None:
         self._base.clear()
         self._sent.clear()
+        self._base_keys.clear()
+        self._removed.clear()
+        self._new.clear()
+        self._pending.clear()
         self.active = True
         for obj in scene.objects:
             if obj.name.startswith(PREFIX):
@@ -536,13 +549,33 @@ class EditTracker:
                 self._track_object(obj, wname)
             elif kind != "NONE" and obj.name in device_names:
                 self._base[obj.name] = ("device", obj.name, obj.matrix_world.copy(), None)
-                self._sent[obj.name] = (_m_key(obj.matrix_world), _mat_key(obj))
+                self._sent[obj.name] = self._base_keys[obj.name] = (
+                    _m_key(obj.matrix_world), _mat_key(obj))
         self._known = set(scene.objects.keys())
 
+    def resend(self) -> list[str]:
+        """Make the next :meth:`poll` send again every edit made since the baseline
+        (the engine restarted with the baselined scene). Returns the names concerned."""
+        names = []
+        for name in list(self._base):
+            if name in self._new:  # added by an edit: poll() adds it again
+                del self._base[name], self._sent[name], self._base_keys[name]
+                self._known.discard(name)
+                names.append(name)
+            elif self._sent[name] != self._base_keys[name]:
+                self._sent[name] = self._base_keys[name]
+                names.append(name)
+        self._new.clear()
+        from . import wire
+
+        self._pending = [wire.edit("remove", w) for w in self._removed]
+        names += self._removed
+        return names
+
     def _added(self, scene) -> list[dict]:
-        """New radio-tagged meshes: world mesh written to a PLY, ``add`` edits."""
+        """New radio-tagged meshes: ``add`` edits carrying the world mesh as PLY bytes."""
         from . import materials, wire
-        from .exporter.geometry import world_mesh, write_ply
+        from .exporter.geometry import ply_bytes, world_mesh
 
         out = []
         names = scene.objects.keys()
@@ -554,17 +587,13 @@ class EditTracker:
                     or obj.isac.itu_material == materials.NO_MATERIAL
                     or not obj.isac.export_geometry):
                 continue  # not (yet) radio geometry: looked at again when tagged
-            if self._mesh_dir is None:
-                import tempfile
-
-                self._mesh_dir = tempfile.mkdtemp(prefix="isac-live-meshes-")
             wname = safe_name(name)
-            path = Path(self._mesh_dir) / f"{wname}.ply"
-            write_ply(path, world_mesh(obj, bpy.context.evaluated_depsgraph_get(), wname))
+            data = ply_bytes(world_mesh(obj, bpy.context.evaluated_depsgraph_get(), wname))
             out.append(wire.edit("add", wname, material=obj.isac.itu_material,
-                                 thickness=obj.isac.thickness, mesh_file=str(path)))
+                                 thickness=obj.isac.thickness, mesh_ply=data))
             self._track_object(obj, wname)
             self._known.add(name)
+            self._new.add(name)
         self._known &= set(names) | set(self._base)
         return out
 
@@ -573,14 +602,18 @@ class EditTracker:
 
         if not self.active:
             return []
-        out = self._added(scene)
+        out, self._pending = self._pending, []
+        out += self._added(scene)
         objs = scene.objects
         for name, (kind, wname, m0, c0) in list(self._base.items()):
             obj = objs.get(name)
             if obj is None:
                 out.append(wire.edit("remove", wname))
-                del self._base[name]
-                del self._sent[name]
+                del self._base[name], self._sent[name], self._base_keys[name]
+                if name in self._new:
+                    self._new.discard(name)
+                else:
+                    self._removed.append(wname)
                 continue
             mk, matk = _m_key(obj.matrix_world), _mat_key(obj)
             last_m, last_mat = self._sent[name]

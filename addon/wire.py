@@ -11,6 +11,12 @@ Framing:
     by the sender and skipped by the receiver (the announced bytes are
     discarded, the connection survives).
 
+Parsing is total and bounded: a payload nested deeper than :data:`MAX_DEPTH`,
+holding ``NaN``/``Infinity``, a float that overflows (``1e400``) or an integer
+of more than :data:`MAX_INT_DIGITS` digits is rejected like any malformed
+frame; no payload makes :meth:`Decoder.feed` raise or keep bytes it consumed.
+Every number a valid message holds is finite.
+
 Versioning:
     Both peers open with ``hello`` carrying ``protocol: [major, minor]``. A
     peer with another *major* version is refused with an ``error`` message
@@ -24,6 +30,7 @@ Z up. Poses are ``[x, y, z, roll, pitch, yaw]``.
 
 from __future__ import annotations
 
+import base64
 import json
 import logging
 import math
@@ -36,6 +43,11 @@ log = logging.getLogger(__name__)
 PROTOCOL_VERSION = (1, 0)
 #: Largest frame payload a peer sends or accepts, bytes.
 MAX_FRAME_BYTES = 8 * 1024 * 1024
+#: Deepest nesting of arrays/objects a payload may have (the deepest message, ``paths``,
+#: needs 7).
+MAX_DEPTH = 16
+#: Longest integer literal accepted, digits (larger values are no coordinate or count).
+MAX_INT_DIGITS = 18
 #: Default cap on ray polylines per link in a ``paths`` message (strongest first).
 DEFAULT_MAX_PATHS_PER_LINK = 250
 
@@ -63,14 +75,15 @@ _NUMS = (int, float)  # exact types: bool is not a number here
 
 
 def _is_num(v) -> bool:
-    return type(v) in _NUMS
+    """A finite number (``inf - inf`` is NaN, ``NaN != NaN``)."""
+    return type(v) is int or (type(v) is float and v - v == 0.0)
 
 
 def _vec(n: int):
     def check(v):
-        if type(v) is list and len(v) == n and all(type(x) in _NUMS for x in v):
+        if type(v) is list and len(v) == n and all(_is_num(x) for x in v):
             return None
-        return f"a list of {n} numbers"
+        return f"a list of {n} finite numbers"
     return check
 
 
@@ -81,6 +94,14 @@ def _points(v):
                                and type(q[1]) in nums and type(q[2]) in nums for q in v):
         return None
     return "a list of [x, y, z] points"
+
+
+def _intvec(n: int):
+    def check(v):
+        if type(v) is list and len(v) == n and all(type(x) is int for x in v):
+            return None
+        return f"a list of {n} integers"
+    return check
 
 
 def _ints(v):
@@ -104,7 +125,7 @@ def _int(v):
 
 
 def _num(v):
-    return None if _is_num(v) else "a number"
+    return None if _is_num(v) else "a finite number"
 
 
 def _bool(v):
@@ -155,7 +176,10 @@ def _check_fields(msg: dict, spec: dict) -> str | None:
 
 
 def _short(v) -> str:
-    s = json.dumps(v) if not isinstance(v, bytes) else repr(v)
+    try:
+        s = json.dumps(v) if not isinstance(v, bytes) else repr(v)
+    except (TypeError, ValueError, RecursionError):
+        s = f"a {type(v).__name__}"
     return s if len(s) <= 60 else s[:57] + "..."
 
 
@@ -195,7 +219,7 @@ _DEVICE = {
 #: ``type -> (directions, field spec)``; directions: "e2v" engine -> viewer, "v2e" back.
 MESSAGES: dict[str, tuple[frozenset, dict]] = {
     "hello": (frozenset({"e2v", "v2e"}), {
-        "protocol": (_vec(2), _R), "role": (_one_of("engine", "viewer"), _R),
+        "protocol": (_intvec(2), _R), "role": (_one_of("engine", "viewer"), _R),
         "name": (_str, _O), "capabilities": (_list_of(_str), _O), "token": (_str, _O),
     }),
     "error": (frozenset({"e2v", "v2e"}), {
@@ -227,7 +251,7 @@ MESSAGES: dict[str, tuple[frozenset, dict]] = {
         "op": (_one_of(*EDIT_OPS), _R), "target": (_str, _R),
         "position": (_opt(_vec(3)), _O), "orientation": (_opt(_vec(3)), _O),
         "material": (_opt(_str), _O), "thickness": (_opt(_num), _O),
-        "mesh_file": (_opt(_str), _O),
+        "mesh_file": (_opt(_str), _O), "mesh_ply": (_opt(_str), _O),
     }),
     "command": (frozenset({"v2e"}), {
         "op": (_one_of(*COMMAND_OPS), _R), "args": (_dict, _O),
@@ -291,6 +315,63 @@ def encode(msg: dict, *, check: bool = True, max_frame: int = MAX_FRAME_BYTES) -
     return _HEADER.pack(len(payload)) + payload
 
 
+class _Refused(ValueError):
+    """A JSON literal the wire does not carry (non-finite or absurdly long number)."""
+
+
+def _parse_constant(name: str):
+    raise _Refused(f"{name} is not a finite number")
+
+
+def _parse_float(text: str) -> float:
+    x = float(text)
+    if not math.isfinite(x):
+        raise _Refused(f"number {text[:20]}{'...' if len(text) > 20 else ''} overflows a float")
+    return x
+
+
+def _parse_int(text: str) -> int:
+    if len(text.lstrip("-")) > MAX_INT_DIGITS:
+        raise _Refused(f"integer of {len(text.lstrip('-'))} digits (at most {MAX_INT_DIGITS})")
+    return int(text)
+
+
+_STRICT = json.JSONDecoder(parse_constant=_parse_constant, parse_float=_parse_float,
+                           parse_int=_parse_int)
+_LENIENT = json.JSONDecoder(parse_constant=_parse_constant)
+
+
+def loads(text: str, max_depth: int | None = MAX_DEPTH):
+    """``json.loads`` that refuses ``NaN``/``Infinity`` and cannot raise anything but
+    ``ValueError``; unless ``max_depth`` is None it also refuses overflowing floats
+    (``1e400``), integers longer than :data:`MAX_INT_DIGITS` digits and nesting deeper
+    than ``max_depth``.
+
+    With ``max_depth=None`` (the add-on reading the engine's large ``paths`` messages)
+    numbers are converted by the C parser alone: strict parsing doubles the decode time
+    of a 500-ray message; the schema then checks the finiteness of every scalar field.
+
+    Raises:
+        ValueError: what was refused (never ``RecursionError`` or ``OverflowError``).
+    """
+    try:
+        value = (_LENIENT if max_depth is None else _STRICT).decode(text)
+    except RecursionError:
+        raise ValueError("nested too deeply") from None
+    if max_depth is None:
+        return value
+    stack = [(value, 1)]
+    while stack:  # iterative: the depth check itself cannot recurse
+        v, d = stack.pop()
+        items = v.values() if type(v) is dict else v if type(v) is list else None
+        if items is None:
+            continue
+        if d > max_depth:
+            raise ValueError(f"nested deeper than {max_depth} levels")
+        stack.extend((x, d + 1) for x in items if type(x) in (dict, list))
+    return value
+
+
 def frame_raw(payload: bytes) -> bytes:
     """Frame arbitrary bytes (tests use it to send malformed payloads)."""
     return _HEADER.pack(len(payload)) + payload
@@ -308,14 +389,22 @@ class Decoder:
         direction: ``"e2v"`` (decode what an engine sends) or ``"v2e"``; None = any.
         max_frame: largest payload accepted, bytes.
         peer: name used in log messages.
+        max_depth: deepest nesting accepted (None = only Python's own recursion limit).
+            Default :data:`MAX_DEPTH`, except for ``"e2v"``: the engine's stream holds the
+            large ``paths`` messages, whose field-by-field validation never descends into
+            unexpected values, so the add-on skips the walk (it would double the decode
+            time of a 500-ray message).
     """
 
     def __init__(self, direction: str | None = None, *, max_frame: int = MAX_FRAME_BYTES,
-                 peer: str = "peer"):
+                 peer: str = "peer", max_depth: int | None | str = "auto"):
         self.direction = direction
+        self.max_depth = ((None if direction == "e2v" else MAX_DEPTH) if max_depth == "auto"
+                          else max_depth)
         self.max_frame = int(max_frame)
         self.peer = peer
         self._buf = bytearray()
+        self._pos = 0  # bytes of the buffer consumed by the current feed()
         self._skip = 0
         #: Rejections by kind: ``oversized``, ``malformed``, ``unknown_type``, ``invalid``.
         self.rejections: Counter = Counter()
@@ -336,14 +425,22 @@ class Decoder:
     def feed(self, data: bytes) -> list[dict]:
         """Consume ``data``; return the complete, valid messages it finished."""
         out: list[dict] = []
+        self._buf += data
+        self._pos = 0
+        try:
+            return self._frames(out)
+        finally:  # consumed frames leave the buffer whatever happened while parsing them
+            del self._buf[:self._pos]
+
+    def _frames(self, out: list[dict]) -> list[dict]:
         buf = self._buf
-        buf += data
         pos = 0
         n_buf = len(buf)
         while True:
             if self._skip:
                 k = min(self._skip, n_buf - pos)
                 pos += k
+                self._pos = pos
                 self._skip -= k
                 if self._skip:
                     break
@@ -356,26 +453,30 @@ class Decoder:
                 self._reject("oversized", f"frame of {n} bytes exceeds the maximum of "
                                           f"{self.max_frame}; skipping it")
                 pos += HEADER_BYTES
+                self._pos = pos
                 self._skip = n
                 continue
             if n_buf - pos - HEADER_BYTES < n:
                 break
             payload = bytes(buf[pos + HEADER_BYTES:pos + HEADER_BYTES + n])
             pos += HEADER_BYTES + n
+            self._pos = pos
             self.frames += 1
             msg = self._parse(payload)
             if msg is not None:
                 out.append(msg)
-        del buf[:pos]
         return out
 
     def _parse(self, payload: bytes) -> dict | None:
         try:
-            msg = json.loads(payload.decode("utf-8"))
+            msg = loads(payload.decode("utf-8"), self.max_depth)
         except (UnicodeDecodeError, ValueError) as exc:
             self._reject("malformed", f"not UTF-8 JSON: {exc}")
             return None
-        r = validate(msg, self.direction)
+        try:
+            r = validate(msg, self.direction)
+        except Exception as exc:  # noqa: BLE001 - a frame must never break the reader
+            r = f"could not be checked ({type(exc).__name__})"
         if r is None:
             return msg
         kind = "unknown_type" if r.startswith("unknown message type") else "invalid"
@@ -405,7 +506,7 @@ def hello(role: str, name: str = "", *, capabilities=(), token: str | None = Non
 
 def check_version(msg: dict) -> str | None:
     """Why a peer's ``hello`` is incompatible with this side (None when it is compatible)."""
-    major, minor = (int(x) for x in msg["protocol"])
+    major, minor = msg["protocol"]  # integers (validated)
     if major != PROTOCOL_VERSION[0]:
         return (f"protocol version {major}.{minor} is incompatible with "
                 f"{PROTOCOL_VERSION[0]}.{PROTOCOL_VERSION[1]} (major versions differ)")
@@ -421,8 +522,12 @@ def error(code: str, message: str, *, fatal: bool = False, ref: str | None = Non
 
 
 def edit(op: str, target: str, *, position=None, orientation=None, material=None,
-         thickness=None, mesh_file=None) -> dict:
-    """A scene edit (mirrors ``engine.state.Edit``); see docs/wire.md for ``move`` semantics."""
+         thickness=None, mesh_file=None, mesh_ply: bytes | None = None) -> dict:
+    """A scene edit (mirrors ``engine.state.Edit``); see docs/wire.md for ``move`` semantics.
+
+    An ``add`` names its mesh by ``mesh_file`` (a path relative to the engine's scene
+    folder) or carries it: ``mesh_ply``, the PLY file's bytes (sent base64-encoded).
+    """
     msg = {"type": "edit", "op": op, "target": target}
     for k, v in (("position", position), ("orientation", orientation)):
         if v is not None:
@@ -433,7 +538,25 @@ def edit(op: str, target: str, *, position=None, orientation=None, material=None
         msg["thickness"] = float(thickness)
     if mesh_file is not None:
         msg["mesh_file"] = str(mesh_file)
+    if mesh_ply is not None:
+        msg["mesh_ply"] = base64.b64encode(bytes(mesh_ply)).decode("ascii")
     return msg
+
+
+def edit_mesh(msg: dict) -> bytes | None:
+    """The PLY bytes an ``edit`` message carries (None without ``mesh_ply``).
+
+    Raises:
+        ValueError: ``mesh_ply`` is not base64.
+    """
+    text = msg.get("mesh_ply")
+    if text is None:
+        return None
+    try:
+        return base64.b64decode(text, validate=True)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"edit {msg.get('op')} {msg.get('target')!r}: mesh_ply: expected "
+                         f"base64 ({exc})") from None
 
 
 def command(op: str, **args) -> dict:

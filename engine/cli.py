@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -39,10 +40,18 @@ def scene_path(args) -> Path:
 
 @command("info", "load a scene folder, validate it and print a summary", _scene_arg)
 def cmd_info(args) -> int:
+    from engine.robots.control import controller_from_spec
     from engine.scene import load_scene
 
     scene = load_scene(scene_path(args))
     cfg = scene.config
+    bounds = (scene.bounds_min[:2], scene.bounds_max[:2])
+    for i, d in enumerate(cfg.devices):  # the check Twin makes when it builds the robots
+        if d.kind == "robot" and d.path is not None:
+            try:
+                controller_from_spec(d.path, d.model or "burger", bounds=bounds)
+            except ValueError as exc:
+                raise ConfigError(f"{cfg.path}: devices[{i}] ({d.name}).path: {exc}") from None
     print(f"scene {cfg.scene.name}: {cfg.scene.file}")
     print(f"  frequency {cfg.scene.frequency_hz / 1e9:g} GHz, OFDM N={cfg.ofdm.num_subcarriers} "
           f"x {cfg.ofdm.subcarrier_spacing_hz / 1e3:g} kHz, K={cfg.ofdm.num_symbols}")
@@ -314,7 +323,14 @@ def _serve_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; others need --token)")
     p.add_argument("--port", type=int, default=8765, help="TCP port (0 = any free port)")
-    p.add_argument("--token", default=None, help="shared secret viewers must send")
+    p.add_argument("--token", default=None,
+                   help="shared secret viewers must send (visible in `ps`: prefer "
+                        "--token-file or the ISAC_TWIN_TOKEN environment variable)")
+    p.add_argument("--token-file", type=Path, default=None,
+                   help="read the shared secret from this file (first line)")
+    p.add_argument("--asset-dir", type=Path, action="append", default=[],
+                   help="a folder `add` edits may name meshes in by absolute path "
+                        "(repeatable; relative paths are always inside the scene folder)")
     p.add_argument("--rate", type=float, default=10.0,
                    help="at most this many steps per second (0 = as fast as possible)")
     p.add_argument("--steps", type=int, default=None, help="pause after this many steps")
@@ -326,7 +342,7 @@ def _serve_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the twin's noise")
     p.add_argument("--twin", default=None,
                    help="twin factory MODULE:ATTR with .from_scene(path, seed=) "
-                        "(default engine.twin:Twin, else engine.live.line_twin:LineTwin)")
+                        "(default engine.twin:Twin)")
     p.add_argument("--port-file", type=Path, default=None,
                    help="write the port listened on to this file once listening")
     p.add_argument("--step-log", type=Path, default=None,
@@ -339,16 +355,30 @@ def _twin_factory(spec: str | None):
     if spec:
         mod, _, attr = spec.partition(":")
         return getattr(importlib.import_module(mod), attr or "Twin")
-    try:
-        from engine.twin import Twin
+    from engine.twin import Twin
 
-        return Twin
-    except ImportError as exc:
-        logging.getLogger("engine.cli").warning(
-            "engine.twin is not available (%s): serving the LineTwin stand-in", exc)
-        from engine.live.line_twin import LineTwin
+    return Twin
 
-        return LineTwin
+
+def serve_token(args) -> str | None:
+    """The live link's token: ``--token``, else ``--token-file`` (its first line), else
+    the ``ISAC_TWIN_TOKEN`` environment variable; None when none is given.
+
+    Raises:
+        ValueError: the token file cannot be read or is empty (naming it).
+    """
+    if args.token:
+        return args.token
+    if args.token_file is not None:
+        try:
+            lines = args.token_file.read_text(encoding="utf-8").splitlines()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{args.token_file}: cannot read the token file ({exc})") from None
+        token = lines[0].strip() if lines else ""
+        if not token:
+            raise ValueError(f"{args.token_file}: the token file is empty")
+        return token
+    return os.environ.get("ISAC_TWIN_TOKEN") or None
 
 
 @command("serve", "run the twin and stream it to Blender viewers over TCP", _serve_args)
@@ -359,14 +389,25 @@ def cmd_serve(args) -> int:
     from engine.live.protocol import wire
     from engine.live.server import LiveServer, is_loopback
 
-    if not is_loopback(args.host) and not args.token:  # before the slow twin load
-        print(f"isac-twin: error: refusing to listen on non-loopback address {args.host!r} "
-              "without an auth token (pass --token)", file=sys.stderr)
-        return 2
-    factory = _twin_factory(args.twin)
-    twin = factory.from_scene(scene_path(args), seed=args.seed)
     try:
-        server = LiveServer(twin, args.host, args.port, token=args.token, rate_hz=args.rate,
+        token = serve_token(args)
+    except ValueError as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
+    if not is_loopback(args.host) and not token:  # before the slow twin load
+        print(f"isac-twin: error: refusing to listen on non-loopback address {args.host!r} "
+              "without an auth token (pass --token-file, set ISAC_TWIN_TOKEN or --token)",
+              file=sys.stderr)
+        return 2
+    for d in args.asset_dir:
+        if not d.is_dir():
+            print(f"isac-twin: error: --asset-dir {d}: not a folder", file=sys.stderr)
+            return 2
+    factory = _twin_factory(args.twin)
+    kw = {"asset_dirs": args.asset_dir} if args.asset_dir else {}
+    twin = factory.from_scene(scene_path(args), seed=args.seed, **kw)
+    try:
+        server = LiveServer(twin, args.host, args.port, token=token, rate_hz=args.rate,
                             max_steps=args.steps, running=not args.paused,
                             max_paths=args.max_paths or wire.DEFAULT_MAX_PATHS_PER_LINK,
                             step_log=args.step_log)

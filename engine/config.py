@@ -248,7 +248,8 @@ class _Reader:
         return default
 
     def number(self, data, key, prefix, default=_MISSING, *, positive=False,
-               nonneg=False) -> float:
+               nonneg=False, minimum: float | None = None,
+               maximum: float | None = None) -> float:
         v = self.get(data, key, prefix, default)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             raise self.fail(f"{prefix}{key}", f"expected a finite number, got {v!r}")
@@ -256,14 +257,23 @@ class _Reader:
             raise self.fail(f"{prefix}{key}", f"expected a positive number, got {v!r}")
         if nonneg and v < 0:
             raise self.fail(f"{prefix}{key}", f"expected a number >= 0, got {v!r}")
+        if minimum is not None and v < minimum:
+            raise self.fail(f"{prefix}{key}", f"expected a number >= {minimum:g}, got {v!r}")
+        if maximum is not None and v > maximum:
+            raise self.fail(f"{prefix}{key}", f"expected a number <= {maximum:g} (the limit), "
+                            f"got {v!r}")
         return float(v)
 
-    def integer(self, data, key, prefix, default=_MISSING, *, minimum: int | None = None) -> int:
+    def integer(self, data, key, prefix, default=_MISSING, *, minimum: int | None = None,
+                maximum: int | None = None) -> int:
         v = self.get(data, key, prefix, default)
         if isinstance(v, bool) or not isinstance(v, int):
             raise self.fail(f"{prefix}{key}", f"expected an integer, got {v!r}")
         if minimum is not None and v < minimum:
             raise self.fail(f"{prefix}{key}", f"expected an integer >= {minimum}, got {v!r}")
+        if maximum is not None and v > maximum:
+            raise self.fail(f"{prefix}{key}", f"expected an integer <= {maximum} (the limit), "
+                            f"got {v!r}")
         return v
 
     def boolean(self, data, key, prefix, default=_MISSING) -> bool:
@@ -302,6 +312,18 @@ class _Reader:
         return (start, stop)
 
 
+#: Limits checked at load (a value beyond them is a typo or would exhaust memory):
+#: OFDM grid (5G NR has at most 3,300 subcarriers per carrier, 802.11be 4,096 tones),
+#: spacing (5G NR at most 960 kHz), array size, tracer effort, powers.
+MAX_SUBCARRIERS = 65_536
+MAX_SYMBOLS = 4_096
+MAX_SUBCARRIER_SPACING_HZ = 10e6
+MAX_FREQUENCY_HZ = 1e12
+MAX_ARRAY_SIDE = 256
+MAX_TRACER_DEPTH = 32
+MAX_SAMPLES_PER_SRC = 100_000_000
+POWER_DBM_RANGE = (-150.0, 100.0)
+
 _TOP_KEYS = ("schema", "scene", "ofdm", "noise", "tracer", "devices", "links", "sensing",
              "link_adaptation")
 SENSING_KEYS = ("tx", "rx", "rho", "subcarriers", "symbols", "power_dbm", "noise_figure_db",
@@ -332,8 +354,8 @@ def _parse_array(r: _Reader, data: dict, prefix: str) -> ArrayConfig:
         raise r.fail(f"{prefix}polarization", f"{pol!r} is not modelled (the tracer carries "
                      "no polarimetric transfer matrix; patterns are exact on V): use \"V\"")
     return ArrayConfig(
-        rows=r.integer(data, "rows", prefix, minimum=1),
-        cols=r.integer(data, "cols", prefix, minimum=1),
+        rows=r.integer(data, "rows", prefix, minimum=1, maximum=MAX_ARRAY_SIDE),
+        cols=r.integer(data, "cols", prefix, minimum=1, maximum=MAX_ARRAY_SIDE),
         vertical_spacing=r.number(data, "vertical_spacing", prefix,
                                   shared.DEFAULT_ELEMENT_SPACING, positive=True),
         horizontal_spacing=r.number(data, "horizontal_spacing", prefix,
@@ -397,7 +419,8 @@ def _parse_device(r: _Reader, data: Any, i: int, ofdm: OFDMConfig) -> DeviceConf
         role=r.string(data, "role", prefix, choices=ROLES),
         position=r.vector(data, "position", prefix, 3),
         orientation=r.vector(data, "orientation", prefix, 3, [0.0, 0.0, 0.0]),
-        power_dbm=r.number(data, "power_dbm", prefix),
+        power_dbm=r.number(data, "power_dbm", prefix, minimum=POWER_DBM_RANGE[0],
+                           maximum=POWER_DBM_RANGE[1]),
         array=_parse_array(r, r.table(data, "array", prefix), f"{prefix}array."),
         subcarriers=r.range_(data, "subcarriers", prefix, [0, ofdm.num_subcarriers],
                              ofdm.num_subcarriers),
@@ -431,24 +454,29 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
     scene = SceneConfig(
         name=r.string(s, "name", "scene."),
         file=scene_file,
-        frequency_hz=r.number(s, "frequency_hz", "scene.", positive=True),
+        frequency_hz=r.number(s, "frequency_hz", "scene.", positive=True,
+                              maximum=MAX_FREQUENCY_HZ),
     )
 
     o = r.table(data, "ofdm", "")
     r.check_keys(o, ("num_subcarriers", "subcarrier_spacing_hz", "num_symbols",
                      "cyclic_prefix_samples"), "ofdm.")
     ofdm = OFDMConfig(
-        num_subcarriers=r.integer(o, "num_subcarriers", "ofdm.", minimum=1),
-        subcarrier_spacing_hz=r.number(o, "subcarrier_spacing_hz", "ofdm.", positive=True),
-        num_symbols=r.integer(o, "num_symbols", "ofdm.", minimum=1),
+        num_subcarriers=r.integer(o, "num_subcarriers", "ofdm.", minimum=1,
+                                  maximum=MAX_SUBCARRIERS),
+        subcarrier_spacing_hz=r.number(o, "subcarrier_spacing_hz", "ofdm.", positive=True,
+                                       maximum=MAX_SUBCARRIER_SPACING_HZ),
+        num_symbols=r.integer(o, "num_symbols", "ofdm.", minimum=1, maximum=MAX_SYMBOLS),
         cyclic_prefix_samples=r.integer(o, "cyclic_prefix_samples", "ofdm.", 72, minimum=0),
     )
 
     n = r.table(data, "noise", "", required=False)
     r.check_keys(n, ("temperature_k", "noise_figure_db"), "noise.")
     noise = NoiseConfig(
-        temperature_k=r.number(n, "temperature_k", "noise.", 290.0, positive=True),
-        noise_figure_db=r.number(n, "noise_figure_db", "noise.", 7.0, nonneg=True),
+        temperature_k=r.number(n, "temperature_k", "noise.", 290.0, positive=True,
+                               maximum=1e4),
+        noise_figure_db=r.number(n, "noise_figure_db", "noise.", 7.0, nonneg=True,
+                                 maximum=100.0),
     )
 
     t = r.table(data, "tracer", "", required=False)
@@ -456,10 +484,13 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
     r.check_keys(t, tuple(d.__dataclass_fields__), "tracer.")
     tracer = TracerConfig(
         backend=r.string(t, "backend", "tracer.", d.backend, choices=TRACER_BACKENDS),
-        max_depth=r.integer(t, "max_depth", "tracer.", d.max_depth, minimum=0),
-        samples_per_src=r.integer(t, "samples_per_src", "tracer.", d.samples_per_src, minimum=1),
+        max_depth=r.integer(t, "max_depth", "tracer.", d.max_depth, minimum=0,
+                            maximum=MAX_TRACER_DEPTH),
+        samples_per_src=r.integer(t, "samples_per_src", "tracer.", d.samples_per_src, minimum=1,
+                                  maximum=MAX_SAMPLES_PER_SRC),
         max_num_paths_per_src=r.integer(t, "max_num_paths_per_src", "tracer.",
-                                        d.max_num_paths_per_src, minimum=1),
+                                        d.max_num_paths_per_src, minimum=1,
+                                        maximum=MAX_SAMPLES_PER_SRC),
         los=r.boolean(t, "los", "tracer.", d.los),
         specular_reflection=r.boolean(t, "specular_reflection", "tracer.",
                                       d.specular_reflection),
@@ -562,7 +593,8 @@ def _parse_sensing(r: _Reader, data: dict, devices, noise: NoiseConfig,
                          if "subcarriers" in t else None),
             symbols=(r.range_(t, "symbols", prefix, None, ofdm.num_symbols)
                      if "symbols" in t else None),
-            power_dbm=r.number(t, "power_dbm", prefix, tx.power_dbm),
+            power_dbm=r.number(t, "power_dbm", prefix, tx.power_dbm,
+                               minimum=POWER_DBM_RANGE[0], maximum=POWER_DBM_RANGE[1]),
             noise_figure_db=r.number(t, "noise_figure_db", prefix, noise.noise_figure_db,
                                      nonneg=True),
             estimate_angles=r.boolean(t, "estimate_angles", prefix, True),
@@ -593,4 +625,8 @@ def load_config(path: str | Path) -> TwinConfig:
             data = tomllib.load(f)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
+    except UnicodeDecodeError as exc:
+        bad = exc.object[exc.start:exc.start + 1]
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}: {bad!r}); TOML files "
+                          "are UTF-8") from None
     return parse_config(data, path)

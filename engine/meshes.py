@@ -3,12 +3,20 @@
 Reads the binary little-endian and ASCII PLY files the add-on writes (and
 most others): vertex ``x y z`` plus any further scalar properties, and faces
 as a list property. Every error names the file and what was wrong.
+
+Mesh files are read only when they are regular files no larger than
+:data:`MAX_MESH_BYTES` (a FIFO, a device such as ``/dev/zero`` or a huge file
+is refused before a byte is read); :func:`confine` keeps a mesh path named by
+a scene or a viewer inside its folder.
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import stat
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
@@ -20,8 +28,85 @@ _PLY_TYPES = {
 }
 
 
+#: Largest mesh file read, bytes.
+MAX_MESH_BYTES = 256 * 1024 * 1024
+
+
 class MeshError(ValueError):
     """A mesh file is missing, truncated or not a PLY the engine can read."""
+
+
+def confine(name: str | Path, folder: str | Path, *, roots=()) -> Path:
+    """The file a mesh path names, kept inside ``folder``.
+
+    Args:
+        name: the path as written (scene.xml, an ``add`` edit): relative to
+            ``folder``; absolute only when it lies inside one of ``roots``.
+        folder: the folder relative paths start from (the scene folder).
+        roots: further folders absolute paths may point into (asset folders).
+
+    Returns:
+        the resolved path (symbolic links followed), inside ``folder`` or a root.
+
+    Raises:
+        MeshError: naming ``name`` and why: empty, absolute outside ``roots``,
+            a ``..`` component, or leaving the folder through a symbolic link.
+    """
+    text = str(name)
+    if not text.strip() or "\0" in text:
+        raise MeshError(f"mesh path {text!r}: empty or holds a NUL byte")
+    posix, win = PurePosixPath(text), PureWindowsPath(text)
+    if ".." in posix.parts or ".." in win.parts:
+        raise MeshError(f"mesh path {text!r}: '..' is not allowed (meshes stay inside the "
+                        "scene folder)")
+    allowed = [Path(folder).resolve()] + [Path(r).resolve() for r in roots]
+    if posix.is_absolute() or win.drive or win.root:
+        if not roots:
+            raise MeshError(f"mesh path {text!r}: absolute paths are not allowed (give it "
+                            "relative to the scene folder)")
+        target = Path(text).resolve()
+        allowed = allowed[1:]
+    else:
+        target = (allowed[0] / posix).resolve()
+    if not any(target == r or target.is_relative_to(r) for r in allowed):
+        raise MeshError(f"mesh path {text!r}: leaves the scene folder (through a symbolic "
+                        "link)" if not (posix.is_absolute() or win.drive)
+                        else f"mesh path {text!r}: not inside an asset folder")
+    return target
+
+
+def read_file(path: str | Path, max_bytes: int = MAX_MESH_BYTES) -> bytes:
+    """The bytes of a regular file of at most ``max_bytes`` bytes.
+
+    Opened without blocking and without following a final symbolic link, then
+    checked on the open descriptor, so a FIFO, a device or a file swapped in
+    meanwhile is refused before anything is read.
+
+    Raises:
+        MeshError: naming the file: missing/unreadable, not a regular file, too large.
+    """
+    path = Path(path)
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise MeshError(f"{path}: cannot read mesh file ({exc.strerror})") from exc
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise MeshError(f"{path}: not a regular file (a mesh must be a PLY file)")
+        if st.st_size > max_bytes:
+            raise MeshError(f"{path}: {st.st_size} bytes exceeds the mesh size limit of "
+                            f"{max_bytes} bytes")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            blob = f.read(max_bytes + 1)
+    except OSError as exc:
+        raise MeshError(f"{path}: cannot read mesh file ({exc.strerror})") from exc
+    finally:
+        os.close(fd)
+    if len(blob) > max_bytes:
+        raise MeshError(f"{path}: grew past the mesh size limit of {max_bytes} bytes")
+    return blob
 
 
 @dataclass(frozen=True)
@@ -30,11 +115,14 @@ class Mesh:
 
     Attributes:
         vertices: ``[V, 3]`` float64, metres.
-        faces: ``[F, 3]`` int64 vertex indices (polygons are fan-triangulated).
+        faces: ``[F, 3]`` int64 vertex indices (triangles only: Mitsuba, which loads the
+            same files, refuses other polygons).
     """
 
     vertices: np.ndarray
     faces: np.ndarray
+    #: hex SHA-256 of the file's bytes ("" when not read from a file)
+    sha256: str = ""
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -42,18 +130,23 @@ class Mesh:
         return self.vertices.min(axis=0), self.vertices.max(axis=0)
 
 
-def read_ply(path: str | Path) -> Mesh:
-    """Read a PLY file.
+def read_ply(path: str | Path, max_bytes: int = MAX_MESH_BYTES) -> Mesh:
+    """Read a PLY file (a regular file of at most ``max_bytes`` bytes, :func:`read_file`).
 
     Raises:
-        MeshError: naming the file and the problem (missing, bad header,
-            truncated data, indices out of range, no triangles).
+        MeshError: naming the file and the problem (missing, not a regular file,
+            too large, bad header, truncated data, indices out of range, no triangles).
     """
     path = Path(path)
-    try:
-        blob = path.read_bytes()
-    except OSError as exc:
-        raise MeshError(f"{path}: cannot read mesh file ({exc.strerror})") from exc
+    return parse_ply(read_file(path, max_bytes), path)
+
+
+def parse_ply(blob: bytes, path: str | Path = "<mesh>") -> Mesh:
+    """Parse the bytes of a PLY file; ``path`` names it in errors.
+
+    Raises:
+        MeshError: naming ``path`` and the problem (see :func:`read_ply`).
+    """
     end = blob.find(b"end_header")
     if not blob.startswith(b"ply") or end < 0:
         raise MeshError(f"{path}: not a PLY file (expected 'ply' ... 'end_header')")
@@ -70,13 +163,22 @@ def read_ply(path: str | Path) -> Mesh:
         if tok[0] == "format":
             fmt = tok[1]
         elif tok[0] == "element":
+            if len(tok) != 3 or not tok[2].isdigit() or len(tok[2]) > 12:
+                raise MeshError(f"{path}: header line {line.strip()[:60]!r}: expected "
+                                "'element NAME COUNT' with COUNT a non-negative integer")
             elements.append((tok[1], int(tok[2]), []))
         elif tok[0] == "property" and elements:
+            ok = (len(tok) == 5 and tok[2] in _PLY_TYPES and tok[3] in _PLY_TYPES
+                  if tok[1] == "list" else len(tok) == 3 and tok[1] in _PLY_TYPES)
+            if not ok:
+                raise MeshError(f"{path}: header line {line.strip()[:60]!r}: expected "
+                                "'property TYPE NAME' or 'property list TYPE TYPE NAME' "
+                                f"(types: {', '.join(_PLY_TYPES)})")
             if tok[1] == "list":
-                elements[-1][2].append(("list", tok[4], _PLY_TYPES.get(tok[2]),
-                                        _PLY_TYPES.get(tok[3])))
+                elements[-1][2].append(("list", tok[4], _PLY_TYPES[tok[2]],
+                                        _PLY_TYPES[tok[3]]))
             else:
-                elements[-1][2].append(("scalar", tok[2], _PLY_TYPES.get(tok[1])))
+                elements[-1][2].append(("scalar", tok[2], _PLY_TYPES[tok[1]]))
     if fmt not in ("binary_little_endian", "ascii"):
         raise MeshError(f"{path}: unsupported PLY format {fmt!r} "
                         "(expected binary_little_endian or ascii)")
@@ -87,16 +189,30 @@ def read_ply(path: str | Path) -> Mesh:
         if fmt == "ascii":
             verts, faces = _read_ascii(body, elements)
         else:
-            verts, faces = _read_binary(body, elements)
-    except (ValueError, IndexError, TypeError) as exc:
+            verts, faces, used = _read_binary(body, elements)
+    except (ValueError, IndexError, TypeError, KeyError) as exc:
         raise MeshError(f"{path}: truncated or corrupt PLY data ({exc})") from exc
+    if fmt != "ascii" and used != len(body):
+        raise MeshError(f"{path}: {len(body) - used} bytes after the last element "
+                        "(Mitsuba refuses such a file)")
+    if isinstance(faces, list):
+        raise MeshError(f"{path}: face {faces[0]} has {faces[1]} vertices: only triangles "
+                        "are accepted (Mitsuba's PLY loader refuses other polygons)")
     if len(faces) == 0:
         raise MeshError(f"{path}: mesh has no faces")
     if faces.min() < 0 or faces.max() >= len(verts):
         raise MeshError(f"{path}: face index out of range (0..{len(verts) - 1})")
     if not np.isfinite(verts).all():
         raise MeshError(f"{path}: vertex coordinates are not finite")
-    return Mesh(verts, faces)
+    return Mesh(verts, faces, hashlib.sha256(blob).hexdigest())
+
+
+def _triangles(polys: list[np.ndarray]):
+    """``[F, 3]`` faces, or ``[index, n]`` of the first face that is not a triangle."""
+    for i, p in enumerate(polys):
+        if len(p) != 3:
+            return [i, len(p)]
+    return _fan(polys)
 
 
 def _fan(polys: list[np.ndarray]) -> np.ndarray:
@@ -105,7 +221,7 @@ def _fan(polys: list[np.ndarray]) -> np.ndarray:
     return np.concatenate(tris).astype(np.int64) if tris else np.zeros((0, 3), np.int64)
 
 
-def _read_binary(body: bytes, elements) -> tuple[np.ndarray, np.ndarray]:
+def _read_binary(body: bytes, elements) -> tuple[np.ndarray, np.ndarray, int]:
     off = 0
     verts = faces = None
     for name, count, props in elements:
@@ -139,10 +255,10 @@ def _read_binary(body: bytes, elements) -> tuple[np.ndarray, np.ndarray]:
                     raise ValueError("face list runs past the end of the file")
                 polys.append(np.frombuffer(body, idt, n, off).astype(np.int64))
                 off += n * idt.itemsize
-            faces = _fan(polys)
+            faces = _triangles(polys)
         else:
             raise ValueError(f"element '{name}' has list properties the reader does not handle")
-    return verts, faces
+    return verts, faces, off
 
 
 def _read_ascii(body: bytes, elements) -> tuple[np.ndarray, np.ndarray]:
@@ -158,6 +274,6 @@ def _read_ascii(body: bytes, elements) -> tuple[np.ndarray, np.ndarray]:
             idx = [i for i, p in enumerate(props) if p[1] in ("x", "y", "z")]
             verts = np.array([[float(r.split()[i]) for i in idx] for r in rows])
         elif name == "face":
-            faces = _fan([np.array(r.split()[1:1 + int(r.split()[0])], dtype=np.int64)
-                          for r in rows])
+            faces = _triangles([np.array(r.split()[1:1 + int(r.split()[0])], dtype=np.int64)
+                                for r in rows])
     return verts, faces

@@ -8,6 +8,7 @@ same clear messages.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,12 +37,24 @@ class NpzRecord:
 
 
 def write_npz(path: str | Path, meta: dict, arrays: dict, *, compress: bool = False) -> Path:
-    """Write ``arrays`` and ``meta`` (as a JSON string) to ``path``; create its folder."""
+    """Write ``arrays`` and ``meta`` (as a JSON string) to ``path``; create its folder.
+
+    Atomic: written to a temporary file in the same folder, then renamed over
+    ``path``, so a reader (or a crash) never sees half a file and an old file
+    stays whole until the new one is complete.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     save = np.savez_compressed if compress else np.savez
-    with open(path, "wb") as f:
-        save(f, meta=np.array(json.dumps(meta)), **arrays)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            save(f, meta=np.array(json.dumps(meta)), **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -72,7 +85,12 @@ def read_npz(path: str | Path, *, fmt: str, version: int, required, what: str
         raise ValueError(f"{path}: not a readable NPZ file: {exc}") from exc
     if "meta" not in data:
         raise ValueError(f"{path}: not an isac-twin {what} (no 'meta' entry)")
-    meta = json.loads(str(data.pop("meta")))
+    try:
+        meta = json.loads(str(data.pop("meta")))
+    except ValueError as exc:
+        raise ValueError(f"{path}: the 'meta' entry is not JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path}: the 'meta' entry is not a JSON object")
     if meta.get("format") != fmt:
         raise ValueError(f"{path}: format {meta.get('format')!r} is not {fmt!r}")
     if meta.get("version") != version:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -18,9 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from engine.config import ConfigError, TwinConfig, load_config
-from engine.meshes import MeshError, read_ply
+from engine.meshes import MeshError, confine, read_ply
 
 log = logging.getLogger(__name__)
+
+#: Thickest material layer accepted, m (a wall's, not a building's).
+MAX_THICKNESS_M = 10.0
 
 #: Metres a device may stand outside the union of the meshes' bounding boxes
 #: (an AP mounted flush on a wall's outer face is still "in the room").
@@ -225,13 +229,20 @@ class TwinScene:
         self.objects[name] = ObjectInfo(
             name=name, material=material, thickness=float(thickness), mesh_file=mesh_file,
             bounds_min=tuple(lo.tolist()), bounds_max=tuple(hi.tolist()),
-            mesh_sha256=hashlib.sha256(mesh_file.read_bytes()).hexdigest())
+            mesh_sha256=mesh.sha256)
         self.revision += 1
 
     def contains(self, point, tol: float = BOUNDS_TOLERANCE_M) -> bool:
         """Whether ``point`` ``[3]`` (m) lies inside the room's bounding box."""
         p = np.asarray(point, dtype=float)
         return bool(np.all(p >= self.bounds_min - tol) and np.all(p <= self.bounds_max + tol))
+
+
+#: What the exporter writes inside a ``<bsdf>`` and a ``<shape>`` (tag, name); anything
+#: else (a ``<transform>`` the room checks would ignore, a property Mitsuba refuses) is
+#: refused at load with one line.
+_BSDF_CHILDREN = {("string", "type"), ("float", "thickness")}
+_SHAPE_CHILDREN = {("string", "filename"), ("boolean", "face_normals")}
 
 
 def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInfo]:
@@ -251,6 +262,11 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
         if b.get("type") != "itu-radio-material":
             raise ConfigError(f"{xml_path}: bsdf {bid!r}: type {b.get('type')!r} is not "
                               "supported (expected 'itu-radio-material')")
+        for c in b:
+            if (c.tag, c.get("name")) not in _BSDF_CHILDREN:
+                raise ConfigError(f"{xml_path}: bsdf {bid!r}: <{c.tag} name="
+                                  f"{c.get('name')!r}> is not supported (expected "
+                                  "<string name=\"type\"> and <float name=\"thickness\">)")
         vals = {c.get("name"): c.get("value") for c in b}
         mtype = vals.get("type")
         if mtype not in table:
@@ -261,8 +277,9 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
         except ValueError as exc:
             raise ConfigError(f"{xml_path}: bsdf {bid!r}: thickness "
                               f"{vals.get('thickness')!r} is not a number") from exc
-        if not thick > 0:
-            raise ConfigError(f"{xml_path}: bsdf {bid!r}: thickness must be > 0 m, got {thick}")
+        if not (math.isfinite(thick) and 0 < thick <= MAX_THICKNESS_M):
+            raise ConfigError(f"{xml_path}: bsdf {bid!r}: thickness must be in "
+                              f"(0, {MAX_THICKNESS_M:g}] m, got {thick}")
         mats[bid] = (mtype, thick)
 
     objects: dict[str, ObjectInfo] = {}
@@ -272,6 +289,13 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
         if s.get("type") != "ply":
             raise ConfigError(f"{xml_path}: shape {name!r}: type {s.get('type')!r} "
                               "is not supported (expected 'ply')")
+        for c in s:
+            if (c.tag, c.get("name")) not in _SHAPE_CHILDREN and c.tag != "ref":
+                what = ("a <transform> is not supported: export the mesh in world "
+                        "coordinates" if c.tag == "transform" else
+                        f"<{c.tag} name={c.get('name')!r}> is not supported (expected "
+                        "<string name=\"filename\">, <boolean name=\"face_normals\">, <ref>)")
+                raise ConfigError(f"{xml_path}: shape {name!r}: {what}")
         fname = next((c.get("value") for c in s.iter("string")
                       if c.get("name") == "filename"), None)
         ref = next((c.get("id") for c in s.iter("ref")), None)
@@ -285,8 +309,8 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
             bands = ", ".join(f"{lo:g}-{hi:g} GHz" for lo, hi in itu_bands(mtype))
             raise ConfigError(f"{xml_path}: object {name!r}: material {mtype!r} is not defined "
                               f"at {frequency_hz / 1e9:g} GHz (defined: {bands})")
-        mesh_path = (xml_path.parent / fname).resolve()
         try:
+            mesh_path = confine(fname, xml_path.parent)
             mesh = read_ply(mesh_path)
         except MeshError as exc:
             raise ConfigError(f"{xml_path}: object {name!r}: {exc}") from exc
@@ -296,7 +320,7 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
         objects[name] = ObjectInfo(
             name=name, material=mtype, thickness=thick, mesh_file=mesh_path,
             bounds_min=tuple(lo.tolist()), bounds_max=tuple(hi.tolist()),
-            mesh_sha256=hashlib.sha256(mesh_path.read_bytes()).hexdigest())
+            mesh_sha256=mesh.sha256)
     if not objects:
         raise ConfigError(f"{xml_path}: the scene has no objects")
     return objects
@@ -324,7 +348,12 @@ def load_scene(path: str | Path, *, load_sionna: bool = True) -> TwinScene:
                 f"outside the room (x {lo[0]:.2f}..{hi[0]:.2f}, y {lo[1]:.2f}..{hi[1]:.2f}, "
                 f"z {lo[2]:.2f}..{hi[2]:.2f} m)")
     if load_sionna:
-        scene.sionna  # noqa: B018 - force the load so Mitsuba errors surface here
+        try:
+            scene.sionna  # noqa: B018 - force the load so Mitsuba errors surface here
+        except Exception as exc:  # noqa: BLE001 - Mitsuba raises RuntimeError & co.
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[-1]
+            raise ConfigError(f"{cfg.scene.file}: Mitsuba could not load the scene: "
+                              f"{first[:300]}") from None
     log.info("loaded %s: %d objects, %d devices, %d links", cfg.scene.name, len(objects),
              len(cfg.devices), len(cfg.links))
     return scene

@@ -99,7 +99,10 @@ class Edit:
         orientation: ``[roll, pitch, yaw]`` rad, for move.
         material: ITU type, for material/add.
         thickness: m, for material/add.
-        mesh_file: PLY path, for add.
+        mesh_file: PLY path, for add (relative to the scene folder, or inside an
+            asset folder).
+        mesh_data: the PLY file's bytes, for add (what a live viewer sends; the
+            twin stores it in a folder of its own).
     """
 
     op: str
@@ -109,6 +112,7 @@ class Edit:
     material: str | None = None
     thickness: float | None = None
     mesh_file: str | None = None
+    mesh_data: bytes | None = field(default=None, repr=False)
 
 
 @dataclass(frozen=True)

@@ -17,8 +17,12 @@ are applied before the next step starts.
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import shutil
+import tempfile
 import time
+import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +32,8 @@ import numpy as np
 from engine import frames
 from engine.addon_shared import wire
 from engine.bus import Bus
+from engine.config import ConfigError
+from engine.meshes import MeshError, confine, parse_ply, read_ply
 from engine.msgs import Clock, Csi, Header, TFMessage, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
 from engine.phy.patterns import AntennaPatterns
@@ -42,6 +48,11 @@ from engine.state import Command, Edit, LinkState, RobotState, StepResult
 log = logging.getLogger(__name__)
 
 STAGES = ("agents", "trace", "phy", "sense", "estimate", "control")
+
+#: Largest mesh an ``add`` edit may name, bytes.
+MAX_EDIT_MESH_BYTES = 32 * 1024 * 1024
+#: Most single steps one ``step`` command may request.
+MAX_STEP_COUNT = 100_000
 
 #: ``estimator(twin, result) -> None``: fills ``result.robots[name].estimate``.
 Estimator = Callable[["Twin", StepResult], None]
@@ -89,6 +100,8 @@ class Twin:
         estimators: stage-5 callables, run in order.
         sensing: run the config's ``[[sensing]]`` radar links (stage "sense",
             before the estimators; see :meth:`_build_sensing`).
+        asset_dirs: folders an ``add`` edit may name a mesh in by absolute path
+            (besides the scene folder, where paths are relative).
 
     Hooks (the supported way to change how a twin steps; never replace a method
     of a live twin or agent):
@@ -103,7 +116,8 @@ class Twin:
 
     def __init__(self, scene: TwinScene, *, seed: int = 0, dt: float = 0.05,
                  sensors: SensorOptions | None = None, tracer=None, phy: bool = True,
-                 estimators: list[Estimator] | None = None, sensing: bool = True) -> None:
+                 estimators: list[Estimator] | None = None, sensing: bool = True,
+                 asset_dirs: list[str | Path] | tuple = ()) -> None:
         if not dt > 0:
             raise ValueError(f"dt: expected a positive step in s, got {dt}")
         self.scene = scene
@@ -122,7 +136,12 @@ class Twin:
         self.trace_schedule: Callable[[int], bool] | None = None
         #: robot name -> ``source(t, dt) -> KinematicState`` replacing its motion model
         self.state_sources: dict[str, StateSource] = {}
+        #: keep stepping (a driver such as the live server reads it; ``run``/``pause``)
         self.running = True
+        #: steps requested by ``step`` commands and not yet taken (``pause`` clears them)
+        self.pending_steps = 0
+        self.asset_dirs = [Path(d) for d in asset_dirs]
+        self._upload_dir: Path | None = None
         self._pending_edits: list[Edit] = []
         #: access points' array poses ``(position, orientation)``, movable by edits
         self.ap_poses = {d.name: (tuple(d.position), tuple(d.orientation))
@@ -134,9 +153,13 @@ class Twin:
             self.register_database(str(grid.path or "grid tracer"), grid.meta["scene_hash"])
         self._controllers: dict[str, object] = {}
         self._build_agents()
-        for d in self.config.devices:
+        for i, d in enumerate(self.config.devices):
             if d.kind == "robot" and d.path is not None:
-                self.set_path(d.name, d.path)
+                try:
+                    self.set_path(d.name, d.path)
+                except ValueError as exc:  # e.g. a path leaving the room: the file's fault
+                    raise ConfigError(f"{self.config.path}: devices[{i}] ({d.name}).path: "
+                                      f"{exc}") from None
 
     @classmethod
     def from_scene(cls, path: str | Path, **kw) -> Twin:
@@ -266,9 +289,19 @@ class Twin:
         if edit.op == "add":
             if edit.target in objects or edit.target in devices:
                 raise ValueError(f"{what}: target: an object or device of that name exists")
-            if not edit.mesh_file:
-                raise ValueError(f"{what}: mesh_file: required for add")
+            if bool(edit.mesh_file) == (edit.mesh_data is not None):
+                raise ValueError(f"{what}: mesh_file/mesh_data: give exactly one for add")
             material(required=True)
+            if edit.mesh_data is None:
+                self._check_mesh(what, edit.mesh_file)
+            elif len(edit.mesh_data) > MAX_EDIT_MESH_BYTES:
+                raise ValueError(f"{what}: mesh_data: {len(edit.mesh_data)} bytes exceeds "
+                                 f"the limit of {MAX_EDIT_MESH_BYTES}")
+            else:
+                try:
+                    parse_ply(edit.mesh_data, f"mesh_data of {edit.target!r}")
+                except MeshError as exc:
+                    raise ValueError(f"{what}: {exc}") from None
             return
         if edit.op == "move":
             if edit.target not in objects and edit.target not in devices:
@@ -289,6 +322,20 @@ class Twin:
             raise ValueError(f"{what}: target: no object of that name")
         if edit.op == "material":
             material(required=True)
+
+    def _check_mesh(self, what: str, mesh_file: str) -> None:
+        """An ``add`` edit's mesh: a readable PLY inside the scene folder (relative path)
+        or an asset folder (absolute), a regular file of at most
+        :data:`MAX_EDIT_MESH_BYTES`. One message whatever the reason, so an edit
+        reveals nothing about the host's files (the reason is logged)."""
+        try:
+            path = confine(mesh_file, self.config.scene.file.parent, roots=self.asset_dirs)
+            read_ply(path, MAX_EDIT_MESH_BYTES)
+        except MeshError as exc:
+            log.info("%s: mesh_file refused: %s", what, exc)
+            raise ValueError(
+                f"{what}: mesh_file: expected a PLY file inside the scene folder (a relative "
+                f"path) or an asset folder, at most {MAX_EDIT_MESH_BYTES} bytes") from None
 
     def apply_edit(self, edit: Edit) -> None:
         """Validate an edit (:meth:`validate_edit`) and queue it; it is applied before
@@ -323,9 +370,24 @@ class Twin:
         elif e.op == "remove":
             self.scene.remove_object(e.target)
         elif e.op == "add":
-            self.scene.add_object(e.target, e.mesh_file, e.material, e.thickness or 0.1)
+            if e.mesh_data is not None:
+                path = self._store_mesh(e.mesh_data)
+            else:
+                path = confine(e.mesh_file, self.config.scene.file.parent,
+                               roots=self.asset_dirs)
+            self.scene.add_object(e.target, path, e.material, e.thickness or 0.1)
         log.info("applied edit %s %s; scene hash now %s", e.op, e.target,
                  self.scene.content_hash()[:12])
+
+    def _store_mesh(self, data: bytes) -> Path:
+        """Write a mesh sent as bytes to the twin's own folder (private, removed with
+        the twin); the file is named by its SHA-256."""
+        if self._upload_dir is None:
+            self._upload_dir = Path(tempfile.mkdtemp(prefix="isac-twin-meshes-"))
+            weakref.finalize(self, shutil.rmtree, self._upload_dir, True)
+        path = self._upload_dir / f"{hashlib.sha256(data).hexdigest()}.ply"
+        path.write_bytes(data)
+        return path
 
     def _move_access_point(self, e: Edit) -> None:
         pos, ori = self.ap_poses[e.target]
@@ -359,16 +421,84 @@ class Twin:
         now = self.scene.content_hash()
         return [n for n, (h, aps) in self.databases.items() if h != now or aps != self.ap_poses]
 
-    def command(self, cmd: Command) -> StepResult | None:
-        """Apply a command: run, pause, step (returns the step), reset, set_path,
-        set_goal, teleop."""
+    def validate_command(self, cmd: Command) -> None:
+        """Check a command completely (op, every argument) against the twin as it is now.
+
+        Raises:
+            ValueError: naming the command and the argument at fault.
+        """
+        what = f"command {cmd.op}"
+        if cmd.op not in wire.COMMAND_OPS:
+            raise ValueError(f"{what}: unknown op {cmd.op!r} (expected one of "
+                             f"{', '.join(wire.COMMAND_OPS)})")
+        a = cmd.args if isinstance(cmd.args, dict) else None
+        if a is None:
+            raise ValueError(f"{what}: args: expected an object")
+
+        def robot():
+            name = a.get("robot")
+            if name not in self.agents:
+                raise ValueError(f"{what}: robot: expected one of {', '.join(self.agents)}, "
+                                 f"got {name!r}")
+
+        def number(key, lo, hi, default=None):
+            v = a.get(key, default)
+            if type(v) not in (int, float) or not (np.isfinite(v) and lo <= v <= hi):
+                raise ValueError(f"{what}: {key}: expected a number in {lo:g}..{hi:g}, "
+                                 f"got {v!r}")
+
+        if cmd.op in ("run", "pause", "reset"):
+            return
+        if cmd.op == "step":
+            n = a.get("count", 1)
+            if type(n) is not int or not 1 <= n <= MAX_STEP_COUNT:
+                raise ValueError(f"{what}: count: expected an integer in 1..{MAX_STEP_COUNT}, "
+                                 f"got {n!r}")
+        elif cmd.op == "set_path":
+            robot()
+            if not isinstance(a.get("path"), dict):
+                raise ValueError(f"{what}: path: expected an object such as "
+                                 '{"kind": "circle", "centre": [x, y], "radius": r}')
+        elif cmd.op == "set_goal":
+            robot()
+            g = a.get("goal")
+            lo, hi = self.scene.bounds_min, self.scene.bounds_max
+            if not (isinstance(g, list) and len(g) == 2
+                    and all(type(x) in (int, float) and np.isfinite(x) for x in g)
+                    and lo[0] <= g[0] <= hi[0] and lo[1] <= g[1] <= hi[1]):
+                raise ValueError(f"{what}: goal: expected [x, y] inside the room, got {g!r}")
+        elif cmd.op == "teleop":
+            robot()
+            number("linear", -10.0, 10.0)
+            number("angular", -20.0, 20.0)
+        else:  # an op wire.COMMAND_OPS offers must be checked above
+            raise AssertionError(f"{what}: wire.COMMAND_OPS has an op Twin does not handle")
+
+    def command(self, cmd: Command) -> None:
+        """Validate (:meth:`validate_command`) and apply a command; the one dispatch of
+        every command op.
+
+        * ``run`` / ``pause``: set :attr:`running` (``pause`` also drops
+          :attr:`pending_steps`);
+        * ``step`` (``count``, default 1): pause and request ``count`` single steps
+          (:attr:`pending_steps`; each :meth:`step` takes one);
+        * ``reset``: :meth:`reset`;
+        * ``set_path`` (``robot``, ``path``), ``set_goal`` (``robot``, ``goal [x, y]``),
+          ``teleop`` (``robot``, ``linear`` m/s, ``angular`` rad/s).
+
+        Raises:
+            ValueError: a bad command; nothing was changed.
+        """
+        self.validate_command(cmd)
         a = cmd.args
         if cmd.op == "run":
             self.running = True
         elif cmd.op == "pause":
             self.running = False
+            self.pending_steps = 0
         elif cmd.op == "step":
-            return self.step()
+            self.running = False
+            self.pending_steps += int(a.get("count", 1))
         elif cmd.op == "reset":
             self.reset()
         elif cmd.op == "set_path":
@@ -381,9 +511,6 @@ class Twin:
             tw = Twist(linear=np.array([float(a["linear"]), 0, 0]),
                        angular=np.array([0, 0, float(a["angular"])]))
             self.set_controller(a["robot"], lambda _state, tw=tw: tw)
-        else:
-            raise ValueError(f"command: unknown op {cmd.op!r}")
-        return None
 
     # ------------------------------------------------------------------ step
 
@@ -401,7 +528,9 @@ class Twin:
         return poses
 
     def step(self) -> StepResult:
-        """Run one step of Algorithm 1 and return what it produced."""
+        """Run one step of Algorithm 1 and return what it produced (takes one of the
+        :attr:`pending_steps`, if any)."""
+        self.pending_steps = max(0, self.pending_steps - 1)
         self._apply_pending()
         clock = time.perf_counter
         timings = {}

@@ -81,6 +81,11 @@ def world_mesh(obj, depsgraph, name: str) -> WorldMesh:
 
 
 def write_ply(path: Path, mesh: WorldMesh) -> None:
+    """Write :func:`ply_bytes` of ``mesh`` to ``path``."""
+    path.write_bytes(ply_bytes(mesh))
+
+
+def ply_bytes(mesh: WorldMesh) -> bytes:
     """Binary little-endian PLY: float32 x, y, z per vertex; uchar-count int triangle lists."""
     header = (
         "ply\n"
@@ -96,7 +101,7 @@ def write_ply(path: Path, mesh: WorldMesh) -> None:
     faces = struct.pack("<" + "B3i" * mesh.num_triangles,
                         *[x for t in range(mesh.num_triangles)
                           for x in (3, *mesh.triangles[3 * t:3 * t + 3])])
-    path.write_bytes(header + body + faces)
+    return header + body + faces
 
 
 def read_ply(path: Path) -> WorldMesh:

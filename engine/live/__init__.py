@@ -1,8 +1,11 @@
 """The live link: a TCP server streaming a stepping twin to Blender viewers.
 
 ``protocol`` loads the shared wire format (``addon/wire.py``) and turns
-:class:`~engine.state.StepResult` records into messages; ``server`` runs the
-twin loop and the viewers' sockets; ``line_twin`` is a minimal real twin
-(straight-line robots, Sionna paths) used when ``engine.twin`` is absent.
-See ``docs/wire.md``.
+:class:`~engine.state.StepResult` records into messages; ``server`` runs a
+real :class:`~engine.twin.Twin` in a loop thread and the viewers' sockets in
+an I/O thread. See ``docs/wire.md`` (and its security model).
 """
+
+from engine.live.server import LiveServer, LiveTwin, is_loopback
+
+__all__ = ["LiveServer", "LiveTwin", "is_loopback"]

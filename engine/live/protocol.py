@@ -130,13 +130,18 @@ def step_summary(res: StepResult) -> dict:
 
 
 def edit_from_message(msg: dict) -> Edit:
-    """:class:`~engine.state.Edit` from a validated ``edit`` message."""
+    """:class:`~engine.state.Edit` from a validated ``edit`` message.
+
+    Raises:
+        ValueError: ``mesh_ply`` is not base64.
+    """
     def t(k):
         v = msg.get(k)
         return None if v is None else tuple(float(x) for x in v)
     return Edit(op=msg["op"], target=msg["target"], position=t("position"),
                 orientation=t("orientation"), material=msg.get("material"),
-                thickness=msg.get("thickness"), mesh_file=msg.get("mesh_file"))
+                thickness=msg.get("thickness"), mesh_file=msg.get("mesh_file"),
+                mesh_data=wire.edit_mesh(msg))
 
 
 def command_from_message(msg: dict) -> Command:

@@ -13,11 +13,23 @@ A slow viewer never stalls the twin: per viewer, ``state``/``paths``/
 ``metrics``/``status`` are coalesced (a newer frame replaces an unsent one,
 the drop is counted per type); only ``hello``/``scene``/``error`` are queued
 in order. A viewer that leaves, or is dropped, leaves the loop running.
+
+What a viewer can do (the security model, docs/wire.md): before its ``hello``
+is accepted it may send frames of at most :data:`PRE_HELLO_MAX_FRAME` bytes
+and must say hello within the handshake timeout; the token (when set) is
+checked first, in constant time, before anything else is answered; any frame
+that cannot be handled closes only that viewer's connection; at most
+``max_viewers`` are connected. After the hello it may send edits and commands,
+which the twin validates completely (:meth:`~engine.twin.Twin.validate_edit`,
+:meth:`~engine.twin.Twin.validate_command`) before anything changes; a bad one
+is answered ``error{code: "rejected", ref}`` to the sender only. Meshes named
+by ``add`` edits are read only from the scene folder or an asset folder.
 """
 
 from __future__ import annotations
 
 import collections
+import hmac
 import ipaddress
 import json
 import logging
@@ -38,6 +50,10 @@ log = logging.getLogger(__name__)
 
 #: Seconds a viewer has to send its ``hello``.
 HANDSHAKE_TIMEOUT_S = 10.0
+#: Largest frame accepted before a viewer's ``hello`` is accepted, bytes.
+PRE_HELLO_MAX_FRAME = 64 * 1024
+#: Connected viewers at most (more are answered ``busy`` and closed).
+MAX_VIEWERS = 32
 #: In-order frames a viewer may have pending before it is dropped as stuck.
 MAX_QUEUED_FRAMES = 256
 _CAPABILITIES = ("state", "paths", "metrics", "status", "edit", "command")
@@ -45,17 +61,23 @@ _CAPABILITIES = ("state", "paths", "metrics", "status", "edit", "command")
 
 @runtime_checkable
 class LiveTwin(Protocol):
-    """What the server needs from a twin (``engine.twin.Twin`` satisfies it)."""
+    """What the server needs from a twin (``engine.twin.Twin`` satisfies it).
+
+    The twin owns the command semantics: :meth:`command` validates and applies
+    every op (``run``/``pause`` set :attr:`running`, ``step`` adds to
+    :attr:`pending_steps`, each :meth:`step` takes one); the server steps while
+    ``running or pending_steps``.
+    """
 
     scene: object
+    running: bool
+    pending_steps: int
 
     def step(self) -> StepResult: ...
 
     def apply_edit(self, edit: Edit) -> None: ...
 
     def command(self, cmd: Command) -> None: ...
-
-    def reset(self) -> None: ...
 
 
 def is_loopback(host: str) -> bool:
@@ -78,7 +100,8 @@ class _Viewer:
     def __init__(self, sock: socket.socket, addr):
         self.sock = sock
         self.addr = f"{addr[0]}:{addr[1]}" if isinstance(addr, tuple) else str(addr)
-        self.decoder = wire.Decoder("v2e", peer=f"viewer {self.addr}")
+        self.decoder = wire.Decoder("v2e", peer=f"viewer {self.addr}",
+                                    max_frame=PRE_HELLO_MAX_FRAME)
         self.name = ""
         self.ready = False          # hello accepted
         self.closing = False        # close once the queue is flushed
@@ -118,6 +141,8 @@ class LiveServer:
         on_step: called with each :class:`StepResult` in the loop thread.
         viewer_sndbuf: kernel send buffer per viewer socket, bytes (None = OS default;
             small values make a slow viewer's backlog coalesce sooner).
+        max_viewers: connections served at once.
+        handshake_timeout_s: seconds a new connection has to send its ``hello``.
 
     Raises:
         ValueError: a non-loopback ``host`` without a ``token``.
@@ -128,7 +153,8 @@ class LiveServer:
                  running: bool = True, max_paths: int = wire.DEFAULT_MAX_PATHS_PER_LINK,
                  step_log: str | Path | None = None,
                  on_step: Callable[[StepResult], None] | None = None,
-                 viewer_sndbuf: int | None = None):
+                 viewer_sndbuf: int | None = None, max_viewers: int = MAX_VIEWERS,
+                 handshake_timeout_s: float = HANDSHAKE_TIMEOUT_S):
         if not is_loopback(host) and not token:
             raise ValueError(f"refusing to listen on non-loopback address {host!r} without an "
                              "auth token (pass --token)")
@@ -141,7 +167,9 @@ class LiveServer:
         self.step_log = Path(step_log) if step_log else None
         self.on_step = on_step
         self.viewer_sndbuf = viewer_sndbuf
-        self.running = bool(running)
+        self.max_viewers = int(max_viewers)
+        self.handshake_timeout_s = float(handshake_timeout_s)
+        twin.running = bool(running)
         self.steps_done = 0
         self.edits_applied = 0
         self.last_result: StepResult | None = None
@@ -153,6 +181,7 @@ class LiveServer:
         self._viewers: dict[int, _Viewer] = {}
         self._latest: dict[str, bytes] = {}  # for viewers that join later
         self._scene_frame = b""
+        self._scene_hash = ""
         self._sel: selectors.BaseSelector | None = None
         self._lsock: socket.socket | None = None
         self._wake_r = self._wake_w = None
@@ -181,7 +210,7 @@ class LiveServer:
         self._sel = selectors.DefaultSelector()
         self._sel.register(ls, selectors.EVENT_READ, "listen")
         self._sel.register(self._wake_r, selectors.EVENT_READ, "wake")
-        self._scene_frame = wire.encode(protocol.scene_message(self.twin.scene))
+        self._refresh_scene()
         self._threads = [threading.Thread(target=self._io_main, name="live-io", daemon=True),
                          threading.Thread(target=self._loop_main, name="live-loop", daemon=True)]
         for t in self._threads:
@@ -214,6 +243,11 @@ class LiveServer:
 
     def __exit__(self, *exc):
         self.stop()
+
+    @property
+    def running(self) -> bool:
+        """Whether the twin keeps stepping (the twin's own flag; ``run``/``pause``)."""
+        return bool(self.twin.running)
 
     def viewers(self) -> list[dict]:
         """A snapshot of the connected viewers: name, address, frames sent, drops per type."""
@@ -264,20 +298,19 @@ class LiveServer:
     # ------------------------------------------------------------------ the loop thread
 
     def _loop_main(self) -> None:
-        pending_steps = 0
         next_t = time.monotonic()
         while not self._stop.is_set():
-            pending_steps += self._drain_inbox()
+            self._drain_inbox()
             if self._stop.is_set():
                 break
-            if self.running or pending_steps:
+            twin = self.twin
+            if twin.running or twin.pending_steps:
                 now = time.monotonic()
-                if self.running and self.rate_hz > 0 and now < next_t and not pending_steps:
+                if twin.running and self.rate_hz > 0 and now < next_t and not twin.pending_steps:
                     self._wake_loop.wait(next_t - now)
                     self._wake_loop.clear()
                     continue
                 next_t = max(now, next_t) + (1.0 / self.rate_hz if self.rate_hz > 0 else 0.0)
-                pending_steps = max(0, pending_steps - 1)
                 self._do_step()
             else:
                 self._wake_loop.wait(0.1)
@@ -288,12 +321,15 @@ class LiveServer:
             res = self.twin.step()
         except Exception as exc:  # noqa: BLE001 - report, pause, keep serving
             log.exception("twin step failed")
-            self.running = False
+            self.twin.running = False
+            self.twin.pending_steps = 0
             self.publish(wire.error("step", f"twin step failed: {exc}"))
             self.publish(self._status("paused after a failed step"))
             return
         self.steps_done += 1
         self.last_result = res
+        if res.scene_hash != self._scene_hash:  # an edit was applied in this step
+            self._refresh_scene()
         for build in (protocol.state_message, protocol.metrics_message):
             self.publish(build(res))
         self.publish(protocol.paths_message(res, self.max_paths))
@@ -303,25 +339,24 @@ class LiveServer:
         if self.on_step is not None:
             self.on_step(res)
         if self.max_steps is not None and self.steps_done >= self.max_steps:
-            if self.running:
+            if self.twin.running:
                 log.info("reached %d steps: pausing", self.steps_done)
-            self.running = False
+            self.twin.running = False
             self.done.set()
         self.publish(self._status())
 
-    def _check_edit(self, edit: Edit) -> None:
-        """Refuse an edit naming nothing in the scene now (a twin may apply edits lazily, at
-        its next step, where a bad one would fail the step instead of this one edit)."""
-        if edit.op == "add":
-            return
-        scene = self.twin.scene
-        names = set(scene.objects) | {d.name for d in scene.config.devices}
-        if edit.target not in names:
-            raise ValueError(f"unknown object or device {edit.target!r}")
+    def _refresh_scene(self) -> bytes:
+        """The ``scene`` frame new viewers get: the room as it is now (edits included),
+        so its ``content_hash`` is the engine's truth on every (re)connect."""
+        msg = protocol.scene_message(self.twin.scene)
+        frame = wire.encode(msg)
+        with self._lock:
+            self._scene_frame, self._scene_hash = frame, msg["content_hash"]
+        return frame
 
-    def _drain_inbox(self) -> int:
-        """Apply queued edits and commands; return the number of single steps requested."""
-        steps = 0
+    def _drain_inbox(self) -> None:
+        """Apply queued edits and commands (the twin validates each; a bad one is
+        answered ``rejected`` to its sender and changes nothing)."""
         changed = False
         while True:
             try:
@@ -330,27 +365,16 @@ class LiveServer:
                 break
             try:
                 if isinstance(item, Edit):
-                    self._check_edit(item)
                     self.twin.apply_edit(item)
                     self.edits_applied += 1
-                    changed = True
-                elif item.op == "run":
-                    self.running = True
-                    changed = True
-                elif item.op == "pause":
-                    self.running = False
-                    changed = True
-                elif item.op == "step":
-                    self.running = False
-                    steps += int(item.args.get("count", 1))
-                elif item.op == "reset":
-                    self.twin.reset()
-                    self.steps_done = 0
-                    self.done.clear()
-                    self.publish(protocol.scene_message(self.twin.scene))
-                    changed = True
                 else:
                     self.twin.command(item)
+                    if item.op == "reset":
+                        self.steps_done = 0
+                        self.done.clear()
+                        self._refresh_scene()
+                        self.publish(protocol.scene_message(self.twin.scene))
+                changed = True
             except Exception as exc:  # noqa: BLE001 - a bad edit must not stop the twin
                 what = f"{type(item).__name__.lower()} {item.op}"
                 log.warning("rejected %s from viewer %s: %s", what, viewer.addr, exc)
@@ -359,32 +383,57 @@ class LiveServer:
                                                  ref=getattr(item, "target", item.op)))
         if changed:
             self.publish(self._status())
-        return steps
 
     # ------------------------------------------------------------------ the I/O thread
 
     def _io_main(self) -> None:
-        try:
-            while not self._stop.is_set():
-                self._update_interest()
-                for key, events in self._sel.select(timeout=0.2):
-                    if key.data == "listen":
-                        self._accept()
-                    elif key.data == "wake":
-                        try:
-                            while self._wake_r.recv(4096):
-                                pass
-                        except (BlockingIOError, OSError):
+        """Supervise the I/O loop: if it ever dies it is logged, counted
+        (``stats["io_restarts"]``), reported to the viewers and started again."""
+        while not self._stop.is_set():
+            try:
+                self._io_loop()
+            except Exception as exc:  # noqa: BLE001 - the loop must outlive any bug
+                log.exception("live server I/O loop crashed; restarting it")
+                self.stats["io_restarts"] += 1
+                try:
+                    self.publish(self._status(f"I/O loop restarted after {type(exc).__name__}"))
+                except Exception:  # noqa: BLE001
+                    pass
+                time.sleep(0.05)
+
+    def _io_loop(self) -> None:
+        while not self._stop.is_set():
+            self._update_interest()
+            for key, events in self._sel.select(timeout=0.2):
+                if key.data == "listen":
+                    self._accept()
+                elif key.data == "wake":
+                    try:
+                        while self._wake_r.recv(4096):
                             pass
-                    else:
-                        v = key.data
-                        if events & selectors.EVENT_READ:
-                            self._read(v)
-                        if events & selectors.EVENT_WRITE and v.sock.fileno() >= 0:
-                            self._flush(v)
-                self._check_handshakes()
-        except Exception:  # noqa: BLE001
-            log.exception("live server I/O thread crashed")
+                    except (BlockingIOError, OSError):
+                        pass
+                else:
+                    self._serve(key.data, events)
+            self._check_handshakes()
+
+    def _serve(self, v: _Viewer, events: int) -> None:
+        """One viewer's I/O; whatever goes wrong closes only this viewer."""
+        try:
+            if events & selectors.EVENT_READ:
+                self._read(v)
+            if events & selectors.EVENT_WRITE and v.sock.fileno() >= 0:
+                self._flush(v)
+        except Exception as exc:  # noqa: BLE001
+            log.exception("viewer %s: unexpected fault; closing its connection", v.addr)
+            self.stats["viewer_faults"] += 1
+            try:
+                v.sock.send(wire.encode(wire.error(
+                    "internal", f"the engine could not handle a frame ({type(exc).__name__})",
+                    fatal=True)))
+            except Exception:  # noqa: BLE001 - best effort before closing
+                pass
+            self._drop(v, f"fault: {type(exc).__name__}")
 
     def _update_interest(self) -> None:
         with self._lock:
@@ -405,6 +454,20 @@ class LiveServer:
         except (BlockingIOError, OSError):
             return
         sock.setblocking(False)
+        with self._lock:
+            full = len(self._viewers) >= self.max_viewers
+        if full:
+            self.stats["refused_busy"] += 1
+            try:
+                sock.send(wire.encode(wire.error(
+                    "busy", f"the engine serves at most {self.max_viewers} viewers",
+                    fatal=True)))
+            except OSError:
+                pass
+            sock.close()
+            log.warning("refused a connection from %s: %d viewers connected", addr,
+                        self.max_viewers)
+            return
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         if self.viewer_sndbuf:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, int(self.viewer_sndbuf))
@@ -432,10 +495,12 @@ class LiveServer:
         now = time.monotonic()
         with self._lock:
             late = [v for v in self._viewers.values()
-                    if not v.ready and not v.closing and now - v.opened > HANDSHAKE_TIMEOUT_S]
+                    if not v.ready and not v.closing
+                    and now - v.opened > self.handshake_timeout_s]
         for v in late:
             self._send_to(v, wire.error("handshake", "no hello within "
-                                        f"{HANDSHAKE_TIMEOUT_S:g} s", fatal=True), close=True)
+                                        f"{self.handshake_timeout_s:g} s", fatal=True),
+                          close=True)
 
     def _read(self, v: _Viewer) -> None:
         try:
@@ -448,7 +513,16 @@ class LiveServer:
         if not data:
             self._drop(v, "disconnected")
             return
-        for msg in v.decoder.feed(data):
+        if v.closing:
+            return  # a fatal error is on its way: read nothing more
+        msgs = v.decoder.feed(data)
+        if not v.ready and v.decoder.rejections:
+            # before the hello only a valid hello is acceptable: no second chance
+            self._send_to(v, wire.error("handshake", "expected a valid hello first (at most "
+                                        f"{PRE_HELLO_MAX_FRAME} bytes)", fatal=True),
+                          close=True)
+            return
+        for msg in msgs:
             self._handle(v, msg)
 
     def _handle(self, v: _Viewer, msg: dict) -> None:
@@ -460,17 +534,19 @@ class LiveServer:
                 self._send_to(v, wire.error("handshake", f"expected hello first, got {t}",
                                             fatal=True), close=True)
                 return
-            why = wire.check_version(msg)
-            if why is None and msg["role"] != "viewer":
-                why = f"role {msg['role']!r}: only viewers connect to an engine"
-            if why is None and self.token is not None and msg.get("token") != self.token:
+            if self.token is not None and not hmac.compare_digest(
+                    str(msg.get("token", "")).encode(), self.token.encode()):
                 self._send_to(v, wire.error("auth", "missing or wrong token", fatal=True),
                               close=True)
                 return
+            why = wire.check_version(msg)
+            if why is None and msg["role"] != "viewer":
+                why = f"role {msg['role']!r}: only viewers connect to an engine"
             if why is not None:
                 self._send_to(v, wire.error("version", why, fatal=True), close=True)
                 return
-            v.name = msg.get("name", "")
+            v.name = msg.get("name", "")[:64]
+            v.decoder.max_frame = wire.MAX_FRAME_BYTES
             with self._lock:
                 v.ready = True
                 v.queue.append(wire.encode(wire.hello("engine", "isac-twin",
@@ -481,7 +557,12 @@ class LiveServer:
             log.info("viewer %s (%s) ready", v.name, v.addr)
             return
         if t == "edit":
-            self._inbox.put((v, protocol.edit_from_message(msg)))
+            try:
+                edit = protocol.edit_from_message(msg)
+            except ValueError as exc:
+                self._send_to(v, wire.error("rejected", str(exc), ref=msg["target"]))
+                return
+            self._inbox.put((v, edit))
         elif t == "command":
             self._inbox.put((v, protocol.command_from_message(msg)))
         elif t == "error":

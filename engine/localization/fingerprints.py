@@ -360,10 +360,68 @@ def load_database(path: str | Path, *, scene=None, tx_positions: dict | None = N
     path = Path(path)
     meta, data = read_npz(path, fmt=DB_FORMAT, version=DB_FORMAT_VERSION, required=DB_ARRAYS,
                           what="fingerprint database")
+    why = structure_error(meta, data)
+    if why is not None:
+        raise ValueError(f"{path}: not a consistent fingerprint database: {why}")
     db = FingerprintDB(meta=meta, arrays=data, path=path)
     if scene is not None:
         db.check(scene, tx_positions=tx_positions)
     return db
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+
+
+#: Metadata a database must carry: key -> (check, what was expected).
+_META = {
+    "scene_name": (lambda v: isinstance(v, str), "a string"),
+    "scene_hash": (lambda v: isinstance(v, str) and len(v) == 64, "a 64-digit hex string"),
+    "frequency_hz": (lambda v: _is_num(v) and v > 0, "a positive number"),
+    "ap_names": (lambda v: isinstance(v, list) and all(isinstance(x, str) for x in v),
+                 "a list of names"),
+    "ap_positions": (lambda v: isinstance(v, list) and all(
+        isinstance(p, list) and len(p) == 3 and all(map(_is_num, p)) for p in v),
+        "a list of [x, y, z]"),
+    "origin": (lambda v: isinstance(v, list) and len(v) >= 2 and all(map(_is_num, v)),
+               "[x, y]"),
+    "spacing": (lambda v: _is_num(v) and v > 0, "a positive number"),
+    "shape": (lambda v: isinstance(v, list) and len(v) == 2
+              and all(isinstance(x, int) and x > 0 for x in v), "[nx, ny] positive integers"),
+    "height": (_is_num, "a number"),
+    "max_paths": (lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"),
+    "tracer": (lambda v: isinstance(v, dict), "an object"),
+}
+_DTYPE_KIND = {"float64": "f", "float32": "f", "bool": "b", "int32": "iu", "complex64": "c"}
+
+
+def structure_error(meta: dict, arrays: dict) -> str | None:
+    """Why ``meta`` and ``arrays`` do not form a database (None when they do): every
+    metadata key of the right type, every array of the right kind and shape
+    (``N = nx * ny`` points, ``A`` access points, ``L <= max_paths`` slots)."""
+    for k, (ok, what) in _META.items():
+        if k not in meta:
+            return f"metadata key {k!r} missing"
+        if not ok(meta[k]):
+            return f"metadata {k!r}: expected {what}, got {str(meta[k])[:40]!r}"
+    if len(meta["ap_positions"]) != len(meta["ap_names"]):
+        return (f"metadata: {len(meta['ap_names'])} ap_names for "
+                f"{len(meta['ap_positions'])} ap_positions")
+    n = meta["shape"][0] * meta["shape"][1]
+    a = len(meta["ap_names"])
+    L = arrays["lengths"].shape[2] if arrays["lengths"].ndim == 3 else -1
+    want = {"points": (n, 3), "free": (n,), "num_paths": (n, a)}
+    for k, (dtype, _) in DB_ARRAYS.items():
+        arr = arrays[k]
+        if arr.dtype.kind not in _DTYPE_KIND[dtype]:
+            return f"array {k!r}: dtype {arr.dtype} is not {dtype}"
+        shape = want.get(k, (n, a, L))
+        if arr.shape != shape:
+            return (f"array {k!r}: shape {list(arr.shape)}, expected {list(shape)} "
+                    f"(grid {meta['shape'][0]} x {meta['shape'][1]}, {a} APs)")
+    if L > meta["max_paths"]:
+        return f"{L} path slots, more than max_paths = {meta['max_paths']}"
+    return None
 
 
 def attach(twin, db: FingerprintDB) -> None:

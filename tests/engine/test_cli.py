@@ -1,5 +1,7 @@
 """engine/cli.py: info, run and fingerprints on real scene folders; bad input exits 2."""
 
+import re
+
 import pytest
 
 from engine.cli import main
@@ -50,3 +52,110 @@ def test_bad_input_exits_2_with_the_culprit(lab, tmp_path, capsys):
     assert main(["record", str(lab), "--share", "--out", str(tmp_path / "x.mcap")]) == 2
     assert "--share needs --connect" in capsys.readouterr().err
     assert not (tmp_path / "x.mcap").exists()
+
+
+def test_serve_token_from_file_or_environment(tmp_path, monkeypatch, capsys):
+    """Issue 22: a token on the command line is visible in `ps`; a file or the
+    environment keep it out of the process list. A bad token file exits 2 naming it."""
+    monkeypatch.delenv("ISAC_TWIN_TOKEN", raising=False)
+    empty = tmp_path / "empty.token"
+    empty.write_text("\n")
+    assert main(["serve", "--host", "0.0.0.0", "--port", "0", "--token-file", str(empty)]) == 2
+    assert "empty.token: the token file is empty" in capsys.readouterr().err
+    missing = tmp_path / "missing.token"
+    assert main(["serve", "--port", "0", "--token-file", str(missing)]) == 2
+    assert "missing.token: cannot read the token file" in capsys.readouterr().err
+    assert main(["serve", "--host", "0.0.0.0", "--port", "0"]) == 2
+    assert "ISAC_TWIN_TOKEN" in capsys.readouterr().err
+
+    import argparse
+
+    from engine.cli import serve_token
+
+    ns = argparse.Namespace(token=None, token_file=None)
+    assert serve_token(ns) is None
+    monkeypatch.setenv("ISAC_TWIN_TOKEN", "from-env")
+    assert serve_token(ns) == "from-env"
+    good = tmp_path / "good.token"
+    good.write_text("from-file\nignored\n")
+    assert serve_token(argparse.Namespace(token=None, token_file=good)) == "from-file"
+    assert main(["serve", "--port", "0", "--asset-dir", str(missing)]) == 2
+    assert "--asset-dir" in (err := capsys.readouterr().err) and "not a folder" in err
+
+
+# --------------------------------------------------------------------------- fault suite (issue 22)
+# Each case damaged one input file of a valid scene folder; each used to end in a
+# traceback, a runaway allocation or a silently wrong result.
+
+def _sub(old, new):
+    def f(blob):
+        assert old in blob
+        return blob.replace(old, new, 1)
+    return f
+
+
+_BAD_INPUTS = {
+    "non-UTF-8 twin.toml": ("twin.toml", _sub(b'name = "', b'name = "\xff\xfe'),
+                            r"twin\.toml: not UTF-8 text \(byte \d+"),
+    "samples_per_src 1e12": ("twin.toml", lambda b: b + b"\n[tracer]\nsamples_per_src = "
+                             b"1000000000000\n", r"tracer\.samples_per_src: .*<= 100000000"),
+    "max_depth 100000": ("twin.toml", lambda b: b + b"\n[tracer]\nmax_depth = 100000\n",
+                         r"tracer\.max_depth: expected an integer <= 32"),
+    "subcarrier spacing 1e308": ("twin.toml", _sub(b"subcarrier_spacing_hz = 78125.0",
+                                                   b"subcarrier_spacing_hz = 1e308"),
+                                 r"ofdm\.subcarrier_spacing_hz: expected a number <= 1e\+07"),
+    "num_subcarriers 1e9": ("twin.toml", _sub(b"num_subcarriers = 1024",
+                                              b"num_subcarriers = 1000000000"),
+                            r"ofdm\.num_subcarriers: expected an integer <= 65536"),
+    "num_symbols 100000": ("twin.toml", _sub(b"num_symbols = 14", b"num_symbols = 100000"),
+                           r"ofdm\.num_symbols: expected an integer <= 4096"),
+    "array rows 1e12": ("twin.toml", _sub(b"rows = 2", b"rows = 1000000000000"),
+                        r"array\.rows: expected an integer <= 256"),
+    "array rows 2^70": ("twin.toml", _sub(b"rows = 2", b"rows = 1180591620717411303424"),
+                        r"array\.rows: expected an integer <= 256"),
+    "power_dbm 1e308": ("twin.toml", _sub(b"power_dbm = 20.0", b"power_dbm = 1e308"),
+                        r"power_dbm: expected a number <= 100"),
+    "thickness inf": ("scene.xml", _sub(b'name="thickness" value="0.2"',
+                                        b'name="thickness" value="inf"'),
+                      r"scene\.xml: bsdf .*thickness must be in \(0, 10\] m, got inf"),
+    "<transform> in scene.xml": ("scene.xml", _sub(b'<boolean name="face_normals" value="true"/>',
+                                                   b'<transform name="to_world"><translate '
+                                                   b'x="5"/></transform>'),
+                                 r"scene\.xml: shape '\w+': a <transform> is not supported"),
+    "unknown XML property": ("scene.xml", _sub(b'<boolean name="face_normals" value="true"/>',
+                                               b'<boolean name="bogus" value="true"/>'),
+                             r"scene\.xml: shape '\w+': <boolean name='bogus'> is not supported"),
+    "PLY element vertex abc": ("meshes/floor.ply", lambda b: re.sub(
+        rb"element vertex \d+", b"element vertex abc", b),
+        r"floor\.ply: header line 'element vertex abc': expected 'element NAME COUNT'"),
+    "PLY trailing bytes": ("meshes/floor.ply", lambda b: b + b"junk",
+                           r"floor\.ply: 4 bytes after the last element"),
+    "robot path leaving the room": ("twin.toml", _sub(
+        b"antenna_offset = [0.0, 0.0, 0.25]\n", b"antenna_offset = [0.0, 0.0, 0.25]\n"
+        b'path = { kind = "circle", centre = [3.0, 2.0], radius = 5.0 }\n'),
+        r"twin\.toml: devices\[1\] \(robot1\)\.path: circle .* leaves the room"),
+    "PLY 1e12 vertices": ("meshes/floor.ply", lambda b: re.sub(
+        rb"element vertex \d+", b"element vertex 1000000000000", b), r"floor\.ply: "),
+}
+
+
+@pytest.fixture(scope="module")
+def box(tmp_path_factory):
+    from engine.synthetic import box_room
+
+    return box_room(tmp_path_factory.mktemp("faults") / "box")
+
+
+@pytest.mark.parametrize("case", list(_BAD_INPUTS))
+def test_bad_input_files_exit_2_with_one_line(box, tmp_path, capsys, case):
+    import shutil
+
+    name, damage, expect = _BAD_INPUTS[case]
+    folder = tmp_path / "scene"
+    shutil.copytree(box, folder)
+    f = folder / name
+    f.write_bytes(damage(f.read_bytes()))
+    assert main(["info", str(folder)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err, err
+    assert err.startswith("isac-twin: error: ") and re.search(expect, err), err

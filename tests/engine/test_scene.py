@@ -113,3 +113,46 @@ def test_content_hash_is_cached_until_an_edit(tmp_path):
     assert h1 != h0
     scene.set_material("floor", "brick")
     assert scene.content_hash() not in (h0, h1)
+
+
+def _fifo(folder):
+    import os
+
+    os.mkfifo(folder / "meshes" / "pipe.ply")
+    return "meshes/pipe.ply"
+
+
+def _link_out(folder):
+    target = folder.parent / "elsewhere.ply"
+    target.write_bytes((folder / "meshes" / "ceiling.ply").read_bytes())
+    (folder / "meshes" / "link.ply").symlink_to(target)
+    return "meshes/link.ply"
+
+
+@pytest.mark.parametrize("path, reason", [
+    (lambda f: "/dev/zero", "absolute paths are not allowed"),
+    (lambda f: str((f / "meshes" / "ceiling.ply").resolve()), "absolute paths are not allowed"),
+    (lambda f: "../room/meshes/ceiling.ply", "'..' is not allowed"),
+    (lambda f: "meshes/../meshes/ceiling.ply", "'..' is not allowed"),
+    (_link_out, "leaves the scene folder"),
+    (_fifo, "not a regular file"),
+])
+def test_scene_mesh_paths_stay_in_the_folder(folder, path, reason):
+    """Issue 22: a scene.xml naming /dev/zero or a FIFO hung ``info`` and ``trace``;
+    absolute and ``..`` paths read anything on the host. One line naming the files."""
+    name = path(folder)
+    _xml_edit(folder, 'value="meshes/ceiling.ply"', f'value="{name}"')
+    with pytest.raises(ConfigError) as err:
+        load_scene(folder, load_sionna=False)
+    msg = str(err.value)
+    assert "\n" not in msg and "scene.xml: object 'ceiling'" in msg and reason in msg
+
+
+def test_oversized_mesh_is_refused_before_reading(tmp_path):
+    from engine.meshes import MeshError
+
+    big = tmp_path / "big.ply"
+    with big.open("wb") as f:
+        f.truncate(2000)
+    with pytest.raises(MeshError, match=r"big\.ply: 2000 bytes exceeds the mesh size limit of 1000"):
+        read_ply(big, max_bytes=1000)

@@ -102,8 +102,25 @@ def test_edits_change_the_next_trace_and_flag_stale_databases(lab, caplog):
 
 def test_commands_and_bad_input(lab):
     tw = Twin.from_scene(lab, seed=1, phy=False)
-    res = tw.command(Command("step"))
-    assert res.step == 0
+    # run/pause/step are the twin's own run state (the live server reads it)
+    tw.command(Command("step", {"count": 3}))
+    assert (tw.running, tw.pending_steps) == (False, 3)
+    assert tw.step().step == 0 and tw.pending_steps == 2
+    tw.command(Command("pause"))
+    assert tw.pending_steps == 0  # pause cancels the steps still pending
+    tw.command(Command("run"))
+    assert tw.running
+    for bad, match in ((Command("step", {"count": "abc"}), "count: expected an integer"),
+                       (Command("step", {"count": 10**9}), "count: expected an integer"),
+                       (Command("teleop", {"robot": "robot1", "linear": float("nan"),
+                                           "angular": 0}), "linear: expected a number"),
+                       (Command("teleop", {"robot": "r9", "linear": 0, "angular": 0}),
+                        "robot: expected one of robot1"),
+                       (Command("set_goal", {"robot": "robot1", "goal": [1e308, 0]}),
+                        "goal: expected \\[x, y\\] inside the room")):
+        with pytest.raises(ValueError, match=match):
+            tw.command(bad)
+    assert tw.running and tw.pending_steps == 0  # a rejected command changed nothing
     tw.command(Command("teleop", {"robot": "robot1", "linear": 0.1, "angular": 0.0}))
     tw.step()
     r = tw.step()
@@ -191,3 +208,43 @@ def test_hooks_state_source_and_trace_schedule(lab):
     r = tw.step()
     assert r.links and len(cmd.drain()) == 1
     assert not np.allclose(r.robots["robot1"].pose[:2], [1.10, 1.5])
+
+
+def test_add_edits_read_no_host_file(tmp_path, lab):
+    """Issue 22: an ``add`` edit's mesh comes from a regular PLY inside the scene folder
+    (relative path) or an asset folder; a device, FIFO, absolute or ``..`` path, a
+    symbolic link out of the folder, a missing or oversized file are all refused with
+    the same message (it reveals nothing about the host), at once, and nothing is read
+    from a device (before, ``/dev/zero`` grew the engine by 2.4 GB and a FIFO hung it)."""
+    import os
+    import shutil
+
+    from engine import twin as twin_mod
+
+    folder = tmp_path / "lab"
+    shutil.copytree(lab, folder)
+    meshes = folder / "meshes"
+    good = next(meshes.glob("*.ply"))
+    os.mkfifo(meshes / "fifo.ply")
+    (meshes / "out.ply").symlink_to(tmp_path / "outside.ply")
+    shutil.copy(good, tmp_path / "outside.ply")
+    assets = tmp_path / "assets"
+    assets.mkdir()
+    shutil.copy(good, assets / "box.ply")
+    tw = Twin.from_scene(folder, seed=1, phy=False, asset_dirs=[assets])
+    messages = set()
+    for path in ("/dev/zero", str(meshes / "fifo.ply"), "meshes/fifo.ply", "/etc/passwd",
+                 "/no/such/file.ply", "../lab/meshes/" + good.name, "meshes/out.ply",
+                 str(good), "meshes/missing.ply", "twin.toml"):
+        with pytest.raises(ValueError) as err:
+            tw.apply_edit(Edit(op="add", target="box", material="wood", mesh_file=path))
+        messages.add(str(err.value))
+    assert messages == {"edit add 'box': mesh_file: expected a PLY file inside the scene "
+                        "folder (a relative path) or an asset folder, at most "
+                        f"{twin_mod.MAX_EDIT_MESH_BYTES} bytes"}
+    tw.apply_edit(Edit(op="add", target="box", material="wood",
+                       mesh_file="meshes/" + good.name))
+    tw.apply_edit(Edit(op="add", target="box2", material="wood",
+                       mesh_file=str(assets / "box.ply")))
+    tw.step()
+    assert {"box", "box2"} <= set(tw.scene.objects)

@@ -35,11 +35,11 @@ def box_scene_dir(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def box_twin_factory(box_scene_dir):
-    """Builds fresh LineTwins on the box room (real Sionna tracing)."""
-    from engine.live.line_twin import LineTwin
+    """Builds fresh :class:`engine.twin.Twin` s on the box room (real Sionna tracing, PHY)."""
+    from engine.twin import Twin
 
     def make(**kw):
-        return LineTwin.from_scene(box_scene_dir, **kw)
+        return Twin.from_scene(box_scene_dir, **kw)
 
     return make
 

@@ -90,7 +90,7 @@ def test_poses_rays_and_metrics_arrive_and_match_the_engine(lab):
     p = scene.isac_live
     tick_until(s, lambda: s.client.connected and s.applied["scene"], what="the scene")
     assert p.scene_name == "aces_lab" and "Lab_Wall_2" in s.tracker.tracked
-    # drive the lab's free circle (engine.twin.Twin; the LineTwin stand-in drives anyway)
+    # drive the lab's free circle
     s.send_command("set_path", robot="robot1",
                    path={"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5})
     s.send_command("run")
@@ -149,9 +149,22 @@ def test_an_edit_in_blender_changes_the_engines_next_paths(lab):
 
 
 def test_engine_killed_blender_stays_responsive_and_reconnects(lab):
+    """... and one truth after the restart (issue 22): a chair moved in Blender and
+    applied by the engine, then the engine killed and started again with the original
+    room: the add-on sees the engine announce the room it baselined, sends its edits
+    again and says so in the panel (before, the new engine traced the original room
+    while Blender showed the moved chair, and nothing warned)."""
     s, _ = lab
     c = s.client
     tick_until(s, lambda: c.connected)
+    chair = bpy.data.objects["Chair_1"]
+    chair.location.x += 0.3
+    bpy.context.view_layer.update()
+    h_prev = s.engine_scene_hash
+    s.tick()  # the tracker sends the move
+    s.send_command("step")
+    tick_until(s, lambda: s.engine_scene_hash != h_prev, what="the chair's move applied")
+    h_edited = s.engine_scene_hash
     port = c.port
     s.engine.proc.kill()
     s.engine.proc.wait(10)
@@ -169,6 +182,9 @@ def test_engine_killed_blender_stays_responsive_and_reconnects(lab):
         n = s.applied["state"]
         tick_until(s, lambda: c.connected and c.connects == 2 and s.applied["state"] > n + 2,
                    what="reconnect")
+        # the new engine got every edit made here again: it traces the room Blender shows
+        tick_until(s, lambda: s.engine_scene_hash == h_edited, what="the edits re-sent")
+        assert "Chair_1" in s.notice and "sent again" in s.scene.isac_live.last_error
         # a viewer that leaves leaves the engine running
         c.disconnect()
         time.sleep(1.0)

@@ -95,7 +95,7 @@ def test_paths_state_metrics_are_applied(scene):
 def test_edit_tracker_move_rotate_material_remove(scene):
     from mathutils import Vector
 
-    from addon import live_view, materials, modelling
+    from addon import live_view, materials, modelling, wire
 
     box = modelling.add_furniture("table", (2.0, 1.0, 0.0), 0.0, scene=scene)
     materials.tag_objects([box], "wood", 0.05)
@@ -128,7 +128,8 @@ def test_edit_tracker_move_rotate_material_remove(scene):
     bpy.context.view_layer.update()
     (e,) = tr.poll(scene)
     assert (e["op"], e["target"], e["material"]) == ("add", rack.name, "metal")
-    assert open(e["mesh_file"], "rb").read(3) == b"ply"
+    mesh = wire.edit_mesh(e)  # the mesh travels in the message, not as a host path
+    assert mesh.startswith(b"ply") and "mesh_file" not in e
     assert tr.poll(scene) == [] and rack.name in tr.tracked
 
 
@@ -270,3 +271,52 @@ def test_radar_detections_and_tracks_are_drawn(scene):
     bad = dict(msg, tracks=[{"id": 1, "position": [1.0]}])
     assert "tracks" in wire.validate(bad, "e2v")
     live_view.clear(scene)
+
+
+def test_no_remote_connection_while_online_access_is_off(scene):
+    """Issue 22: Blender's online-access setting is honoured: a remote engine is refused
+    with the reason in the panel (this bpy module runs with online access off); an
+    engine on this machine is always reachable."""
+    from addon import live
+
+    assert bpy.app.online_access is False
+    with pytest.raises(ValueError, match="online access is off"):
+        live.open_session(scene, "192.0.2.7", 8765)
+    assert scene.isac_live.connection == "refused"
+    assert "online access is off" in scene.isac_live.last_error
+    assert live.network_refusal("127.0.0.1") is None and live.network_refusal("::1") is None
+    assert live.network_refusal("localhost") is None
+    assert live.network_refusal("192.0.2.7", online_access=True) is None
+    assert live.session() is None  # nothing was opened
+
+
+def test_edit_tracker_resends_every_edit_since_the_baseline(scene):
+    """After an engine restart (issue 22): moved, re-materialed, removed and added objects
+    are all sent again by the next poll, and only once."""
+    from addon import live_view, materials, modelling
+
+    a = modelling.add_furniture("table", (2.0, 1.0, 0.0), 0.0, scene=scene)
+    b = modelling.add_furniture("chair", (1.0, 2.0, 0.0), 0.0, scene=scene)
+    c = modelling.add_furniture("chair", (3.0, 2.0, 0.0), 0.0, scene=scene)
+    materials.tag_objects([a, b, c], "wood", 0.05)
+    bpy.context.view_layer.update()
+    from addon.exporter import safe_name
+
+    tr = live_view.EditTracker()
+    tr.baseline(scene, {safe_name(o.name) for o in (a, b, c)}, set())
+    a.location.x += 1.0
+    materials.tag_objects([b], "metal", 0.01)
+    c_name = safe_name(c.name)  # the wire name
+    bpy.data.objects.remove(c)
+    rack = modelling.add_furniture("rack", (1.0, 1.0, 0.0), 0.0, scene=scene)  # tagged metal
+    bpy.context.view_layer.update()
+    first = {(e["op"], e["target"]) for e in tr.poll(scene)}
+    assert first == {("move", a.name), ("material", b.name), ("remove", c_name),
+                     ("add", rack.name)}
+    assert tr.poll(scene) == []
+    names = tr.resend()
+    assert set(names) == {a.name, b.name, c_name, rack.name}
+    again = tr.poll(scene)
+    assert {(e["op"], e["target"]) for e in again} == first
+    assert next(e for e in again if e["op"] == "add")["mesh_ply"]
+    assert tr.poll(scene) == []

@@ -78,10 +78,10 @@ def test_engine_and_addon_share_one_definition(wire):
      "field 'step' must be an integer"),
     (b'{"type": "state", "step": 1, "time_s": 0}', "invalid", "field 'robots' missing"),
     (b'{"type": "state", "step": 1, "time_s": 0, "robots": [{"name": "r", "pose": [1, 2],'
-     b' "velocity": [0, 0]}]}', "invalid", "a list of 6 numbers"),
+     b' "velocity": [0, 0]}]}', "invalid", "a list of 6 finite numbers"),
     (b'{"type": "edit", "op": "explode", "target": "x"}', "invalid", "field 'op' must be one of"),
     (b'{"type": "edit", "op": "move", "target": "x", "position": [1, "a", 3]}', "invalid",
-     "field 'position' must be a list of 3 numbers"),
+     "field 'position' must be a list of 3 finite numbers"),
     (b'{"type": "command", "op": "run", "args": []}', "invalid", "field 'args' must be an object"),
     (b'{"type": "hello", "protocol": [1, 0], "role": "viewer", "capabilities": "all"}',
      "invalid", "field 'capabilities' must be a list"),
@@ -128,8 +128,11 @@ def test_paths_point_count_must_match_interactions(wire):
 def test_encode_refuses_invalid_nan_and_oversized(wire):
     with pytest.raises(wire.WireError, match="field 'step' missing"):
         wire.encode({"type": "paths", "links": []})
+    nan = {"type": "status", "running": True, "step": 1, "rate_hz": float("nan")}
+    with pytest.raises(wire.WireError, match="'rate_hz' must be a finite number, got NaN"):
+        wire.encode(nan)
     with pytest.raises(wire.WireError, match="cannot encode"):
-        wire.encode({"type": "status", "running": True, "step": 1, "rate_hz": float("nan")})
+        wire.encode(nan, check=False)
     with pytest.raises(wire.WireError, match="exceeds the maximum"):
         wire.encode(wire.error("x", "y" * 1000), max_frame=100)
     assert wire.finite_or_none(float("inf")) is None and wire.finite_or_none(2) == 2.0
@@ -148,3 +151,60 @@ def test_frames_are_compact_json(wire):
     n = int.from_bytes(frame[:4], "big")
     assert n == len(frame) - 4
     assert json.loads(frame[4:]) == {"type": "command", "op": "run", "args": {}}
+
+
+# --------------------------------------------------------------------------- attacks (issue 22)
+# Each payload once crashed a reader (RecursionError, ValueError, OverflowError escaping
+# Decoder.feed or check_version) or was accepted with a non-finite number in it.
+
+_DEEP = b"[" * 2000 + b"]" * 2000
+_ATTACKS = {
+    "deep array": _DEEP,
+    "deep object": b'{"a":' * 2000 + b"1" + b"}" * 2000,
+    "deep field in a hello": (b'{"type": "hello", "protocol": [1, 0], "role": "viewer", '
+                              b'"name": "x", "capabilities": ' + _DEEP + b"}"),
+    "too deep for the schema": b'{"type": "command", "op": "run", "args": ' + b'{"a":' * 40
+                               + b"1" + b"}" * 40 + b"}",
+    "NaN version": b'{"type": "hello", "protocol": [NaN, 0], "role": "viewer"}',
+    "Infinity version": b'{"type": "hello", "protocol": [Infinity, 0], "role": "viewer"}',
+    "-Infinity version": b'{"type": "hello", "protocol": [1, -Infinity], "role": "viewer"}',
+    "1e400 version": b'{"type": "hello", "protocol": [1e400, 0], "role": "viewer"}',
+    "huge int version": b'{"type": "hello", "protocol": [' + b"9" * 5000 + b', 0], '
+                        b'"role": "viewer"}',
+    "float version": b'{"type": "hello", "protocol": [1.5, 0], "role": "viewer"}',
+    "1e400 position": b'{"type": "edit", "op": "move", "target": "x", "position": [1e400, 0, 0]}',
+    "huge int position": (b'{"type": "edit", "op": "move", "target": "x", "position": ['
+                          + b"1" * 400 + b', 0, 0]}'),
+    "NaN thickness": b'{"type": "edit", "op": "material", "target": "x", "thickness": NaN}',
+}
+
+
+@pytest.mark.parametrize("name", list(_ATTACKS))
+def test_attack_frames_are_rejected_and_the_stream_survives(wire, name):
+    good = wire.command("pause")
+    dec = wire.Decoder("v2e", peer="attacker")
+    out = dec.feed(wire.frame_raw(_ATTACKS[name]) + wire.encode(good))
+    assert out == [good]
+    assert sum(dec.rejections.values()) == 1 and dec.buffered == 0
+    assert dec.feed(wire.encode(good)) == [good]  # nothing left behind in the buffer
+
+
+def test_every_accepted_hello_has_a_checkable_version(wire):
+    for proto in ([1, 0], [2, 7], [0, 0]):
+        (msg,) = wire.Decoder("v2e").feed(wire.frame_raw(json.dumps(
+            {"type": "hello", "protocol": proto, "role": "viewer"}).encode()))
+        assert (wire.check_version(msg) is None) == (proto[0] == wire.PROTOCOL_VERSION[0])
+
+
+
+def test_the_engine_stream_is_parsed_fast_but_still_totally(wire):
+    """e2v (the add-on reading ``paths``) skips the strict per-number parse; NaN/Infinity,
+    deep nesting and an overflowing scalar field are refused all the same."""
+    good = wire.command("pause")
+    status = b'{"type": "status", "running": true, "step": 1, "rate_hz": %s}'
+    for payload in (status % b"NaN", status % b"1e400", status % b"-Infinity", _DEEP * 1):
+        dec = wire.Decoder("e2v")
+        assert dec.max_depth is None
+        dec.direction = None  # accept the v2e command that follows
+        assert dec.feed(wire.frame_raw(payload) + wire.encode(good)) == [good]
+        assert sum(dec.rejections.values()) == 1 and dec.buffered == 0

@@ -116,3 +116,49 @@ def test_bad_files(tmp_path, lab_db):
     save_database(bad, tmp_path / "v.npz")
     with pytest.raises(ValueError, match="version 99"):
         load_database(tmp_path / "v.npz")
+
+
+@pytest.mark.parametrize("damage, reason", [
+    (lambda m, a: m.pop("max_paths"), "metadata key 'max_paths' missing"),
+    (lambda m, a: m.update(shape="7x9"), "metadata 'shape': expected"),
+    (lambda m, a: m.update(ap_names=["AP1"]), "ap_names for"),
+    (lambda m, a: a.update(points=a["points"][:10]), "array 'points': shape \\[10, 3\\]"),
+    (lambda m, a: a.update(power=a["power"][:, :, :-1]), "array 'power': shape"),
+    (lambda m, a: a.update(free=a["free"].astype(np.float32)), "array 'free': dtype"),
+])
+def test_malformed_cache_is_refused_with_a_reason_and_rebuilt(tmp_path, lab, lab_db, damage,
+                                                               reason, caplog):
+    """Issue 22: metadata missing a key or of the wrong type gave a traceback; a points
+    array cut to 10 rows was accepted. Each is refused naming the file and what is wrong,
+    and cached_database rebuilds instead of using it."""
+    import logging
+
+    meta, arrays = dict(lab_db.meta), dict(lab_db.arrays)
+    damage(meta, arrays)
+    scene = load_scene(lab)
+    path = cache_path(scene, 0.4, tmp_path)
+    save_database(dataclasses.replace(lab_db, meta=meta, arrays=arrays), path)
+    with pytest.raises(ValueError, match=reason):
+        load_database(path)
+    with caplog.at_level(logging.WARNING):
+        db = cached_database(scene, spacing=0.4, cache_dir=tmp_path, max_paths=16, verify=0)
+    assert any(reason.split(":")[0].strip("\\[") in r.getMessage() and "rebuilding" in
+               r.getMessage() for r in caplog.records)
+    assert load_database(db.path).arrays["points"].shape == lab_db.arrays["points"].shape
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # numpy's zip
+def test_cache_writes_are_atomic(tmp_path, lab_db):
+    """A write that fails half-way leaves the old file whole and no temporary behind
+    (before, the file was written in place: a crash left half a database)."""
+    from engine.npzfile import write_npz
+
+    class DiskFull:  # fails when np.savez reaches it, after the other arrays are written
+        def __array__(self, *args, **kwargs):
+            raise OSError("no space left on device")
+
+    path = save_database(lab_db, tmp_path / "db.npz").path
+    before = path.read_bytes()
+    with pytest.raises(OSError, match="no space left"):
+        write_npz(path, lab_db.meta, dict(lab_db.arrays, extra=DiskFull()))
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["db.npz"]
