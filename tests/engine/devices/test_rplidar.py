@@ -350,3 +350,121 @@ def test_laser_scan_source_feeds_the_emulator_from_a_simulated_scan():
     angles = s.angle_min + np.arange(len(s.ranges)) * s.angle_increment
     assert np.allclose(s.ranges[np.abs(angles - math.pi / 2) < 1.0], 2.5, atol=1e-3)
     assert np.allclose(s.ranges[np.abs(angles - 3 * math.pi / 2) < 1.0], 1.5, atol=1e-3)
+
+
+# ----------------------------------------------------------------------------- line noise (issue 21)
+# A spiral room: the range (m) says at which ROS angle it was measured, so a
+# beam published at the wrong angle, or a garbage range, is caught exactly.
+SPIRAL_MIN, SPIRAL_SPAN = 0.5, 1.0
+#: deg of angle one quantum of range stands for: express ranges come in 1 mm
+#: steps, so +-0.5 mm of the 1 m spiral is +-0.18 deg (standard: 0.25 mm steps).
+RANGE_QUANTUM_DEG = 360 * 0.0005 / SPIRAL_SPAN
+
+
+def spiral_source(angles: np.ndarray) -> np.ndarray:
+    """0.5 m at ROS angle 0 growing to 1.5 m at 2 pi (500..1,500 mm)."""
+    return SPIRAL_MIN + SPIRAL_SPAN * np.mod(angles, 2 * math.pi) / (2 * math.pi)
+
+
+def spiral_angle_errors(scan) -> tuple[np.ndarray, np.ndarray]:
+    """(angle errors (deg) of the measured beams, ranges outside what the device sent)."""
+    r = np.asarray(scan.ranges, dtype=float)
+    ang = scan.angle_min + np.arange(len(r)) * scan.angle_increment
+    meas = np.isfinite(r)
+    truth = (r[meas] - SPIRAL_MIN) / SPIRAL_SPAN * 2 * math.pi
+    err = np.degrees(np.abs((ang[meas] - truth + math.pi) % (2 * math.pi) - math.pi))
+    outside = r[meas][(r[meas] < SPIRAL_MIN - 1e-3) | (r[meas] > SPIRAL_MIN + SPIRAL_SPAN + 1e-3)]
+    return err, outside
+
+
+def assert_scans_truthful(scans, tol_deg: float, per_turn: float | None = None) -> None:
+    """Every measured beam at its true angle (within ``tol_deg``), no invented range,
+    and (with ``per_turn``) every scan on the device's grid (not stretched)."""
+    bad = []
+    for k, s in enumerate(scans):
+        err, outside = spiral_angle_errors(s)
+        worst = float(err.max()) if err.size else 0.0
+        if worst > tol_deg or outside.size:
+            bad.append(f"scan {k}: {int((err > tol_deg).sum())} beams off (worst {worst:.1f} deg), "
+                       f"{outside.size} ranges the device never sent {outside[:3]}")
+        if per_turn is not None and abs(len(s.ranges) - per_turn) > 2:
+            bad.append(f"scan {k}: {len(s.ranges)} beams, the device makes {per_turn:.1f} per turn")
+    assert not bad, f"{len(bad)} problems in {len(scans)} scans:\n" + "\n".join(bad[:10])
+
+
+def test_assembler_never_stretches_a_split_turn():
+    """A garbage node that passes the check bits with the start flag set, a few
+    nodes after the true start: the turn must not be split and the stub spread
+    over 0..2 pi; every beam stays at its measured angle."""
+    step = 360 / 364
+    dev = np.arange(364) * step
+    dist = spiral_source(rp.device_to_ros_angle(dev)) * 1000
+    turn = [rp.ScanNode(a, d, 47, i == 0) for i, (a, d) in enumerate(zip(dev, dist))]
+    fake = rp.ScanNode(float(dev[40] + 0.3), 9489.0, 12, True)  # garbage: S set, range never sent
+    stats = rp.LidarStats()
+    asm = rp.ScanAssembler(stats=stats)
+    scans = asm.add(turn[:41] + [fake] + turn[41:] + turn + turn[:1], 0.0)
+    assert len(scans) == 2
+    assert_scans_truthful(scans, tol_deg=step / 2 + 0.02, per_turn=364)
+    assert stats.nodes_bad >= 1
+
+
+def test_missing_beams_are_nan_and_no_return_is_inf():
+    """REP-117: a beam the device measured without a return is +inf; a beam lost
+    on the line is NaN at its own angle, never closed up by stretching."""
+    step = 360 / 364
+    dev = np.arange(364) * step
+    dist = spiral_source(rp.device_to_ros_angle(dev)) * 1000
+    dist[10:13] = 0.0  # measured, no return
+    turn = [rp.ScanNode(a, d, 47 if d else 0, i == 0) for i, (a, d) in enumerate(zip(dev, dist))]
+    lost = set(range(100, 140))
+    stats = rp.LidarStats()
+    asm = rp.ScanAssembler(stats=stats)
+    scans = asm.add([n for i, n in enumerate(turn) if i not in lost] + turn[:1], 0.0)
+    assert len(scans) == 1
+    s = scans[0]
+    assert_scans_truthful(scans, tol_deg=step / 2 + 0.02, per_turn=364)
+    assert np.isnan(s.ranges).sum() == len(lost) and np.isposinf(s.ranges).sum() == 3
+    assert stats.beams_missing == len(lost)
+
+
+def _scans_under_fault(mode: str, kind: str, count: int, every_s: float) -> tuple[list, rp.RPLidar]:
+    got: list = []
+    with EmulatedRPLidar(spiral_source) as emu:
+        lidar = rp.RPLidar(emu.url, lambda t, m: got.append(m), scan_mode=mode)
+        lidar.start()
+        try:
+            assert lidar.wait_published("scan", 1, 3)
+            for _ in range(count):
+                emu.inject_fault(kind)
+                time.sleep(every_s)
+            time.sleep(0.4)  # the turn in progress
+        finally:
+            lidar.stop()
+    return got, lidar
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["standard", "express"])
+def test_garbage_bursts_never_publish_a_wrong_beam(mode):
+    """50 bursts of 37 random bytes during a scan (the issue's measurement): no
+    published beam more than half a beam step from its true angle, no range the
+    device did not send, and the driver says how many nodes it dropped."""
+    scans, lidar = _scans_under_fault(mode, "garbage", 50, 0.04)
+    per_turn = (2000 if mode == "standard" else 4000) / 5.5
+    assert len(scans) >= 8, f"only {len(scans)} scans published"
+    assert_scans_truthful(scans, tol_deg=360 / per_turn / 2 + RANGE_QUANTUM_DEG + 0.02, per_turn=per_turn)
+    st = lidar.stats
+    assert st.frames_bad > 0 and st.bytes_dropped > 0
+    assert st.scans_published == len(scans)
+    assert st.beams_missing > 0  # bursts cost beams, published as NaN (or whole turns dropped)
+
+
+@pytest.mark.slow
+def test_truncated_nodes_are_dropped_not_published():
+    """10 nodes cut to 2 bytes: no corrupt node published, every scan on the device's grid."""
+    scans, lidar = _scans_under_fault("standard", "truncate", 10, 0.1)
+    per_turn = 2000 / 5.5
+    assert len(scans) >= 8
+    assert_scans_truthful(scans, tol_deg=360 / per_turn / 2 + RANGE_QUANTUM_DEG + 0.02, per_turn=per_turn)
+    assert lidar.stats.nodes_bad > 0
