@@ -4,18 +4,25 @@
 through what a real robot does to it and reports each step:
 
 1. ``data``: it opens the port and publishes every declared topic;
-2. ``garbage`` / ``corrupt`` / ``truncate``: after each injected fault it
-   keeps publishing, and corrupt/truncated frames show up in
+2. ``garbage`` / ``corrupt`` / ``truncate``: after ``bursts`` injected faults
+   of each kind it keeps publishing, and corrupt/truncated frames show up in
    ``stats.frames_bad`` (or ``timeouts``/``bytes_dropped``), not as a crash;
 3. ``unplug``: when the port disappears it notices (``stats.disconnects``),
    retries with backoff, and publishes again after the device comes back;
 4. ``silent``: when the device stops answering it notices and recovers;
 5. ``types``: everything it published is on a declared topic with the
    declared message type;
-6. ``stop``: its thread ends within the timeout.
+6. ``truthful``: everything it published -- also during the faults -- is what
+   the device measured: the emulator's ``check_message(topic, msg)`` (which
+   knows the truth) returns ``""`` for every message. A driver that spreads a
+   partial turn over 360 deg or publishes a garbage frame fails here even if
+   its counters moved;
+7. ``stop``: its thread ends within the timeout.
 
 The emulator must offer ``start()``, ``url``, ``unplug()``, ``replug()``,
-``silent`` and ``inject_fault(kind)`` (see :class:`~engine.devices.emulated.EmulatedSerialDevice`).
+``silent``, ``inject_fault(kind)`` (see :class:`~engine.devices.emulated.EmulatedSerialDevice`)
+and ``check_message(topic, msg) -> str`` (what is wrong with ``msg``; ``""``
+if nothing; an emulator without it fails the ``truthful`` step).
 """
 
 from __future__ import annotations
@@ -76,7 +83,7 @@ def _wait(cond: Callable[[], bool], timeout: float, poll: float = 0.01) -> bool:
 
 
 def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float = 5.0,
-                 faults: tuple[str, ...] = ("garbage", "corrupt", "truncate"),
+                 faults: tuple[str, ...] = ("garbage", "corrupt", "truncate"), bursts: int = 5,
                  unplug_s: float = 0.3, check_silent: bool = True) -> ConformanceReport:
     """Run the conformance steps; never raises for a failing driver (see the report).
 
@@ -85,6 +92,7 @@ def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float
         emulator: emulated device (started here if it is not running).
         timeout: s allowed for each step to show its effect.
         faults: fault kinds to inject, each must be supported by the emulator.
+        bursts: faults of each kind injected, 20 ms apart.
         unplug_s: s the device stays unplugged (and silent).
         check_silent: also run the "device stops answering" step.
     """
@@ -126,7 +134,10 @@ def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float
             def fault(kind: str = kind) -> tuple[bool, str]:
                 bad0 = stats.frames_bad + stats.timeouts + stats.bytes_dropped
                 before = counts()
-                emulator.inject_fault(kind)
+                for k in range(bursts):
+                    if k:
+                        time.sleep(0.02)
+                    emulator.inject_fault(kind)
                 ok = _wait(more_on_all(before, 3), timeout)
                 bad = stats.frames_bad + stats.timeouts + stats.bytes_dropped - bad0
                 alive = driver.running
@@ -173,6 +184,21 @@ def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float
             return not wrong, f"{len(msgs)} messages, {len(wrong)} off-contract {wrong[:3]}"
 
         step("types", types)
+
+        def truthful() -> tuple[bool, str]:
+            check = getattr(emulator, "check_message", None)
+            if check is None:
+                return False, f"{type(emulator).__name__} offers no check_message(topic, msg): nothing verified"
+            with rec.lock:
+                msgs = list(rec.messages)
+            wrong = []
+            for topic, msg in msgs:
+                problem = check(topic, msg)
+                if problem:
+                    wrong.append(f"{topic}: {problem}")
+            return not wrong, f"{len(msgs)} messages, {len(wrong)} not what the device measured {wrong[:3]}"
+
+        step("truthful", truthful)
     finally:
         def stop() -> tuple[bool, str]:
             driver.stop(timeout)

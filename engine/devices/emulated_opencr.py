@@ -32,6 +32,7 @@ import numpy as np
 
 from engine.devices import opencr as oc
 from engine.devices.emulated import EmulatedSerialDevice
+from engine.msgs import BatteryState, Imu, Odometry
 
 log = logging.getLogger(__name__)
 
@@ -228,6 +229,28 @@ class EmulatedOpenCR(EmulatedSerialDevice):
             raise ValueError(f"emulated OpenCR: unknown fault kind {kind!r}")
         with self._lock:
             self._faults.append(kind)
+
+    # -- truth ------------------------------------------------------------------------------
+    def check_message(self, topic: str, msg: object) -> str:
+        """What is wrong with a message a driver published from this board (``""``
+        if nothing), for the conformance checker: every number finite, the
+        battery voltage the one this board reports (V, 0.01 V steps), the IMU
+        orientation a unit quaternion."""
+        if isinstance(msg, BatteryState):
+            if not abs(msg.voltage - self.battery_voltage) <= 0.006:
+                return f"battery {msg.voltage!r} V, the board reports {self.battery_voltage:.2f} V"
+            return ""
+        if isinstance(msg, Imu):
+            vals = np.concatenate([msg.orientation, msg.angular_velocity, msg.linear_acceleration])
+            if not np.all(np.isfinite(vals)):
+                return f"non-finite IMU values {vals}"
+            if abs(float(np.linalg.norm(msg.orientation)) - 1.0) > 1e-3:
+                return f"IMU orientation {msg.orientation} is not a unit quaternion"
+            return ""
+        if isinstance(msg, Odometry):
+            vals = np.concatenate([msg.pose.position, msg.pose.orientation, msg.twist.linear, msg.twist.angular])
+            return "" if np.all(np.isfinite(vals)) else f"non-finite odometry {vals}"
+        return f"unexpected message {type(msg).__name__}"
 
     # -- physics ---------------------------------------------------------------------------
     def _advance(self, now: float) -> None:

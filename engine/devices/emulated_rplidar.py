@@ -23,6 +23,7 @@ sample clock produces them (``sample_rate_hz`` standard,
 from __future__ import annotations
 
 import logging
+import math
 import struct
 from typing import Callable
 
@@ -277,6 +278,52 @@ class EmulatedRPLidar(EmulatedSerialDevice):
         self._sample_idx += rp.NODES_PER_CAPSULE
         self.nodes_sent += rp.NODES_PER_CAPSULE
         self.send(cap)
+
+    # -- truth ------------------------------------------------------------------------
+    def check_message(self, topic: str, msg: object, angle_tol_deg: float = 0.2,
+                      range_tol_m: float = 0.002) -> str:
+        """What is wrong with a ``LaserScan`` a driver published from this device
+        (``""`` if nothing), judged against ``scan_source`` (for the conformance
+        checker; the source must not have changed since the scan was taken).
+
+        Each finite beam at ``angle_min + i * angle_increment`` must lie between
+        the smallest and largest true range within half a beam step plus
+        ``angle_tol_deg`` of its angle (plus ``range_tol_m``); a ``+inf`` beam
+        needs a "no return" there; NaN (missing, REP-117) is always allowed.
+        Angles in the driver's frame are assumed to use this emulator's
+        ``angle_offset``.
+        """
+        if not isinstance(msg, LaserScan):
+            return f"expected a LaserScan, got {type(msg).__name__}"
+        r = np.asarray(msg.ranges, dtype=float)
+        if r.size == 0:
+            return "empty scan"
+        if not (math.isfinite(msg.angle_min) and math.isfinite(msg.angle_increment) and msg.angle_increment > 0):
+            return f"angle_min {msg.angle_min!r}, angle_increment {msg.angle_increment!r}"
+        if r.size * msg.angle_increment > 2 * math.pi + 1.5 * msg.angle_increment:
+            return f"{r.size} beams of {math.degrees(msg.angle_increment):.3f} deg span more than one turn"
+        if self.require_motor and not self.motor_on:
+            return ""
+        ang = msg.angle_min + np.arange(r.size) * msg.angle_increment
+        half = msg.angle_increment / 2 + math.radians(angle_tol_deg)
+        probe = ang[:, None] + np.linspace(-half, half, 9)[None, :]
+        truth = np.asarray(self.scan_source(np.mod(probe, 2 * math.pi).ravel()), dtype=float).reshape(probe.shape)
+        none = ~(np.isfinite(truth) & (truth > 0) & (truth * 1000.0 <= 16383.0))
+        t = np.where(none, np.nan, truth)
+        with np.errstate(all="ignore"):
+            lo, hi = np.nanmin(t, axis=1), np.nanmax(t, axis=1)
+        fin = np.isfinite(r)
+        with np.errstate(invalid="ignore"):
+            wrong = fin & ~((r >= lo - range_tol_m) & (r <= hi + range_tol_m))
+        wrong_inf = np.isposinf(r) & ~none.any(axis=1)
+        if np.isneginf(r).any():
+            return f"{int(np.isneginf(r).sum())} beams -inf: this device never reports 'too close'"
+        if wrong.any() or wrong_inf.any():
+            k = int(np.flatnonzero(wrong | wrong_inf)[0])
+            return (f"{int(wrong.sum())} beams with a range not measured at their angle, {int(wrong_inf.sum())} "
+                    f"'no return' where there is one; e.g. beam {k} at {math.degrees(ang[k]) % 360:.2f} deg: "
+                    f"{r[k]:.4f} m, true {lo[k]:.4f}..{hi[k]:.4f} m")
+        return ""
 
     @property
     def nominal_nodes_per_s(self) -> float:
