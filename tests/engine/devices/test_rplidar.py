@@ -177,8 +177,8 @@ def test_pyrplidar_gets_info_health_and_scans(emu):
     assert info.serialnumber == emu.info.serial_hex
     assert health.status == rp.STATUS_WARNING
     assert health.error_code == 0x0101  # (pyrplidar decodes it big-endian; symmetric value)
-    assert (rate.t_standard, rate.t_express) == (500, 250)
-    for nodes, per_turn in ((std, 2000 / 5.5), (exp, 4000 / 5.5)):
+    assert (rate.t_standard, rate.t_express) == (508, 254)  # an A1 on firmware 1.29
+    for nodes, per_turn in ((std, emu.sample_rate_hz / 5.5), (exp, emu.express_sample_rate_hz / 5.5)):
         assert len(nodes) == pytest.approx(per_turn, abs=3)
         ang = np.array([n.angle for n in nodes])
         dist = np.array([n.distance for n in nodes])
@@ -242,7 +242,7 @@ def test_driver_scans_ccw_laserscan(emu, mode):
     assert emu.motor_on  # DTR cleared through the pty:// handler
     assert len(scans) == 2 and stats.frames_bad == 0
     s = scans[1]
-    per_turn = (2000 if mode == "standard" else 4000) / 5.5
+    per_turn = (emu.sample_rate_hz if mode == "standard" else emu.express_sample_rate_hz) / 5.5
     assert len(s.ranges) == pytest.approx(per_turn, abs=3)
     # scan_time is the wall-clock duration of the turn as the driver saw it:
     # never much shorter than the emulator's 5.5 Hz turn, longer when the
@@ -298,11 +298,28 @@ def test_reset_banner_is_skipped():
     assert info.model == 0x18
 
 
+def test_pyrplidar_reads_the_scan_modes():
+    """GET_LIDAR_CONF (0x84): Slamtec's SDK (and so rplidar_ros) asks for the scan
+    modes on firmware >= 1.24; pyrplidar's independent client decodes them."""
+    with EmulatedRPLidar() as emu:
+        def client():
+            lidar = pyrplidar.PyRPlidar()
+            lidar.connect(port=emu.path, baudrate=115200, timeout=1)
+            try:
+                return lidar.get_scan_mode_count(), lidar.get_scan_mode_typical(), lidar.get_scan_modes()
+            finally:
+                lidar.disconnect()
+
+        count, typical, modes = run_with_timeout(client, 5)
+    assert count == 2 and typical == 1
+    assert [(m.name, m.us_per_sample / 256, m.max_distance >> 8, m.ans_type) for m in modes] == [
+        ("Standard", 508.0, 12, rp.ANS_TYPE_MEASUREMENT), ("Express", 254.0, 12, rp.ANS_TYPE_MEASUREMENT_CAPSULED)]
+
+
 def test_reset_command_and_unknown_payload_commands_are_ignored():
     with EmulatedRPLidar() as emu:
         port = serial.serial_for_url(emu.url, timeout=0.5)
         try:
-            port.write(rp.build_request(rp.CMD_GET_LIDAR_CONF, bytes(4)))
             port.write(rp.build_request(0x99, b"\x01\x02\x03"))
             port.write(bytes.fromhex("a5f0029402ff"))  # SET_MOTOR_PWM with a bad checksum
             port.write(rp.build_request(rp.CMD_GET_HEALTH))
@@ -310,7 +327,7 @@ def test_reset_command_and_unknown_payload_commands_are_ignored():
             assert desc.data_type == rp.ANS_TYPE_DEVHEALTH and port.read(3) == emu.health.to_bytes()
         finally:
             port.close()
-    assert rp.CMD_GET_LIDAR_CONF in emu.ignored_commands and 0x99 in emu.ignored_commands
+    assert 0x99 in emu.ignored_commands
     assert emu.stats.bad_requests >= 1
 
 
@@ -456,7 +473,7 @@ def test_garbage_bursts_never_publish_a_wrong_beam(mode):
     published beam more than half a beam step from its true angle, no range the
     device did not send, and the driver says how many nodes it dropped."""
     scans, lidar = _scans_under_fault(mode, "garbage", 50, 0.04)
-    per_turn = (2000 if mode == "standard" else 4000) / 5.5
+    per_turn = 1e6 / (508 if mode == "standard" else 254) / 5.5
     assert len(scans) >= 8, f"only {len(scans)} scans published"
     assert_scans_truthful(scans, tol_deg=360 / per_turn / 2 + RANGE_QUANTUM_DEG + 0.02, per_turn=per_turn)
     st = lidar.stats
@@ -469,7 +486,7 @@ def test_garbage_bursts_never_publish_a_wrong_beam(mode):
 def test_truncated_nodes_are_dropped_not_published():
     """10 nodes cut to 2 bytes: no corrupt node published, every scan on the device's grid."""
     scans, lidar = _scans_under_fault("standard", "truncate", 10, 0.1)
-    per_turn = 2000 / 5.5
+    per_turn = 1e6 / 508 / 5.5
     assert len(scans) >= 8
     assert_scans_truthful(scans, tol_deg=360 / per_turn / 2 + RANGE_QUANTUM_DEG + 0.02, per_turn=per_turn)
     assert lidar.stats.nodes_bad > 0
