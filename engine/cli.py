@@ -428,6 +428,8 @@ def cmd_robot(args) -> int:
     finally:
         rt.stop()
     print(f"isac-twin robot: stopped ({rt.stats})", flush=True)
+    for line in rt.device_summaries():
+        print(f"isac-twin robot:   {line}", flush=True)
     return 0
 
 

@@ -386,10 +386,17 @@ class RobotRuntime:
         for d in (self.oakd, self.lidar, self.opencr):
             if d is not None:
                 d.stop()
+                if not d.ever_connected:
+                    log.warning("%s: %s", self.config.name, d.summary())
         for e in reversed(self.emulators):
             e.stop()
         self.emulators = []
         self.transport.close()
+
+    def device_summaries(self) -> list[str]:
+        """One line per device driver: whether it ever connected, frames, messages."""
+        return [f"{name}: {d.summary()}" for name, d in (("OpenCR", self.opencr), ("RPLIDAR", self.lidar),
+                                                          ("OAK-D", self.oakd)) if d is not None]
 
     def __enter__(self) -> RobotRuntime:
         return self.start()

@@ -66,6 +66,9 @@ class DeviceDriver:
         stale_timeout: s without a valid frame before the device counts as lost.
         backoff_initial: s before the first reconnect attempt.
         backoff_max: s, cap of the doubling reconnect delay.
+        connect_warn_s: s after :meth:`start` without a connection before a
+            WARNING names the port and the last error (once; every further
+            failure stays at INFO).
     """
 
     #: topic -> message class published there.
@@ -79,13 +82,17 @@ class DeviceDriver:
         stale_timeout: float = 1.0,
         backoff_initial: float = 0.05,
         backoff_max: float = 2.0,
+        connect_warn_s: float = 3.0,
     ) -> None:
         self.url = url
         self.publish_fn: Publish = publish or _discard
         self.stale_timeout = stale_timeout
         self.backoff_initial = backoff_initial
         self.backoff_max = backoff_max
+        self.connect_warn_s = connect_warn_s
         self.stats = DriverStats()
+        self._started_at: float | None = None
+        self._warned_absent = False
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self._connected = False
@@ -114,11 +121,28 @@ class DeviceDriver:
     def connected(self) -> bool:
         return self._connected
 
+    @property
+    def ever_connected(self) -> bool:
+        return self.stats.connects > 0
+
+    def summary(self) -> str:
+        """One line for the end of a run: whether the device ever connected,
+        reconnects, frames, messages per topic, the last error."""
+        st = self.stats
+        if not st.connects:
+            return f"{self.url}: NEVER connected; last error: {st.last_error or 'none'}"
+        pub = ", ".join(f"{t}: {n}" for t, n in sorted(st.published.items())) or "nothing published"
+        return (f"{self.url}: connected {st.connects} time{'s' if st.connects > 1 else ''}, "
+                f"{st.disconnects} lost; frames {st.frames_ok} ok / {st.frames_bad} bad; {pub}"
+                + (f"; last error: {st.last_error}" if st.last_error else ""))
+
     def start(self) -> "DeviceDriver":
         """Start the read-loop thread (returns at once; connection is retried)."""
         if self.running:
             return self
         self._stop_evt.clear()
+        self._started_at = time.monotonic()
+        self._warned_absent = False
         self._thread = threading.Thread(target=self._run, name=f"{type(self).__name__}({self.url})", daemon=True)
         self._thread.start()
         return self
@@ -178,7 +202,13 @@ class DeviceDriver:
                     self._connect()
                 except Exception as exc:  # noqa: BLE001 - any failure means "retry later"
                     self.stats.last_error = f"{self.url}: connect failed: {exc}"
-                    log.info("%s; retry in %.2f s", self.stats.last_error, backoff)
+                    waited = time.monotonic() - (self._started_at or time.monotonic())
+                    if not self.stats.connects and not self._warned_absent and waited >= self.connect_warn_s:
+                        self._warned_absent = True
+                        log.warning("%s: never connected in %.1f s (%s); still retrying every <= %.1f s",
+                                    self.url, waited, exc, self.backoff_max)
+                    else:
+                        log.info("%s; retry in %.2f s", self.stats.last_error, backoff)
                     self._safe_disconnect()
                     self._stop_evt.wait(backoff)
                     backoff = min(backoff * 2, self.backoff_max)

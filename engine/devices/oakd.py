@@ -141,7 +141,8 @@ class OakD(DeviceDriver):
         found = dai.Device.getAllAvailableDevices()
         if not found:
             raise OakDNotFound(f"no OAK device found (depthai {dai.__version__}: getAllAvailableDevices() "
-                               "returned []); check the USB cable/udev rules, or use the emulated camera")
+                               "returned []); check the USB cable and the udev rule for vendor 03e7, or remove "
+                               "'oakd' from robot.toml to run without the camera")
         if not self.device_id:
             return found[0]
         for info in found:

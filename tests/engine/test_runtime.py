@@ -246,3 +246,23 @@ def test_twin_and_robot_runtime_in_two_processes(tmp_path):
     assert topics["/robot1/ground_truth"] > 20 and topics["/robot1/cmd_vel"] > 20
     scan = next(m for _, ch, _, m in decoded if ch.topic == "/robot1/real/scan")
     assert len(scan.ranges) > 100
+
+
+def test_runtime_says_which_device_never_connected(tmp_path, caplog):
+    """Serial ports that do not exist: the runtime keeps running, and at stop
+    a WARNING and the per-device summary say that neither device ever connected."""
+    import logging
+
+    cfg = robot_config_from_dict({"drivers": {"opencr": str(tmp_path / "ttyACM7"), "rplidar": str(tmp_path / "ttyUSB7")},
+                                  "network": {"listen": [f"tcp/127.0.0.1:{_free_port()}"]}})
+    with caplog.at_level(logging.WARNING):
+        rt = RobotRuntime(cfg).start()
+        try:
+            time.sleep(0.3)
+        finally:
+            rt.stop()
+    lines = rt.device_summaries()
+    assert [ln.split(":")[0] for ln in lines] == ["OpenCR", "RPLIDAR"]
+    assert all("NEVER connected" in ln and "No such file" in ln for ln in lines), lines
+    warned = [r.getMessage() for r in caplog.records if "NEVER connected" in r.getMessage()]
+    assert len(warned) == 2, warned
