@@ -58,6 +58,10 @@ def _sample(type_name: str):
              "speed": 0.15}, STAMP),
         "isac_twin_msgs/msg/ClockPing": tm.ClockPing("twin", "robot1", 7, 10, 20, 30),
         "isac_twin_msgs/msg/Detections": _detections(h, rng),
+        "diagnostic_msgs/msg/DiagnosticArray": m.DiagnosticArray(h, [
+            m.DiagnosticStatus(m.DiagnosticStatus.ERROR, "RPLidar", "never connected: no such file",
+                               "pty:///tmp/ttyUSB0", [("connects", "0"), ("frames_bad", "12")]),
+            m.DiagnosticStatus(m.DiagnosticStatus.OK, "runtime", "up", "robot1", [])]),
     }[type_name]
 
 
