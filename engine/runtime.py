@@ -66,14 +66,17 @@ from pathlib import Path
 import numpy as np
 
 from engine.bus import Bus
-from engine.msgs import (BatteryState, Header, Imu, LaserScan, Odometry, Pose, PoseStamped, Twist,
-                         quaternion_to_yaw, yaw_to_quaternion)
+from engine.msgs import (BatteryState, DiagnosticArray, DiagnosticStatus, Header, Imu, LaserScan, Odometry, Pose,
+                         PoseStamped, Twist, quaternion_to_yaw, yaw_to_quaternion)
 from engine.robots.control import controller_from_spec
 from engine.transport.clock import ClockResponder
 from engine.transport.twin_msgs import Fingerprint, PathCommand
 from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
 
 log = logging.getLogger(__name__)
+
+#: ROS' global diagnostics topic; each robot's statuses are named ``<robot>: <component>``.
+DIAGNOSTICS_TOPIC = "/diagnostics"
 
 
 class RobotConfigError(ValueError):
@@ -279,17 +282,21 @@ class RobotRuntime:
 
         published   <ns>/odom (nav_msgs/Odometry, frame odom), <ns>/imu, <ns>/battery_state,
                     <ns>/scan (sensor_msgs/LaserScan), <ns>/pose_estimate
-                    (geometry_msgs/PoseStamped, frame map), /isac/clock/pong
+                    (geometry_msgs/PoseStamped, frame map), /isac/clock/pong,
+                    /diagnostics (diagnostic_msgs/DiagnosticArray: runtime and every device,
+                    connected or not, every ``diagnostics_period_s``)
         subscribed  <ns>/cmd_vel (geometry_msgs/Twist), <ns>/path (isac_twin_msgs/PathCommand),
                     <ns>/fingerprint (isac_twin_msgs/Fingerprint), /isac/clock/ping
 
     Args:
         config: :class:`RobotConfig`.
         transport: a transport to use instead of a new :class:`ZenohTransport`.
+        diagnostics_period_s: s between ``/diagnostics`` messages.
     """
 
-    def __init__(self, config: RobotConfig, *, transport=None):
+    def __init__(self, config: RobotConfig, *, transport=None, diagnostics_period_s: float = 1.0):
         self.config = cfg = config
+        self.diagnostics_period_s = diagnostics_period_s
         self.transport = transport if transport is not None else ZenohTransport(
             cfg.network, name=cfg.name)
         self.bus = Bus(transport=self.transport)
@@ -301,6 +308,7 @@ class RobotRuntime:
         for key, typ in (("odom", Odometry), ("imu", Imu), ("battery_state", BatteryState),
                          ("scan", LaserScan), ("pose_estimate", PoseStamped)):
             self.node.advertise(self.topics[key], typ)
+        self.node.advertise(DIAGNOSTICS_TOPIC, DiagnosticArray)
         self.estimator = PoseEstimator(cfg.initial_pose, cfg.fingerprint_gain)
         self.stats = RuntimeStats()
         self._lock = threading.Lock()
@@ -345,11 +353,11 @@ class RobotRuntime:
             log.info("%s: emulated OpenCR at %s, RPLIDAR at %s", cfg.name, board.path, lidar.path)
         publish = self.node.publish
         self.opencr = OpenCR(opencr_url, publish, model=cfg.model,
-                             topics={k: self.topics[k] for k in ("odom", "imu", "battery_state")}
-                             ).start()
+                             topics={k: self.topics[k] for k in ("odom", "imu", "battery_state")},
+                             diagnostics_topic=None).start()  # the runtime publishes all diagnostics
         if lidar_url:
             self.lidar = RPLidar(lidar_url, publish, baudrate=cfg.rplidar_baudrate,
-                                 topic=self.topics["scan"]).start()
+                                 topic=self.topics["scan"], diagnostics_topic=None).start()
         if cfg.oakd:
             try:
                 from engine.devices.oakd import OakD
@@ -357,7 +365,8 @@ class RobotRuntime:
                 self.oakd = OakD(cfg.oakd if isinstance(cfg.oakd, str) else "", self._publish_any,
                                  topics={"color": f"/{cfg.name}/camera/color/image_raw",
                                          "depth": f"/{cfg.name}/camera/depth/image_raw",
-                                         "imu": f"/{cfg.name}/camera/imu"}).start()
+                                         "imu": f"/{cfg.name}/camera/imu"},
+                                 diagnostics_topic=None).start()
             except Exception as exc:  # noqa: BLE001 - the camera is optional
                 log.warning("%s: OAK-D unavailable (%s); running without it", cfg.name, exc)
         self._stop.clear()
@@ -393,10 +402,33 @@ class RobotRuntime:
         self.emulators = []
         self.transport.close()
 
+    def drivers(self) -> list[tuple[str, object]]:
+        """(name, driver) of every device driver running."""
+        return [(n, d) for n, d in (("OpenCR", self.opencr), ("RPLIDAR", self.lidar), ("OAK-D", self.oakd))
+                if d is not None]
+
+    def diagnostics(self) -> DiagnosticArray:
+        """``/diagnostics`` now: one status per device (see
+        :meth:`engine.devices.base.DeviceDriver.diagnostic_status`) and the
+        runtime's own, as bad as its worst device, naming those not connected."""
+        name = self.config.name
+        devs = []
+        for dev_name, d in self.drivers():
+            st = d.diagnostic_status()
+            st.name = f"{name}: {dev_name}"
+            devs.append(st)
+        missing = [st.name.split(": ", 1)[1] for st in devs if st.level != DiagnosticStatus.OK
+                   and not st.message.startswith("connected")]
+        level = max([st.level for st in devs], default=DiagnosticStatus.OK)
+        msg = f"mode {self.stats.mode}; " + (f"not connected: {', '.join(missing)}" if missing
+                                            else f"all {len(devs)} devices connected")
+        values = [(k, str(v)) for k, v in vars(self.stats).items()]
+        own = DiagnosticStatus(level, f"{name}: runtime", msg, name, values)
+        return DiagnosticArray(Header(stamp=time.time(), frame_id=""), [own, *devs])
+
     def device_summaries(self) -> list[str]:
         """One line per device driver: whether it ever connected, frames, messages."""
-        return [f"{name}: {d.summary()}" for name, d in (("OpenCR", self.opencr), ("RPLIDAR", self.lidar),
-                                                          ("OAK-D", self.oakd)) if d is not None]
+        return [f"{name}: {d.summary()}" for name, d in self.drivers()]
 
     def __enter__(self) -> RobotRuntime:
         return self.start()
@@ -464,7 +496,14 @@ class RobotRuntime:
         period = 1.0 / self.config.rate_hz
         last = None
         next_t = time.monotonic()
+        next_diag = next_t
         while not self._stop.is_set():
+            if time.monotonic() >= next_diag:
+                next_diag = time.monotonic() + self.diagnostics_period_s
+                try:
+                    self.node.publish(DIAGNOSTICS_TOPIC, self.diagnostics())
+                except Exception:  # noqa: BLE001 - diagnostics must not stop the robot
+                    log.exception("%s: publishing diagnostics failed", self.config.name)
             try:
                 v, w = self.command()
                 self.stats.control_ticks += 1

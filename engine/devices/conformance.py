@@ -9,6 +9,8 @@ through what a real robot does to it and reports each step:
    ``stats.frames_bad`` (or ``timeouts``/``bytes_dropped``), not as a crash;
 3. ``unplug``: when the port disappears it notices (``stats.disconnects``),
    retries with backoff, and publishes again after the device comes back;
+   its ``DiagnosticArray`` topic (if it declares one) says ERROR while the
+   device is away and OK once it is back;
 4. ``silent``: when the device stops answering it notices and recovers;
 5. ``types``: everything it published is on a declared topic with the
    declared message type;
@@ -34,6 +36,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from engine.devices.base import DeviceDriver, Publish
+from engine.msgs import DiagnosticArray, DiagnosticStatus
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +104,9 @@ def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float
     rec = _Recorder()
     driver = driver_factory(emulator.url, rec)
     report = ConformanceReport(type(driver).__name__)
-    topics = list(driver.MESSAGE_TYPES)
+    driver.start()  # declares its diagnostics topic
+    topics = [t for t, typ in driver.MESSAGE_TYPES.items() if typ is not DiagnosticArray]  # data topics
+    diag_topics = [t for t, typ in driver.MESSAGE_TYPES.items() if typ is DiagnosticArray]
     stats = driver.stats
 
     def step(name: str, fn: Callable[[], tuple[bool, str]]) -> bool:
@@ -121,8 +126,6 @@ def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float
         return lambda: all(stats.published.get(t, 0) >= before[t] + n for t in topics)
 
     try:
-        driver.start()
-
         def data() -> tuple[bool, str]:
             ok = _wait(more_on_all({t: 0 for t in topics}, 1), timeout)
             return ok, f"published {counts()} (declared {topics})"
@@ -150,16 +153,29 @@ def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float
 
             step(kind, fault)
 
+        def diag_levels(since: int, until: int | None = None) -> list[int]:
+            with rec.lock:
+                return [st.level for t, msg in rec.messages[since:until] if t in diag_topics for st in msg.status]
+
         def unplug() -> tuple[bool, str]:
             disc0, conn0 = stats.disconnects, stats.connects
+            with rec.lock:
+                n0 = len(rec.messages)
             emulator.unplug()
             noticed = _wait(lambda: stats.disconnects > disc0, timeout)
             time.sleep(unplug_s)
+            with rec.lock:
+                n1 = len(rec.messages)
             before = counts()
             emulator.replug()
             resumed = _wait(lambda: stats.connects > conn0 and more_on_all(before, 2)(), timeout + driver.backoff_max)
-            return noticed and resumed, (f"noticed={noticed}, resumed={resumed}, disconnects={stats.disconnects}, "
-                                         f"connects={stats.connects}, last_error={stats.last_error!r}")
+            said_lost = said_up = True
+            if diag_topics:  # diagnostics must say ERROR while unplugged and OK once back
+                said_lost = DiagnosticStatus.ERROR in diag_levels(n0, n1)
+                said_up = _wait(lambda: DiagnosticStatus.OK in diag_levels(n1), timeout + driver.diagnostics_period_s)
+            return noticed and resumed and said_lost and said_up, (
+                f"noticed={noticed}, resumed={resumed}, diagnostics said lost={said_lost} and up again={said_up}, "
+                f"disconnects={stats.disconnects}, connects={stats.connects}, last_error={stats.last_error!r}")
 
         step("unplug", unplug)
 
@@ -193,6 +209,8 @@ def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float
                 msgs = list(rec.messages)
             wrong = []
             for topic, msg in msgs:
+                if topic in diag_topics:  # judged in the unplug step
+                    continue
                 problem = check(topic, msg)
                 if problem:
                     wrong.append(f"{topic}: {problem}")

@@ -121,9 +121,11 @@ class OakD(DeviceDriver):
                  color_size: tuple[int, int] = (640, 400), depth_size: tuple[int, int] = (640, 400),
                  fps: float = 15.0, imu_rate_hz: int = 100, search_timeout_ms: int = DEFAULT_SEARCH_TIMEOUT_MS,
                  topics: dict[str, str] | None = None, stale_timeout: float = 2.0,
-                 backoff_initial: float = 0.5, backoff_max: float = 5.0) -> None:
+                 backoff_initial: float = 0.5, backoff_max: float = 5.0, connect_warn_s: float = 3.0,
+                 diagnostics_topic: str | None = "diagnostics", diagnostics_period_s: float = 1.0) -> None:
         super().__init__(device_id or "oak://first", publish, stale_timeout=stale_timeout,
-                         backoff_initial=backoff_initial, backoff_max=backoff_max)
+                         backoff_initial=backoff_initial, backoff_max=backoff_max, connect_warn_s=connect_warn_s,
+                         diagnostics_topic=diagnostics_topic, diagnostics_period_s=diagnostics_period_s)
         self.device_id = device_id
         self.color_size, self.depth_size, self.fps = color_size, depth_size, fps
         self.imu_rate_hz = imu_rate_hz

@@ -686,9 +686,11 @@ class RPLidar(DeviceDriver):
                  frame_id: str = "base_scan", angle_offset: float = 0.0, angle_bins: int | None = None,
                  range_min: float = 0.15, range_max: float = 12.0, max_angle_step_deg: float = 5.0,
                  min_coverage: float = 0.5, timeout: float = 1.0, stale_timeout: float = 1.0,
-                 backoff_initial: float = 0.05, backoff_max: float = 2.0, connect_warn_s: float = 3.0) -> None:
+                 backoff_initial: float = 0.05, backoff_max: float = 2.0, connect_warn_s: float = 3.0,
+                 diagnostics_topic: str | None = "diagnostics", diagnostics_period_s: float = 1.0) -> None:
         super().__init__(url, publish, stale_timeout=stale_timeout, backoff_initial=backoff_initial,
-                         backoff_max=backoff_max, connect_warn_s=connect_warn_s)
+                         backoff_max=backoff_max, connect_warn_s=connect_warn_s,
+                         diagnostics_topic=diagnostics_topic, diagnostics_period_s=diagnostics_period_s)
         if scan_mode not in ("standard", "express"):
             raise ValueError(f"scan_mode must be 'standard' or 'express', got {scan_mode!r}")
         self.baudrate = baudrate

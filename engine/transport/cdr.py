@@ -206,6 +206,11 @@ def to_ros(msg: Any):
         return R(header=_header(msg.header), name=[str(n) for n in msg.name],
                  position=_f64(msg.position), velocity=_f64(msg.velocity),
                  effort=_f64(msg.effort))
+    if isinstance(msg, m.DiagnosticArray):
+        S, KV = _t("diagnostic_msgs/msg/DiagnosticStatus"), _t("diagnostic_msgs/msg/KeyValue")
+        return R(header=_header(msg.header), status=[
+            S(level=int(st.level), name=str(st.name), message=str(st.message), hardware_id=str(st.hardware_id),
+              values=[KV(key=str(k), value=str(v)) for k, v in st.values]) for st in msg.status])
     if isinstance(msg, tm.LinkMetrics):
         return R(header=_header(msg.header), tx=msg.tx, rx=msg.rx, snr_db=float(msg.snr_db),
                  rate_bps=float(msg.rate_bps), num_paths=int(msg.num_paths), los=bool(msg.los),
@@ -301,6 +306,10 @@ def from_ros(obj: Any, type_name: str):
                             position=np.asarray(obj.position, float),
                             velocity=np.asarray(obj.velocity, float),
                             effort=np.asarray(obj.effort, float))
+    if t == m.DiagnosticArray.ROS_TYPE:
+        return m.DiagnosticArray(header=_header_from(obj.header), status=[
+            m.DiagnosticStatus(int(st.level), st.name, st.message, st.hardware_id,
+                               [(kv.key, kv.value) for kv in st.values]) for st in obj.status])
     if t == tm.LinkMetrics.ROS_TYPE:
         return tm.LinkMetrics(header=_header_from(obj.header), tx=obj.tx, rx=obj.rx,
                               snr_db=float(obj.snr_db), rate_bps=float(obj.rate_bps),

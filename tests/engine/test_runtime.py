@@ -255,12 +255,24 @@ def test_runtime_says_which_device_never_connected(tmp_path, caplog):
 
     cfg = robot_config_from_dict({"drivers": {"opencr": str(tmp_path / "ttyACM7"), "rplidar": str(tmp_path / "ttyUSB7")},
                                   "network": {"listen": [f"tcp/127.0.0.1:{_free_port()}"]}})
+    from engine.msgs import DiagnosticArray, DiagnosticStatus
+
     with caplog.at_level(logging.WARNING):
-        rt = RobotRuntime(cfg).start()
+        rt = RobotRuntime(cfg, diagnostics_period_s=0.1)
+        diags = rt.bus.node("probe").subscribe("/diagnostics", DiagnosticArray)
+        rt.start()
         try:
-            time.sleep(0.3)
+            time.sleep(0.4)
         finally:
             rt.stop()
+    # /diagnostics: one array per period with the runtime and every device, said as it is
+    last = diags.drain()[-1]
+    by_name = {st.name: st for st in last.status}
+    assert set(by_name) == {"robot1: runtime", "robot1: OpenCR", "robot1: RPLIDAR"}
+    assert by_name["robot1: OpenCR"].level == by_name["robot1: RPLIDAR"].level == DiagnosticStatus.WARN
+    assert "connecting" in by_name["robot1: RPLIDAR"].message  # 0.4 s < connect_warn_s
+    assert by_name["robot1: runtime"].level == DiagnosticStatus.WARN
+    assert "not connected: OpenCR, RPLIDAR" in by_name["robot1: runtime"].message
     lines = rt.device_summaries()
     assert [ln.split(":")[0] for ln in lines] == ["OpenCR", "RPLIDAR"]
     assert all("NEVER connected" in ln and "No such file" in ln for ln in lines), lines

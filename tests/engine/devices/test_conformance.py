@@ -37,7 +37,7 @@ def test_opencr_conforms():
 
 class _WrongType(RPLidar):
     def _publish(self, topic, msg):
-        super()._publish(topic, {"ranges": msg.ranges})
+        super()._publish(topic, {"ranges": msg.ranges} if topic == self.topic else msg)
 
 
 class _Stretching(rp.ScanAssembler):
@@ -104,3 +104,22 @@ def test_checker_catches_untruthful_drivers():
                               faults=(), check_silent=False)
     failed = {r.name for r in report.results if not r.ok}
     assert failed == {"truthful"}, str(report)
+
+
+class _SilentDiagnostics(OpenCR):
+    """Reports OK whatever happens."""
+
+    def diagnostic_status(self):
+        st = super().diagnostic_status()
+        st.level, st.message = st.OK, "connected"
+        return st
+
+
+@pytest.mark.slow
+def test_checker_catches_diagnostics_that_hide_a_loss():
+    with EmulatedOpenCR() as emu:
+        report = check_driver(lambda url, pub: _SilentDiagnostics(url, pub, diagnostics_period_s=0.1, **FAST), emu,
+                              timeout=2, faults=(), check_silent=False)
+    failed = {r.name for r in report.results if not r.ok}
+    assert failed == {"unplug"}, str(report)
+    assert "diagnostics said lost=False" in next(r.detail for r in report.results if r.name == "unplug")

@@ -347,7 +347,8 @@ def test_threaded_driver_publishes_and_survives_faults(emu):
     finally:
         lidar.stop()
     assert not lidar.running
-    assert all(t == "scan" and isinstance(m, rp.LaserScan) for t, m in got)
+    assert all(isinstance(m, rp.LaserScan) if t == "scan" else t == "diagnostics" for t, m in got)
+    assert {t for t, _ in got} == {"scan", "diagnostics"}
 
 
 def test_laser_scan_source_feeds_the_emulator_from_a_simulated_scan():
@@ -453,7 +454,7 @@ def test_missing_beams_are_nan_and_no_return_is_inf():
 def _scans_under_fault(mode: str, kind: str, count: int, every_s: float) -> tuple[list, rp.RPLidar]:
     got: list = []
     with EmulatedRPLidar(spiral_source) as emu:
-        lidar = rp.RPLidar(emu.url, lambda t, m: got.append(m), scan_mode=mode)
+        lidar = rp.RPLidar(emu.url, lambda t, m: got.append(m) if t == "scan" else None, scan_mode=mode)
         lidar.start()
         try:
             assert lidar.wait_published("scan", 1, 3)
