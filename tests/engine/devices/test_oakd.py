@@ -105,3 +105,76 @@ def test_imu_packet_conversion():
     np.testing.assert_allclose(m.linear_acceleration, [0.1, 0, 9.8], rtol=1e-6)
     np.testing.assert_allclose(m.orientation, [0, 0, 0, 1])
     assert m.angular_velocity[2] == pytest.approx(0.5)
+
+
+# ----------------------------------------------------------------------------- replay at the driver boundary
+def _collect(cam, seconds: float):
+    got: list = []
+    cam.publish_fn = lambda t, m: got.append((t, m))
+    cam.start()
+    try:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        cam.stop(5)
+    return got
+
+
+@pytest.mark.slow
+def test_replay_of_generated_frames_goes_through_the_device_path():
+    """Generated RGB, depth and IMU frames are sent as real ``dai.ImgFrame`` /
+    ``dai.IMUData`` from a host node and leave the driver through the same
+    queues, conversion and stamps as a camera's, paced at ``fps``."""
+    src = oakd.ReplaySource(oakd.generated_frames((16, 8), (8, 4)), fps=20)
+    cam = oakd.OakD(replay=src, backoff_initial=0.05)
+    assert cam.url == "replay://generated"
+    got = _collect(cam, 1.0)
+    by = {}
+    for t, m in got:
+        by.setdefault(t, []).append(m)
+    color, depth, imu = by["camera/color/image_raw"], by["camera/depth/image_raw"], by["camera/imu"]
+    assert cam.stats.connects == 1 and cam.stats.disconnects == 0
+    assert 5 <= len(color) <= 20 * 1.0 * 1.5 + 2 and len(depth) == pytest.approx(len(color), abs=2)
+    assert color[0].encoding == "rgb8" and color[0].data.shape == (8, 16, 3)
+    assert depth[0].encoding == "16UC1" and depth[0].data.dtype == np.uint16 and depth[0].data.shape == (4, 8)
+    # the generated frame k carries k in its first pixel: frames in order, none invented
+    seq = [int(c.data[0, 0, 0]) for c in color]
+    assert seq == list(range(seq[0], seq[0] + len(seq)))
+    np.testing.assert_array_equal(depth[0].data, oakd.generated_frames((16, 8), (8, 4))(seq[0])["depth"])
+    assert len(imu) >= len(color) and np.allclose(imu[0].linear_acceleration, [0, 0, 9.80665])
+    stamps = [c.header.stamp for c in color]
+    assert all(b > a for a, b in zip(stamps, stamps[1:])) and abs(stamps[-1] - time.time()) < 2
+
+
+@pytest.mark.slow
+def test_replay_of_recorded_messages_publishes_them_unchanged():
+    """Recorded ``Image``/``Imu`` messages (as read back from an MCAP) replay
+    through the device path unchanged; when the recording ends the camera
+    falls silent and the driver says so, as with an unplugged camera."""
+    rng = np.random.default_rng(0)
+    rec = []
+    for k in range(4):
+        rec.append(Image(height=4, width=6, encoding="rgb8", data=rng.integers(0, 255, (4, 6, 3), dtype=np.uint8)))
+        rec.append(Image(height=4, width=6, encoding="16UC1", data=rng.integers(0, 5000, (4, 6)).astype(np.uint16)))
+        rec.append(Imu(angular_velocity=np.array([0, 0, 0.1 * k]), linear_acceleration=np.array([0, 0, 9.8]),
+                       orientation=np.array([0, 0, 0, 1.0])))
+    frames = oakd.recorded_frames(rec)
+    assert len(frames) == 4
+    cam = oakd.OakD(replay=oakd.ReplaySource(frames, fps=20, name="run.mcap"), stale_timeout=0.3,
+                    backoff_initial=0.05, backoff_max=0.1)
+    got = _collect(cam, 1.2)
+    color = [m for t, m in got if t == "camera/color/image_raw"]
+    depth = [m for t, m in got if t == "camera/depth/image_raw"]
+    imu = [m for t, m in got if t == "camera/imu"]
+    assert len(color) >= 4 and len(depth) >= 4
+    for k in range(4):
+        np.testing.assert_array_equal(color[k].data, rec[3 * k].data)
+        np.testing.assert_array_equal(depth[k].data, rec[3 * k + 1].data)
+        assert imu[k].angular_velocity[2] == pytest.approx(0.1 * k)
+    assert cam.stats.disconnects >= 1 and "no valid frame" in cam.stats.last_error
+
+
+def test_recorded_frames_refuses_what_it_cannot_replay():
+    with pytest.raises(ValueError, match="encoding 'bgr16'.*rgb8"):
+        oakd.recorded_frames([Image(height=1, width=1, encoding="bgr16", data=np.zeros((1, 1, 3), np.uint16))])
