@@ -31,7 +31,7 @@ OpenCR firmware would also zero it after 500 ms).
     opencr = "/dev/ttyACM0"    # path or pyserial URL
     rplidar = "/dev/ttyUSB0"
     rplidar_baudrate = 115200
-    oakd = false               # true, or a device MxId string
+    oakd = false               # true, or a device MxId string (emulated: generated frames replayed)
 
     [emulation]                # used when emulated = true
     room = [6.0, 4.0]          # rectangle [0, W] x [0, D] m the emulated LiDAR sees
@@ -360,13 +360,15 @@ class RobotRuntime:
                                  topic=self.topics["scan"], diagnostics_topic=None).start()
         if cfg.oakd:
             try:
-                from engine.devices.oakd import OakD
+                from engine.devices.oakd import OakD, ReplaySource, generated_frames
 
+                # emulated: generated frames through the driver's device path (needs depthai)
+                replay = ReplaySource(generated_frames(), fps=15.0) if cfg.emulated else None
                 self.oakd = OakD(cfg.oakd if isinstance(cfg.oakd, str) else "", self._publish_any,
                                  topics={"color": f"/{cfg.name}/camera/color/image_raw",
                                          "depth": f"/{cfg.name}/camera/depth/image_raw",
                                          "imu": f"/{cfg.name}/camera/imu"},
-                                 diagnostics_topic=None).start()
+                                 diagnostics_topic=None, replay=replay).start()
             except Exception as exc:  # noqa: BLE001 - the camera is optional
                 log.warning("%s: OAK-D unavailable (%s); running without it", cfg.name, exc)
         self._stop.clear()
