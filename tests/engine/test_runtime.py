@@ -65,9 +65,74 @@ def test_robot_toml_parses_and_rejects_bad_values(tmp_path):
                        ({"network": {"mode": "mesh"}}, "mode"),
                        ({"control": {"rate_hz": 0}}, "rate_hz"),
                        ({"robot": {"colour": "red"}}, "unknown key 'colour'"),
-                       ({"lidar": {}}, r"unknown section \[lidar\]")):
+                       ({"lidar": {}}, r"unknown section \[lidar\]"),
+                       # issue 21: these ended in tracebacks
+                       ({"network": {"domain_id": "abc"}}, r"\[network\] domain_id = 'abc': expected an integer 0\.\.232"),
+                       ({"drivers": {"rplidar_baudrate": "fast"}},
+                        r"\[drivers\] rplidar_baudrate = 'fast': expected one of 115200, 256000"),
+                       ({"network": {"listen": ["tcp/127.0.0.1:99999"]}}, r"listen.*port 99999.*0\.\.65535"),
+                       ({"robot": {"initial_pose": [math.nan, 0, 0]}}, r"initial_pose = \[nan, 0, 0\].*finite"),
+                       ({"robot": {"emulated": "yes"}}, r"\[robot\] emulated = 'yes': expected true or false"),
+                       ({"drivers": {"opencr": 5}}, r"\[drivers\] opencr = 5: expected a port path"),
+                       ({"drivers": {"oakd": 1.5}}, r"\[drivers\] oakd = 1\.5: expected true, false or")):
         with pytest.raises(RobotConfigError, match=match):
             robot_config_from_dict(doc, "r.toml")
+    bad = tmp_path / "latin1.toml"
+    bad.write_bytes('[robot]\nname = "roböt"\n'.encode("latin-1"))
+    with pytest.raises(RobotConfigError, match=r"latin1\.toml: not UTF-8 \(byte 0xf6 at offset 21\)"):
+        load_robot_config(bad)
+
+
+def _robot_cli(toml, *extra):
+    return subprocess.Popen([sys.executable, "-m", "engine.cli", "robot", str(toml), *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.slow
+def test_robot_cli_address_in_use_is_one_line_exit_2(tmp_path):
+    """The listen port is taken: one line naming [network] listen, exit 2, no
+    traceback, and the process ends (it used to hang on SIGTERM after the error)."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        toml = tmp_path / "robot.toml"
+        toml.write_text(ROBOT_TOML.format(x=1, y=1, yaw=0, w=6, d=4, port=port))
+        proc = _robot_cli(toml, "--duration", "30")
+        try:
+            out, err = proc.communicate(timeout=30)
+        finally:
+            proc.kill()
+    assert proc.returncode == 2, (out, err)
+    lines = [ln for ln in err.splitlines() if ln.startswith("isac-twin: error:")]
+    assert len(lines) == 1 and "[network] listen" in lines[0] and str(port) in lines[0], err
+    assert "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_robot_cli_sigterm_ends_it_during_start_up_and_when_running(tmp_path):
+    toml = tmp_path / "robot.toml"
+    toml.write_text(ROBOT_TOML.format(x=1, y=1, yaw=0, w=6, d=4, port=_free_port()))
+    # while running: a clean stop with the per-device summary
+    proc = _robot_cli(toml, "--duration", "60")
+    try:
+        assert "up" in proc.stdout.readline()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and "stopped" in out and "RPLIDAR:" in out, (out, err)
+    # during start-up (before 'up'): it ends, without a traceback
+    toml.write_text(ROBOT_TOML.format(x=1, y=1, yaw=0, w=6, d=4, port=_free_port()))
+    proc = _robot_cli(toml, "--duration", "60")
+    try:
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=20)
+    finally:
+        proc.kill()
+    assert proc.returncode in (0, 130, 143, -signal.SIGTERM), (proc.returncode, out, err)
+    assert "Traceback" not in err
 
 
 def test_pose_estimator_composes_odometry_and_fixes():
