@@ -112,11 +112,17 @@ def load_robot_config(path: str | Path) -> RobotConfig:
     """
     path = Path(path)
     try:
-        doc = tomllib.loads(path.read_text())
+        raw = path.read_bytes()
+        doc = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise RobotConfigError(f"{path}: not UTF-8 (byte 0x{raw[exc.start]:02x} at offset {exc.start})") from None
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise RobotConfigError(f"{path}: {exc}") from None
     return robot_config_from_dict(doc, str(path))
 
+
+#: Serial rates of the RPLIDAR family (Slamtec: A1/A2M8, A2M7/A2M12/A3/S1, C1, S2/S3).
+RPLIDAR_BAUDRATES = (115200, 256000, 460800, 1000000)
 
 _KEYS = {"robot": {"name", "model", "initial_pose", "emulated"},
          "drivers": {"opencr", "rplidar", "rplidar_baudrate", "oakd"},
@@ -156,8 +162,25 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
         raise RobotConfigError(f"{where}: [robot] model = {model!r}: expected burger or waffle")
     pose = r.get("initial_pose", [0.0, 0.0, 0.0])
     if not (isinstance(pose, list) and len(pose) == 3
-            and all(isinstance(x, (int, float)) for x in pose)):
-        raise RobotConfigError(f"{where}: [robot] initial_pose = {pose!r}: expected [x, y, yaw]")
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in pose)):
+        raise RobotConfigError(f"{where}: [robot] initial_pose = {pose!r}: expected [x, y, yaw], finite numbers")
+    emulated = r.get("emulated", False)
+    if not isinstance(emulated, bool):
+        raise RobotConfigError(f"{where}: [robot] emulated = {emulated!r}: expected true or false")
+    opencr = d.get("opencr", "/dev/ttyACM0")
+    if not isinstance(opencr, str) or not opencr:
+        raise RobotConfigError(f"{where}: [drivers] opencr = {opencr!r}: expected a port path or pyserial URL")
+    rplidar = d.get("rplidar", "/dev/ttyUSB0")
+    if not isinstance(rplidar, str):
+        raise RobotConfigError(f"{where}: [drivers] rplidar = {rplidar!r}: expected a port path or pyserial URL "
+                               "(\"\" for none)")
+    baud = d.get("rplidar_baudrate", 115200)
+    if baud not in RPLIDAR_BAUDRATES or isinstance(baud, bool):
+        raise RobotConfigError(f"{where}: [drivers] rplidar_baudrate = {baud!r}: expected one of "
+                               f"{', '.join(map(str, RPLIDAR_BAUDRATES))} (A1/A2M8, A2M7/A3, C1, S2/S3)")
+    oakd = d.get("oakd", False)
+    if not isinstance(oakd, (bool, str)):
+        raise RobotConfigError(f"{where}: [drivers] oakd = {oakd!r}: expected true, false or a device MxId")
     room = e.get("room", [6.0, 4.0])
     if not (isinstance(room, list) and len(room) == 2 and all(
             isinstance(x, (int, float)) and x > 0 for x in room)):
@@ -167,9 +190,20 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
         if not (isinstance(eps, list) and all(isinstance(x, str) and "/" in x for x in eps)):
             raise RobotConfigError(f"{where}: [network] {key} = {eps!r}: expected a list of "
                                    "endpoints like \"tcp/127.0.0.1:7447\"")
+        for ep in eps:
+            port = ep.rsplit(":", 1)[-1] if ":" in ep.split("/", 1)[1] else ""
+            if port and not (port.isdigit() and 0 <= int(port) <= 65535):
+                raise RobotConfigError(f"{where}: [network] {key}: {ep!r} has port {port}: expected 0..65535")
+    domain_id = n.get("domain_id", 0)
+    if not isinstance(domain_id, int) or isinstance(domain_id, bool) or not 0 <= domain_id <= 232:
+        raise RobotConfigError(f"{where}: [network] domain_id = {domain_id!r}: expected an integer 0..232 "
+                               "(ROS_DOMAIN_ID)")
+    multicast = n.get("multicast", False)
+    if not isinstance(multicast, bool):
+        raise RobotConfigError(f"{where}: [network] multicast = {multicast!r}: expected true or false")
     net = ZenohConfig(mode=n.get("mode", "peer"), listen=list(n.get("listen", [])),
-                      connect=list(n.get("connect", [])), multicast=bool(n.get("multicast", False)),
-                      domain_id=int(n.get("domain_id", 0)), distro=n.get("distro", "jazzy"))
+                      connect=list(n.get("connect", [])), multicast=multicast,
+                      domain_id=domain_id, distro=n.get("distro", "jazzy"))
     if net.mode not in ("peer", "client", "router"):
         raise RobotConfigError(f"{where}: [network] mode = {net.mode!r}: expected peer, client "
                                "or router")
@@ -181,9 +215,7 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
         raise RobotConfigError(f"{where}: [estimation] fingerprint_gain = {gain}: expected 0..1")
     return RobotConfig(
         name=name, model=model, initial_pose=tuple(float(x) for x in pose),
-        emulated=bool(r.get("emulated", False)), opencr=str(d.get("opencr", "/dev/ttyACM0")),
-        rplidar=d.get("rplidar", "/dev/ttyUSB0") or None,
-        rplidar_baudrate=int(d.get("rplidar_baudrate", 115200)), oakd=d.get("oakd", False),
+        emulated=emulated, opencr=opencr, rplidar=rplidar or None, rplidar_baudrate=int(baud), oakd=oakd,
         room=(float(room[0]), float(room[1])),
         lidar_rate_hz=num("emulation", e, "lidar_rate_hz", 5.5, 0), network=net,
         rate_hz=num("control", c, "rate_hz", 20.0, 0),

@@ -79,7 +79,7 @@ def test_robot_toml_parses_and_rejects_bad_values(tmp_path):
             robot_config_from_dict(doc, "r.toml")
     bad = tmp_path / "latin1.toml"
     bad.write_bytes('[robot]\nname = "roböt"\n'.encode("latin-1"))
-    with pytest.raises(RobotConfigError, match=r"latin1\.toml: not UTF-8 \(byte 0xf6 at offset 21\)"):
+    with pytest.raises(RobotConfigError, match=r"latin1\.toml: not UTF-8 \(byte 0xf6 at offset 19\)"):
         load_robot_config(bad)
 
 
