@@ -491,3 +491,32 @@ def test_truncated_nodes_are_dropped_not_published():
     assert len(scans) >= 8
     assert_scans_truthful(scans, tol_deg=360 / per_turn / 2 + RANGE_QUANTUM_DEG + 0.02, per_turn=per_turn)
     assert lidar.stats.nodes_bad > 0
+
+
+def test_turn_with_a_node_count_the_scan_mode_cannot_make_is_dropped():
+    """With the sample time known (GET_SAMPLERATE), a turn's node count must fit a
+    rotation rate the head can turn at: 508 us per sample at 2..20 Hz is 98..984
+    nodes; a 'turn' of 2,000 nodes (the head nearly stalled) is not published."""
+    lo, hi = rp.nodes_per_turn_range(508.0)
+    assert (lo, hi) == pytest.approx((1e6 / 508 / 20, 1e6 / 508 / 2))
+    stats = rp.LidarStats()
+    asm = rp.ScanAssembler(stats=stats, nodes_per_turn=(lo, hi))
+
+    def turn(n):
+        dev = np.arange(n) * 360 / n
+        return [rp.ScanNode(a, 1000.0, 47, i == 0) for i, a in enumerate(dev)]
+
+    assert len(asm.add(turn(364) + turn(2000)[:1], 0.0)) == 1
+    assert asm.add(turn(2000)[1:] + turn(364)[:1], 0.0) == []
+    assert stats.scans_dropped == 1 and stats.scans_published == 1
+
+
+def test_driver_learns_the_sample_time_on_connect():
+    with EmulatedRPLidar() as emu:
+        lidar = rp.RPLidar(emu.url, scan_mode="express")
+        lidar.start()
+        try:
+            assert lidar.wait_published("scan", 1, 3)
+        finally:
+            lidar.stop()
+    assert lidar.assembler.nodes_per_turn == pytest.approx(rp.nodes_per_turn_range(254.0))
