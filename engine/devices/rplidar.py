@@ -449,6 +449,19 @@ def ros_to_device_angle(angle_rad, angle_offset: float = 0.0):
     return np.mod(np.degrees(angle_offset - np.asarray(angle_rad)), 360.0)
 
 
+#: Rotation rates (Hz) an RPLIDAR head turns at in service (A1 nominal 5.5, A2/A3 up to 15),
+#: with margin; outside them a "turn" is not a turn of a working head.
+MIN_ROTATION_HZ, MAX_ROTATION_HZ = 2.0, 20.0
+
+
+def nodes_per_turn_range(us_per_sample: float, min_hz: float = MIN_ROTATION_HZ,
+                         max_hz: float = MAX_ROTATION_HZ) -> tuple[float, float]:
+    """(fewest, most) nodes one turn can hold at ``us_per_sample`` (GET_SAMPLERATE)
+    for a head turning at ``min_hz .. max_hz``."""
+    per_s = 1e6 / us_per_sample
+    return per_s / max_hz, per_s / min_hz
+
+
 class ScanAssembler:
     """Collects validated nodes into 360 deg turns and converts them to ``LaserScan``.
 
@@ -471,13 +484,21 @@ class ScanAssembler:
     REP-117: a slot with a node whose distance is 0 (measured, no return) is
     ``+inf``; a slot no node reached (lost on the line) is ``NaN``. A turn
     whose nodes cover less than ``min_coverage`` of the device's turn is
-    dropped (``stats.scans_dropped``), not published.
+    dropped (``stats.scans_dropped``), not published; so is one whose node
+    count per full turn (360 deg / step) lies outside ``nodes_per_turn``
+    (see :func:`nodes_per_turn_range`; ``None`` = not checked).
+
+    The per-node grid assumes the nodes of a turn are evenly spaced, as in
+    standard scans and in express scans without angle compensation; with
+    compensated express nodes two nodes may share a slot (the one nearer its
+    centre is kept, the other counted in ``nodes_unpublished``); use
+    ``angle_bins`` there.
     """
 
     def __init__(self, *, frame_id: str = "base_scan", angle_offset: float = 0.0,
                  angle_bins: int | None = None, range_min: float = 0.15, range_max: float = 12.0,
                  start_window_deg: float = 10.0, min_coverage: float = 0.5,
-                 stats: LidarStats | None = None) -> None:
+                 nodes_per_turn: tuple[float, float] | None = None, stats: LidarStats | None = None) -> None:
         if not 0.0 < min_coverage <= 1.0:
             raise ValueError(f"min_coverage must be in (0, 1], got {min_coverage!r}")
         self.frame_id = frame_id
@@ -487,6 +508,7 @@ class ScanAssembler:
         self.range_max = range_max
         self.start_window_deg = start_window_deg
         self.min_coverage = min_coverage
+        self.nodes_per_turn = nodes_per_turn
         self.stats = stats if stats is not None else LidarStats()
         self._nodes: list[ScanNode] = []
         self._rel: list[float] = []
@@ -551,10 +573,17 @@ class ScanAssembler:
             return []
         scan_time = max(0.0, stamp - self._t_start) if self._t_start is not None else 0.0
         step = _sample_step_deg(rel)
+        why = None
         if step is None or len(nodes) / (360.0 / step) < self.min_coverage:
+            why = f"covers < {100 * self.min_coverage:.0f} % of a turn"
+        elif self.nodes_per_turn is not None and not (
+                self.nodes_per_turn[0] <= 360.0 / step <= self.nodes_per_turn[1]):
+            why = (f"{360.0 / step:.0f} nodes per turn, the scan mode makes "
+                   f"{self.nodes_per_turn[0]:.0f}..{self.nodes_per_turn[1]:.0f}")
+        if why is not None:
             self._count("scans_dropped")
             self._count("nodes_unpublished", len(nodes))
-            log.debug("turn of %d nodes dropped (covers < %.0f %% of a turn)", len(nodes), 100 * self.min_coverage)
+            log.debug("turn of %d nodes dropped (%s)", len(nodes), why)
             return []
         self._last_scan_time = scan_time
         scan = self.to_laser_scan(nodes, self._t_start if self._t_start is not None else stamp, scan_time,
@@ -888,6 +917,13 @@ class RPLidar(DeviceDriver):
         info = self.get_info()
         log.info("%s: RPLIDAR model 0x%02X fw %d.%02d hw %d s/n %s", self.url, info.model, *info.firmware,
                  info.hardware, info.serial_hex)
+        try:  # GET_SAMPLERATE (firmware >= 1.17): bounds the node count of a turn
+            standard_us, express_us = self.get_samplerate()
+            us = standard_us if self.scan_mode == "standard" else express_us
+            if us > 0:
+                self.assembler.nodes_per_turn = nodes_per_turn_range(float(us))
+        except DeviceTimeout:
+            log.info("%s: no GET_SAMPLERATE answer; node counts per turn are not checked", self.url)
         self.set_motor(True)
         self.start_scan(self.scan_mode)
 
