@@ -349,7 +349,7 @@ class NodeStreamParser:
         return self._parse_standard() if self.mode == "standard" else self._parse_express()
 
     def _bad_node(self) -> None:
-        if hasattr(self.stats, "nodes_bad"):
+        if isinstance(self.stats, LidarStats):
             self.stats.nodes_bad += 1
 
     def _drop(self, n: int = 1) -> None:
@@ -526,8 +526,7 @@ class ScanAssembler:
         self._t_start = None
 
     def _count(self, name: str, n: int = 1) -> None:
-        if hasattr(self.stats, name):
-            setattr(self.stats, name, getattr(self.stats, name) + n)
+        setattr(self.stats, name, getattr(self.stats, name) + n)
 
     def _begin(self, node: ScanNode, stamp: float) -> None:
         self._nodes, self._rel = [node], [0.0]

@@ -126,7 +126,7 @@ def test_parser_resyncs_after_garbage_and_counts_bad_frames():
 def test_assembler_ignores_garbage_that_passes_the_check_bits():
     """A garbage node can pass S/!S and the check bit (1 in 8); a false start flag
     must not split the turn."""
-    stats = DriverStats()
+    stats = rp.LidarStats()
     asm = rp.ScanAssembler(stats=stats)
     turn = [rp.ScanNode(a, 1000.0, 47, a == 0) for a in np.arange(0, 360, 1.0)]
     fake = rp.ScanNode(200.0, 5.0, 3, True)
