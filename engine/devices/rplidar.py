@@ -15,6 +15,17 @@ Protocol (Slamtec rplidar_sdk ``sl_lidar_cmd.h`` / ``rplidar_cmd.h``,
   capsule's; the arithmetic below is the SDK's ``_capsuleToNormal`` in the same
   fixed point.
 
+Validation (nothing is published that was not measured). A standard node
+passes the protocol's checks (``S != !S``, ``C = 1``, angle < 360 deg) *and*
+continues the rotation from the nodes before and after it
+(:class:`NodeStreamParser`); an express capsule passes its sync nibbles and
+checksum and advances plausibly from the previous one. A turn runs between
+start flags (a flag far from 0 deg is garbage) and never spans more than
+360 deg; each node is published in its own slot at the angle it was measured
+at, lost nodes as NaN, "no return" as +inf (REP-117); a turn with too few
+nodes, or a node count the scan mode cannot make, is dropped
+(:class:`ScanAssembler`). :class:`LidarStats` counts what was dropped.
+
 Angles. The RPLIDAR reports angles in degrees **clockwise** seen from above
 (0 deg = the device's forward mark). ROS (REP-103) angles are radians
 **counter-clockwise** about +Z. :func:`device_to_ros_angle` maps one to the
