@@ -326,13 +326,18 @@ class NodeStreamParser:
     ``mode`` is ``"standard"`` (5-byte nodes) or ``"express"`` (84-byte capsules).
 
     Standard nodes carry only three check bits (``S``, ``!S``, ``C``), so 1 in
-    8 random 5-byte windows passes them and a window straddling two real nodes
-    passes often. A node is therefore accepted only when it also continues the
-    rotation: its angle is at most ``max_angle_step_deg`` ahead of the node
-    before it *and* of the node after it (the head turns one way in small
-    steps). Out of sync (at start and after a bad node) three such nodes in a
-    row are needed before the first is accepted; until then the parser slides
-    one byte at a time. A good node whose successor is bad is dropped with it.
+    8 random 5-byte windows passes them, and windows straddling two real nodes
+    pass in long, smoothly changing runs (a window starting at a node's second
+    byte always claims ``S = 1`` and reads part of the distance as its angle).
+    A node is therefore accepted only when it also continues the rotation as
+    the head turns it: its start flag is set only within ``start_window_deg``
+    of 0 deg, and its angle steps ahead of the node before it *and* to the node
+    after it by 1 q6 .. ``max_angle_step_deg``, within ``step_tolerance`` of
+    the head's current step (learned from accepted nodes, forgotten after 1 kB
+    without sync so a changed motor speed is re-learned). Out of sync (at start
+    and after a bad node) three such nodes in a row with equal steps are
+    needed before the first is accepted; until then the parser slides one byte
+    at a time. A good node whose successor is bad is dropped with it.
 
     Express capsules are checked by their sync nibbles and XOR checksum (as
     the SDK does) and by the advance of their start angle
@@ -344,15 +349,20 @@ class NodeStreamParser:
     """
 
     def __init__(self, mode: str, stats: DriverStats, max_angle_step_deg: float = 5.0,
-                 max_capsule_step_deg: float = 60.0) -> None:
+                 max_capsule_step_deg: float = 60.0, start_window_deg: float = 10.0,
+                 step_tolerance: float = 0.2) -> None:
         if mode not in ("standard", "express"):
             raise ValueError(f"scan mode must be 'standard' or 'express', got {mode!r}")
         self.mode = mode
         self.stats = stats
         self.max_step_q6 = int(round(max_angle_step_deg * 64))
+        self.start_window_q6 = int(round(start_window_deg * 64))
+        self.step_tolerance = step_tolerance
         self._buf = bytearray()
         self._synced = True
         self._prev_q6: int | None = None  #: angle of the last accepted node; None = out of sync
+        self._ref_step: float | None = None  #: q6, the head's step between neighbouring nodes
+        self._unsynced_bytes = 0
         self._decoder = CapsuleDecoder(max_capsule_step_deg)
 
     def feed(self, data: bytes) -> list[ScanNode]:
@@ -370,9 +380,31 @@ class NodeStreamParser:
         del self._buf[:n]
         self.stats.bytes_dropped += n
 
-    def _follows(self, a_q6: int | None, b_q6: int | None) -> bool:
-        """``b`` is 1 .. max_step q6 ahead of ``a`` (through 360 deg)."""
-        return a_q6 is not None and b_q6 is not None and 0 < (b_q6 - a_q6) % (360 * 64) <= self.max_step_q6
+    def _node(self, buf: bytearray, i: int) -> int | None:
+        """Angle (q6) of the node at ``i`` if it passes the protocol's checks and
+        its start flag, if set, is near 0 deg; else ``None``."""
+        a = node_angle_q6(buf, i)
+        if a is not None and buf[i] & 1 and self.start_window_q6 < a < 360 * 64 - self.start_window_q6:
+            return None
+        return a
+
+    def _step(self, a_q6: int | None, b_q6: int | None) -> int | None:
+        """Step (q6) from ``a`` to ``b`` if the head can make it, else ``None``."""
+        if a_q6 is None or b_q6 is None:
+            return None
+        d = (b_q6 - a_q6) % (360 * 64)
+        if not 0 < d <= self.max_step_q6:
+            return None
+        ref = self._ref_step
+        if ref is not None and abs(d - ref) > max(4.0, self.step_tolerance * ref):
+            return None
+        return d
+
+    def _alike(self, s1: int, s2: int) -> bool:
+        return abs(s1 - s2) <= max(4.0, self.step_tolerance * max(s1, s2))
+
+    def _learn(self, step: int) -> None:
+        self._ref_step = float(step) if self._ref_step is None else 0.9 * self._ref_step + 0.1 * step
 
     def _parse_standard(self) -> list[ScanNode]:
         out: list[ScanNode] = []
@@ -384,10 +416,13 @@ class NodeStreamParser:
             if self._prev_q6 is not None:  # in sync: this node and the next must continue the turn
                 if n - i < 2 * NODE_SIZE:
                     break
-                a = node_angle_q6(buf, i)
-                if self._follows(self._prev_q6, a) and self._follows(a, node_angle_q6(buf, i + NODE_SIZE)):
+                a = self._node(buf, i)
+                s1 = self._step(self._prev_q6, a)
+                s2 = self._step(a, self._node(buf, i + NODE_SIZE)) if s1 is not None else None
+                if s2 is not None:
                     out.append(decode_node(buf, i))
                     self._prev_q6 = a
+                    self._learn(s1)
                     i += NODE_SIZE
                     self.stats.frames_ok += 1
                     continue
@@ -395,16 +430,20 @@ class NodeStreamParser:
                 self.stats.frames_bad += 1
                 self._synced = False
                 self._prev_q6 = None
+                self._unsynced_bytes = 0
                 i += 1
                 dropped += 1
                 continue
             if n - i < 3 * NODE_SIZE:  # out of sync: three nodes in a row that continue each other
                 break
-            a0 = node_angle_q6(buf, i)
-            a1 = node_angle_q6(buf, i + NODE_SIZE) if a0 is not None else None
-            if self._follows(a0, a1) and self._follows(a1, node_angle_q6(buf, i + 2 * NODE_SIZE)):
+            a0 = self._node(buf, i)
+            a1 = self._node(buf, i + NODE_SIZE) if a0 is not None else None
+            s1 = self._step(a0, a1)
+            s2 = self._step(a1, self._node(buf, i + 2 * NODE_SIZE)) if s1 is not None else None
+            if s2 is not None and self._alike(s1, s2):
                 out.append(decode_node(buf, i))
                 self._prev_q6 = a0
+                self._learn(s1)
                 self._synced = True
                 i += NODE_SIZE
                 self.stats.frames_ok += 1
@@ -412,6 +451,10 @@ class NodeStreamParser:
             if self._synced:  # first byte of a loss of sync (e.g. right after start)
                 self.stats.frames_bad += 1
                 self._synced = False
+            self._unsynced_bytes += 1
+            if self._unsynced_bytes > 1024:  # the head may have changed speed: learn its step anew
+                self._ref_step = None
+                self._unsynced_bytes = 0
             i += 1
             dropped += 1
         self.stats.bytes_dropped += dropped
