@@ -5,8 +5,9 @@ through what a real robot does to it and reports each step:
 
 1. ``data``: it opens the port and publishes every declared topic;
 2. ``garbage`` / ``corrupt`` / ``truncate``: after ``bursts`` injected faults
-   of each kind it keeps publishing, and corrupt/truncated frames show up in
-   ``stats.frames_bad`` (or ``timeouts``/``bytes_dropped``), not as a crash;
+   of each kind it keeps publishing without dropping the connection, and
+   corrupt/truncated frames show up in ``stats.frames_bad`` (or
+   ``timeouts``/``bytes_dropped``), not as a crash or a "lost device";
 3. ``unplug``: when the port disappears it notices (``stats.disconnects``),
    retries with backoff, and publishes again after the device comes back;
    its ``DiagnosticArray`` topic (if it declares one) says ERROR while the
@@ -136,6 +137,7 @@ def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float
         for kind in faults:
             def fault(kind: str = kind) -> tuple[bool, str]:
                 bad0 = stats.frames_bad + stats.timeouts + stats.bytes_dropped
+                disc0 = stats.disconnects
                 before = counts()
                 for k in range(bursts):
                     if k:
@@ -144,12 +146,15 @@ def check_driver(driver_factory: DriverFactory, emulator: Any, *, timeout: float
                 ok = _wait(more_on_all(before, 3), timeout)
                 bad = stats.frames_bad + stats.timeouts + stats.bytes_dropped - bad0
                 alive = driver.running
+                kept = stats.disconnects == disc0  # a bad frame is not a lost device
                 if kind == "garbage":
-                    good = ok and alive
+                    good = ok and alive and kept
                 else:
-                    good = ok and alive and _wait(lambda: stats.frames_bad + stats.timeouts + stats.bytes_dropped > bad0, 0.5)
-                return good, (f"data resumed={ok}, thread alive={alive}, frames_bad={stats.frames_bad}, "
-                              f"timeouts={stats.timeouts}, bytes_dropped={stats.bytes_dropped} (+{bad})")
+                    good = ok and alive and kept and _wait(
+                        lambda: stats.frames_bad + stats.timeouts + stats.bytes_dropped > bad0, 0.5)
+                return good, (f"data resumed={ok}, thread alive={alive}, connection kept={kept}, "
+                              f"frames_bad={stats.frames_bad}, timeouts={stats.timeouts}, "
+                              f"bytes_dropped={stats.bytes_dropped} (+{bad})")
 
             step(kind, fault)
 

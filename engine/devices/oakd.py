@@ -82,11 +82,19 @@ def imgframe_to_image(frame: Any, frame_id: str, stamp: float | None = None) -> 
     GRAY8 -> ``mono8`` ``[h, w]``, RAW16 (depth, mm) -> ``16UC1`` ``[h, w]`` uint16.
 
     Raises:
-        DeviceError: for frame types not handled here (names the type).
+        DeviceError: for frame types not handled here (names the type), or a
+            buffer shorter than the frame's header says.
     """
     dai = import_depthai()
     t = frame.getType()
     T = dai.ImgFrame.Type
+    bpp = {T.RGB888i: 3, T.BGR888i: 3, T.GRAY8: 1, T.RAW16: 2}.get(t)
+    if bpp is not None:
+        need = int(frame.getWidth()) * int(frame.getHeight()) * bpp
+        have = int(np.asarray(frame.getData()).size)
+        if have < need:
+            raise DeviceError(f"OAK-D: {t.name} frame {frame.getWidth()}x{frame.getHeight()} needs {need} bytes, "
+                              f"got {have} (truncated transfer)")
     arr = np.asarray(frame.getFrame())
     if t == T.RGB888i:
         data, enc = arr.reshape(frame.getHeight(), frame.getWidth(), 3).copy(), "rgb8"
@@ -189,6 +197,7 @@ class ReplaySource:
             raise ValueError(f"fps must be > 0, got {fps!r}")
         self.frames, self.fps, self.loop = frames, float(fps), loop
         self.name = name or ("generated" if callable(frames) else "recorded")
+        self.present = True  #: False: the driver's connect fails as with no camera attached
 
     @property
     def url(self) -> str:
@@ -225,11 +234,12 @@ def _replay_node_class(dai: Any) -> type:
             self.imu = self.createOutput()
             self.source: ReplaySource | None = None
 
-        def _img(self, arr: np.ndarray, typ: Any, now: Any, k: int) -> Any:
+        def _img(self, arr: np.ndarray, typ: Any, now: Any, k: int, header: tuple[int, int] | None = None) -> Any:
             f = dai.ImgFrame()
             f.setType(typ)
-            f.setWidth(int(arr.shape[1]))
-            f.setHeight(int(arr.shape[0]))
+            w, h = header if header is not None else (arr.shape[1], arr.shape[0])
+            f.setWidth(int(w))
+            f.setHeight(int(h))
             f.setData(np.ascontiguousarray(arr).view(np.uint8).reshape(-1))
             f.setSequenceNum(k)
             f.setTimestamp(now)
@@ -246,10 +256,11 @@ def _replay_node_class(dai: Any) -> type:
                     time.sleep(0.01)
                     continue
                 now = dai.Clock.now()
-                if "color" in fr:
-                    self.color.send(self._img(fr["color"], dai.ImgFrame.Type.RGB888i, now, k))
+                if "color" in fr:  # *_header / color_type: faulty frames (emulated_oakd)
+                    typ = getattr(dai.ImgFrame.Type, fr.get("color_type", "RGB888i"))
+                    self.color.send(self._img(fr["color"], typ, now, k, fr.get("color_header")))
                 if "depth" in fr:
-                    self.depth.send(self._img(fr["depth"], dai.ImgFrame.Type.RAW16, now, k))
+                    self.depth.send(self._img(fr["depth"], dai.ImgFrame.Type.RAW16, now, k, fr.get("depth_header")))
                 if fr.get("imu"):
                     data = dai.IMUData()
                     packets = []
@@ -364,6 +375,8 @@ class OakD(DeviceDriver):
 
     def _connect_replay(self, dai: Any) -> None:
         """A host-only pipeline whose node sends the replay frames (same queues as the device)."""
+        if not self.replay.present:
+            raise OakDNotFound(f"{self.url}: replay source not present (unplugged)")
         p = dai.Pipeline(createImplicitDevice=False)
         node = p.create(_replay_node_class(dai))
         node.source = self.replay
@@ -389,14 +402,24 @@ class OakD(DeviceDriver):
         for key in ("color", "depth"):
             q = self._queues.get(key)
             frame = q.tryGet() if q is not None else None
-            if frame is not None:
-                self._publish(self.topics[key], imgframe_to_image(frame, f"camera_{key}_optical_frame"))
-                got = True
+            if frame is None:
+                continue
+            try:
+                img = imgframe_to_image(frame, f"camera_{key}_optical_frame")
+            except (DeviceError, ValueError) as exc:  # a bad frame, not a lost camera: drop and count it
+                self.stats.frames_bad += 1
+                self.stats.last_error = f"{self.url}: {key} frame dropped: {exc}"
+                log.debug("%s", self.stats.last_error)
+                continue
+            self.stats.frames_ok += 1
+            self._publish(self.topics[key], img)
+            got = True
         q = self._queues.get("imu")
         data = q.tryGet() if q is not None else None
         if data is not None:
             for packet in data.packets:
                 self._publish(self.topics["imu"], imu_packet_to_imu(packet, "camera_imu_frame"))
+            self.stats.frames_ok += 1
             got = True
         if got:
             self._mark_valid()

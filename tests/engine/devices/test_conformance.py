@@ -123,3 +123,19 @@ def test_checker_catches_diagnostics_that_hide_a_loss():
     failed = {r.name for r in report.results if not r.ok}
     assert failed == {"unplug"}, str(report)
     assert "diagnostics said lost=False" in next(r.detail for r in report.results if r.name == "unplug")
+
+
+@pytest.mark.slow
+def test_oakd_conforms():
+    """The OAK-D driver through its device path on an emulated camera: faulty
+    frames are dropped and counted (not a lost device), unplug/silence noticed,
+    every published image one the camera sent, diagnostics truthful."""
+    pytest.importorskip("depthai", reason="depthai (optional extra 'oakd') is not installed")
+    from engine.devices.emulated_oakd import EmulatedOakD
+    from engine.devices.oakd import OakD
+
+    emu = EmulatedOakD()
+    report = check_driver(lambda url, pub: OakD(publish=pub, replay=emu, stale_timeout=0.4, backoff_initial=0.05,
+                                                backoff_max=0.3), emu, timeout=3)
+    assert report.ok, str(report)
+    assert "disconnects=0" not in next(r.detail for r in report.results if r.name == "unplug")

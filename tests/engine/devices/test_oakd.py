@@ -209,3 +209,13 @@ def test_emulated_runtime_runs_the_camera_on_generated_frames(tmp_path):
     assert len(color) >= 3 and color.drain()[-1].data.shape == (400, 640, 3)
     cam = [st for st in diags.drain()[-1].status if st.name == "robot1: OAK-D"]
     assert cam and cam[0].level == 0 and cam[0].hardware_id == "replay://generated"
+
+
+def test_truncated_frame_is_a_clear_device_error():
+    f = dai.ImgFrame()
+    f.setType(dai.ImgFrame.Type.RGB888i)
+    f.setWidth(32)
+    f.setHeight(32)
+    f.setData(np.zeros((16, 32, 3), np.uint8).reshape(-1))
+    with pytest.raises(oakd.DeviceError, match=r"RGB888i frame 32x32 needs 3072 bytes, got 1536 \(truncated"):
+        oakd.imgframe_to_image(f, "camera_color_optical_frame")
