@@ -549,3 +549,63 @@ def test_parser_never_returns_a_node_the_device_did_not_send():
             cases += 1
             foreign += any((n.angle_deg, n.distance_mm) not in sent for n in out)
     assert cases == 2440 and foreign == 0, f"{foreign} of {cases} streams gave a node the device never sent"
+
+
+def test_slamtec_sdk_start_sequence_gets_express_capsules():
+    """The requests Slamtec's SDK sends when rplidar_ros starts (sl_lidar_driver.cpp:
+    GET_INFO, GET_HEALTH, GET_LIDAR_CONF mode count / typical / per mode
+    (payload u32 type + u16 mode id), then startScanExpress with
+    sl_lidar_payload_express_scan_t {u8 working_mode = the mode id, u16 flags,
+    u16 param}), as raw bytes on the pty: every answer arrives, the typical
+    mode's answer type is what the scan then streams."""
+    import struct as st
+
+    def conf(kind, mode=None):
+        payload = st.pack("<I", kind) + (b"" if mode is None else st.pack("<H", mode))
+        body = bytes((0xA5, 0x84, len(payload))) + payload
+        x = 0
+        for v in body:
+            x ^= v
+        return body + bytes((x,))
+
+    assert conf(0x70) == bytes.fromhex("a584047000000055")  # the SDK's GET_LIDAR_CONF(SCAN_MODE_COUNT) request
+
+    def answer(port, want_type):
+        d = rp.parse_descriptor(port.read(7))
+        assert d.data_type == want_type and d.send_mode == rp.SEND_MODE_SINGLE
+        return port.read(d.size)
+
+    with EmulatedRPLidar() as emu:
+        port = serial.serial_for_url(emu.url, timeout=1)
+        try:
+            port.write(b"\xa5\x50")
+            assert answer(port, rp.ANS_TYPE_DEVINFO)[2] >= 1 and emu.info.firmware >= (1, 24)
+            port.write(b"\xa5\x52")
+            answer(port, rp.ANS_TYPE_DEVHEALTH)
+            port.write(conf(0x70))
+            body = answer(port, rp.ANS_TYPE_GET_LIDAR_CONF)
+            assert st.unpack_from("<I", body)[0] == 0x70
+            count = st.unpack_from("<H", body, 4)[0]
+            modes = {}
+            for m in range(count):
+                fields = {}
+                for kind in (0x71, 0x74, 0x75, 0x7F):
+                    port.write(conf(kind, m))
+                    b = answer(port, rp.ANS_TYPE_GET_LIDAR_CONF)
+                    assert st.unpack_from("<I", b)[0] == kind
+                    fields[kind] = b[4:]
+                modes[m] = fields
+            port.write(conf(0x7C))
+            typical = st.unpack_from("<H", answer(port, rp.ANS_TYPE_GET_LIDAR_CONF), 4)[0]
+            assert modes[typical][0x7F] == b"Express\0" and modes[typical][0x75] == bytes((rp.ANS_TYPE_MEASUREMENT_CAPSULED,))
+            assert st.unpack("<I", modes[typical][0x71])[0] / 256 == 254.0
+            req = st.pack("<BHH", typical, 0, 0)
+            port.write(rp.build_request(rp.CMD_EXPRESS_SCAN, req))
+            d = rp.parse_descriptor(port.read(7))
+            assert (d.size, d.send_mode, d.data_type) == (rp.CAPSULE_SIZE, rp.SEND_MODE_MULTIPLE,
+                                                          rp.ANS_TYPE_MEASUREMENT_CAPSULED)
+            caps = port.read(3 * rp.CAPSULE_SIZE)
+            assert all(rp.capsule_checksum_ok(caps, k * rp.CAPSULE_SIZE) for k in range(3))
+            port.write(b"\xa5\x25")
+        finally:
+            port.close()
