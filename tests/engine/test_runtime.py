@@ -216,7 +216,7 @@ def test_twin_and_robot_runtime_in_two_processes(tmp_path):
     from mcap_ros2.decoder import DecoderFactory
 
     from engine.paths import bundled_scene_dir
-    from engine.record import McapRecorder
+    from engine.record import McapRecorder, read_messages
     from engine.transport.bridge import FusionConfig, TwinBridge
     from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
 
@@ -288,6 +288,10 @@ def test_twin_and_robot_runtime_in_two_processes(tmp_path):
         assert math.dist(twin.agents["robot1"].state.pose[:2], after[:2]) < 0.1
         run(0.5)
         rec.close()
+        # the robot's /diagnostics reached the twin, which recorded them
+        diag = bridge.status()["robot1"]["diagnostics"]
+        assert diag["runtime"][0] == 0 and diag["OpenCR"] == (0, "connected"), diag
+        assert "/diagnostics" in {m.topic for m in read_messages(tmp_path / "live.mcap")}
     finally:
         if bridge is not None:
             bridge.close()
