@@ -210,6 +210,12 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
     if net.distro not in ("jazzy", "humble"):
         raise RobotConfigError(f"{where}: [network] distro = {net.distro!r}: expected jazzy or "
                                "humble")
+    from engine.devices.rplidar import MAX_ROTATION_HZ, MIN_ROTATION_HZ  # the devices extra (pyserial)
+
+    lidar_hz = num("emulation", e, "lidar_rate_hz", 5.5, 0)
+    if not MIN_ROTATION_HZ <= lidar_hz <= MAX_ROTATION_HZ:  # the driver drops turns outside it
+        raise RobotConfigError(f"{where}: [emulation] lidar_rate_hz = {lidar_hz:g}: expected "
+                               f"{MIN_ROTATION_HZ:g}..{MAX_ROTATION_HZ:g} Hz (an RPLIDAR head's rotation)")
     gain = num("estimation", s, "fingerprint_gain", 0.3)
     if not 0 <= gain <= 1:
         raise RobotConfigError(f"{where}: [estimation] fingerprint_gain = {gain}: expected 0..1")
@@ -217,7 +223,7 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
         name=name, model=model, initial_pose=tuple(float(x) for x in pose),
         emulated=emulated, opencr=opencr, rplidar=rplidar or None, rplidar_baudrate=int(baud), oakd=oakd,
         room=(float(room[0]), float(room[1])),
-        lidar_rate_hz=num("emulation", e, "lidar_rate_hz", 5.5, 0), network=net,
+        lidar_rate_hz=lidar_hz, network=net,
         rate_hz=num("control", c, "rate_hz", 20.0, 0),
         cmd_timeout_s=num("control", c, "cmd_timeout_s", 0.5, 0),
         lookahead=num("control", c, "lookahead", 0.25, 0), fingerprint_gain=gain)

@@ -74,7 +74,8 @@ def test_robot_toml_parses_and_rejects_bad_values(tmp_path):
                        ({"robot": {"initial_pose": [math.nan, 0, 0]}}, r"initial_pose = \[nan, 0, 0\].*finite"),
                        ({"robot": {"emulated": "yes"}}, r"\[robot\] emulated = 'yes': expected true or false"),
                        ({"drivers": {"opencr": 5}}, r"\[drivers\] opencr = 5: expected a port path"),
-                       ({"drivers": {"oakd": 1.5}}, r"\[drivers\] oakd = 1\.5: expected true, false or")):
+                       ({"drivers": {"oakd": 1.5}}, r"\[drivers\] oakd = 1\.5: expected true, false or"),
+                       ({"emulation": {"lidar_rate_hz": 1}}, r"lidar_rate_hz = 1: expected 2\.\.20 Hz")):
         with pytest.raises(RobotConfigError, match=match):
             robot_config_from_dict(doc, "r.toml")
     bad = tmp_path / "latin1.toml"
