@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -420,9 +421,13 @@ def cmd_robot(args) -> int:
     starting = [True]
 
     def on_signal(signum, frame):  # noqa: ARG001
+        # Only flag the stop: an exception raised from here could land inside
+        # zenoh or a lock and be lost or re-raised at exit. Start-up is short
+        # and the runtime stops as soon as it is up; a second signal while it
+        # is still starting ends the process at once.
+        if stop.is_set() and starting[0]:
+            os._exit(128 + signum)
         stop.set()
-        if starting[0]:  # abort start-up at once; the finally below cleans up
-            raise KeyboardInterrupt
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
@@ -439,12 +444,13 @@ def cmd_robot(args) -> int:
             return 2
         rt.start()
         starting[0] = False
-        print(f"isac-twin robot: {cfg.name} ({cfg.model}{', emulated' if cfg.emulated else ''}) up, "
-              f"zenoh {rt.transport.zid()} listen {cfg.network.listen} connect "
-              f"{cfg.network.connect}", flush=True)
-        stop.wait(args.duration)
-    except KeyboardInterrupt:
-        print("isac-twin robot: signal during start-up; stopping", file=sys.stderr, flush=True)
+        if stop.is_set():
+            print("isac-twin robot: signal during start-up; stopping", file=sys.stderr, flush=True)
+        else:
+            print(f"isac-twin robot: {cfg.name} ({cfg.model}{', emulated' if cfg.emulated else ''}) up, "
+                  f"zenoh {rt.transport.zid()} listen {cfg.network.listen} connect "
+                  f"{cfg.network.connect}", flush=True)
+            stop.wait(args.duration)
     except Exception as exc:  # noqa: BLE001 - end cleanly, say what happened
         logging.getLogger("engine.cli").exception("robot runtime failed")
         print(f"isac-twin: error: robot runtime failed: {exc}", file=sys.stderr)
