@@ -3,7 +3,7 @@
 * OpenCR: control-table block reads (READ 10+172 through dynamixel_sdk) per
   second our driver achieves; the ROS node needs 20 Hz.
 * RPLIDAR: nodes/s and scans/s our driver decodes, at the device's nominal
-  rates (A1: 2000 samples/s standard, 4000 express, 5.5 Hz) and with the
+  rates (A1 on firmware 1.29: 508 us/sample standard, 254 express, 5.5 Hz) and with the
   emulator's sample clock sped up to find the decoding ceiling.
 
 Prints ratios against the baselines; no asserts. Run:

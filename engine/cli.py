@@ -459,18 +459,52 @@ def cmd_robot(args) -> int:
         print(f"isac-twin: error: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
+    starting = [True]
+
+    def on_signal(signum, frame):  # noqa: ARG001
+        # Only flag the stop: an exception raised from here could land inside
+        # zenoh or a lock and be lost or re-raised at exit. Start-up is short
+        # and the runtime stops as soon as it is up; a second signal while it
+        # is still starting ends the process at once.
+        if stop.is_set() and starting[0]:
+            os._exit(128 + signum)
+        stop.set()
+
     for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    rt = RobotRuntime(cfg).start()
-    print(f"isac-twin robot: {cfg.name} ({cfg.model}{', emulated' if cfg.emulated else ''}) up, "
-          f"zenoh {rt.transport.zid()} listen {cfg.network.listen} connect "
-          f"{cfg.network.connect}", flush=True)
+        signal.signal(sig, on_signal)
+    rt = None
+    code = 0
     try:
-        stop.wait(args.duration)
+        try:
+            rt = RobotRuntime(cfg)
+        except Exception as exc:  # noqa: BLE001 - zenoh refuses the endpoints (e.g. address in use)
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            first = first.split(" at /")[0]  # zenoh appends its Rust source locations
+            print(f"isac-twin: error: {args.config}: [network] listen = {cfg.network.listen}, connect = "
+                  f"{cfg.network.connect}: zenoh could not open a session: {first}", file=sys.stderr)
+            return 2
+        rt.start()
+        starting[0] = False
+        if stop.is_set():
+            print("isac-twin robot: signal during start-up; stopping", file=sys.stderr, flush=True)
+        else:
+            print(f"isac-twin robot: {cfg.name} ({cfg.model}{', emulated' if cfg.emulated else ''}) up, "
+                  f"zenoh {rt.transport.zid()} listen {cfg.network.listen} connect "
+                  f"{cfg.network.connect}", flush=True)
+            stop.wait(args.duration)
+    except Exception as exc:  # noqa: BLE001 - end cleanly, say what happened
+        logging.getLogger("engine.cli").exception("robot runtime failed")
+        print(f"isac-twin: error: robot runtime failed: {exc}", file=sys.stderr)
+        code = 1
     finally:
-        rt.stop()
-    print(f"isac-twin robot: stopped ({rt.stats})", flush=True)
-    return 0
+        starting[0] = False
+        if rt is not None:
+            rt.stop()
+    if rt is not None:
+        print(f"isac-twin robot: stopped ({rt.stats})", flush=True)
+        for line in rt.device_summaries():
+            print(f"isac-twin robot:   {line}", flush=True)
+    return code
 
 
 def _record_args(p: argparse.ArgumentParser) -> None:

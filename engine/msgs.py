@@ -158,6 +158,33 @@ MESSAGE_TYPES[JointState.ROS_TYPE] = JointState
 
 
 @dataclass
+class DiagnosticStatus:
+    """One component's health (``diagnostic_msgs/DiagnosticStatus``): ``level``
+    :attr:`OK` 0, :attr:`WARN` 1, :attr:`ERROR` 2, :attr:`STALE` 3; ``values``
+    a list of ``(key, value)`` string pairs."""
+
+    ROS_TYPE = "diagnostic_msgs/msg/DiagnosticStatus"
+    OK, WARN, ERROR, STALE = 0, 1, 2, 3
+    level: int = 0
+    name: str = ""
+    message: str = ""
+    hardware_id: str = ""
+    values: list = field(default_factory=list)
+
+
+@dataclass
+class DiagnosticArray:
+    """``diagnostic_msgs/DiagnosticArray``: the statuses of one publisher's components."""
+
+    ROS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+    header: Header = field(default_factory=Header)
+    status: list = field(default_factory=list)  #: [DiagnosticStatus]
+
+
+MESSAGE_TYPES[DiagnosticArray.ROS_TYPE] = DiagnosticArray
+
+
+@dataclass
 class Csi:
     """The CSI a robot's radio receives on one link (Algorithm 1, stage 3).
 

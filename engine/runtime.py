@@ -32,7 +32,7 @@ OpenCR firmware would also zero it after 500 ms).
     opencr = "/dev/ttyACM0"    # path or pyserial URL
     rplidar = "/dev/ttyUSB0"
     rplidar_baudrate = 115200
-    oakd = false               # true, or a device MxId string
+    oakd = false               # true, or a device MxId string (emulated: generated frames replayed)
 
     [emulation]                # used when emulated = true
     room = [6.0, 4.0]          # rectangle [0, W] x [0, D] m the emulated LiDAR sees
@@ -68,10 +68,10 @@ import numpy as np
 
 from engine.addon_shared import schema
 from engine.bus import Bus
-from engine.msgs import (BatteryState, Header, Imu, LaserScan, Odometry, Pose, PoseStamped, Twist,
-                         quaternion_to_yaw, yaw_to_quaternion)
 from engine import frames
-from engine.msgs import TFMessage
+from engine.msgs import (BatteryState, DiagnosticArray, DiagnosticStatus, Header, Imu, LaserScan,
+                         Odometry, Pose, PoseStamped, TFMessage, Twist, quaternion_to_yaw,
+                         yaw_to_quaternion)
 from engine.robots.control import controller_from_spec
 from engine.robots.kinematics import robot_spec
 from engine.transport.clock import ClockResponder
@@ -79,6 +79,9 @@ from engine.transport.twin_msgs import Fingerprint, PathCommand
 from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
 
 log = logging.getLogger(__name__)
+
+#: ROS' global diagnostics topic; each robot's statuses are named ``<robot>: <component>``.
+DIAGNOSTICS_TOPIC = "/diagnostics"
 
 
 class RobotConfigError(ValueError):
@@ -115,11 +118,17 @@ def load_robot_config(path: str | Path) -> RobotConfig:
     """
     path = Path(path)
     try:
-        doc = tomllib.loads(path.read_text())
+        raw = path.read_bytes()
+        doc = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise RobotConfigError(f"{path}: not UTF-8 (byte 0x{raw[exc.start]:02x} at offset {exc.start})") from None
     except (OSError, tomllib.TOMLDecodeError) as exc:
         raise RobotConfigError(f"{path}: {exc}") from None
     return robot_config_from_dict(doc, str(path))
 
+
+#: Serial rates of the RPLIDAR family (Slamtec: A1/A2M8, A2M7/A2M12/A3/S1, C1, S2/S3).
+RPLIDAR_BAUDRATES = (115200, 256000, 460800, 1000000)
 
 _KEYS = {"robot": {"name", "model", "initial_pose", "emulated", "frame_prefix"},
          "drivers": {"opencr", "rplidar", "rplidar_baudrate", "oakd"},
@@ -160,8 +169,25 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
                                f"{' or '.join(schema.ROBOT_MODELS)}")
     pose = r.get("initial_pose", [0.0, 0.0, 0.0])
     if not (isinstance(pose, list) and len(pose) == 3
-            and all(isinstance(x, (int, float)) for x in pose)):
-        raise RobotConfigError(f"{where}: [robot] initial_pose = {pose!r}: expected [x, y, yaw]")
+            and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in pose)):
+        raise RobotConfigError(f"{where}: [robot] initial_pose = {pose!r}: expected [x, y, yaw], finite numbers")
+    emulated = r.get("emulated", False)
+    if not isinstance(emulated, bool):
+        raise RobotConfigError(f"{where}: [robot] emulated = {emulated!r}: expected true or false")
+    opencr = d.get("opencr", "/dev/ttyACM0")
+    if not isinstance(opencr, str) or not opencr:
+        raise RobotConfigError(f"{where}: [drivers] opencr = {opencr!r}: expected a port path or pyserial URL")
+    rplidar = d.get("rplidar", "/dev/ttyUSB0")
+    if not isinstance(rplidar, str):
+        raise RobotConfigError(f"{where}: [drivers] rplidar = {rplidar!r}: expected a port path or pyserial URL "
+                               "(\"\" for none)")
+    baud = d.get("rplidar_baudrate", 115200)
+    if baud not in RPLIDAR_BAUDRATES or isinstance(baud, bool):
+        raise RobotConfigError(f"{where}: [drivers] rplidar_baudrate = {baud!r}: expected one of "
+                               f"{', '.join(map(str, RPLIDAR_BAUDRATES))} (A1/A2M8, A2M7/A3, C1, S2/S3)")
+    oakd = d.get("oakd", False)
+    if not isinstance(oakd, (bool, str)):
+        raise RobotConfigError(f"{where}: [drivers] oakd = {oakd!r}: expected true, false or a device MxId")
     prefix = r.get("frame_prefix", False)
     if not isinstance(prefix, bool):
         raise RobotConfigError(f"{where}: [robot] frame_prefix = {prefix!r}: expected true or "
@@ -175,25 +201,41 @@ def robot_config_from_dict(doc: dict, where: str = "robot.toml") -> RobotConfig:
         if not (isinstance(eps, list) and all(isinstance(x, str) and "/" in x for x in eps)):
             raise RobotConfigError(f"{where}: [network] {key} = {eps!r}: expected a list of "
                                    "endpoints like \"tcp/127.0.0.1:7448\"")
+        for ep in eps:
+            port = ep.rsplit(":", 1)[-1] if ":" in ep.split("/", 1)[1] else ""
+            if port and not (port.isdigit() and 0 <= int(port) <= 65535):
+                raise RobotConfigError(f"{where}: [network] {key}: {ep!r} has port {port}: expected 0..65535")
+    domain_id = n.get("domain_id", 0)
+    if not isinstance(domain_id, int) or isinstance(domain_id, bool) or not 0 <= domain_id <= 232:
+        raise RobotConfigError(f"{where}: [network] domain_id = {domain_id!r}: expected an integer 0..232 "
+                               "(ROS_DOMAIN_ID)")
+    multicast = n.get("multicast", False)
+    if not isinstance(multicast, bool):
+        raise RobotConfigError(f"{where}: [network] multicast = {multicast!r}: expected true or false")
     net = ZenohConfig(mode=n.get("mode", "peer"), listen=list(n.get("listen", [])),
-                      connect=list(n.get("connect", [])), multicast=bool(n.get("multicast", False)),
-                      domain_id=int(n.get("domain_id", 0)), distro=n.get("distro", "jazzy"))
+                      connect=list(n.get("connect", [])), multicast=multicast,
+                      domain_id=domain_id, distro=n.get("distro", "jazzy"))
     if net.mode not in ("peer", "client", "router"):
         raise RobotConfigError(f"{where}: [network] mode = {net.mode!r}: expected peer, client "
                                "or router")
     if net.distro not in ("jazzy", "humble"):
         raise RobotConfigError(f"{where}: [network] distro = {net.distro!r}: expected jazzy or "
                                "humble")
+    from engine.devices.rplidar import MAX_ROTATION_HZ, MIN_ROTATION_HZ  # the devices extra (pyserial)
+
+    lidar_hz = num("emulation", e, "lidar_rate_hz", 5.5, 0)
+    if not MIN_ROTATION_HZ <= lidar_hz <= MAX_ROTATION_HZ:  # the driver drops turns outside it
+        raise RobotConfigError(f"{where}: [emulation] lidar_rate_hz = {lidar_hz:g}: expected "
+                               f"{MIN_ROTATION_HZ:g}..{MAX_ROTATION_HZ:g} Hz (an RPLIDAR head's rotation)")
     gain = num("estimation", s, "fingerprint_gain", 0.3)
     if not 0 <= gain <= 1:
         raise RobotConfigError(f"{where}: [estimation] fingerprint_gain = {gain}: expected 0..1")
     return RobotConfig(
         name=name, model=model, initial_pose=tuple(float(x) for x in pose),
-        emulated=bool(r.get("emulated", False)), frame_prefix=prefix, opencr=str(d.get("opencr", "/dev/ttyACM0")),
-        rplidar=d.get("rplidar", "/dev/ttyUSB0") or None,
-        rplidar_baudrate=int(d.get("rplidar_baudrate", 115200)), oakd=d.get("oakd", False),
+        emulated=emulated, frame_prefix=prefix, opencr=opencr, rplidar=rplidar or None,
+        rplidar_baudrate=int(baud), oakd=oakd,
         room=(float(room[0]), float(room[1])),
-        lidar_rate_hz=num("emulation", e, "lidar_rate_hz", 5.5, 0), network=net,
+        lidar_rate_hz=lidar_hz, network=net,
         rate_hz=num("control", c, "rate_hz", 20.0, 0),
         cmd_timeout_s=num("control", c, "cmd_timeout_s", 0.5, 0),
         lookahead=num("control", c, "lookahead", 0.25, 0), fingerprint_gain=gain)
@@ -290,17 +332,21 @@ class RobotRuntime:
 
         published   <ns>/odom (nav_msgs/Odometry, frame odom), <ns>/imu, <ns>/battery_state,
                     <ns>/scan (sensor_msgs/LaserScan), <ns>/pose_estimate
-                    (geometry_msgs/PoseStamped, frame map), /isac/clock/pong
+                    (geometry_msgs/PoseStamped, frame map), /isac/clock/pong,
+                    /diagnostics (diagnostic_msgs/DiagnosticArray: runtime and every device,
+                    connected or not, every ``diagnostics_period_s``)
         subscribed  <ns>/cmd_vel (geometry_msgs/Twist), <ns>/path (isac_twin_msgs/PathCommand),
                     <ns>/fingerprint (isac_twin_msgs/Fingerprint), /isac/clock/ping
 
     Args:
         config: :class:`RobotConfig`.
         transport: a transport to use instead of a new :class:`ZenohTransport`.
+        diagnostics_period_s: s between ``/diagnostics`` messages.
     """
 
-    def __init__(self, config: RobotConfig, *, transport=None):
+    def __init__(self, config: RobotConfig, *, transport=None, diagnostics_period_s: float = 1.0):
         self.config = cfg = config
+        self.diagnostics_period_s = diagnostics_period_s
         self.transport = transport if transport is not None else ZenohTransport(
             cfg.network, name=cfg.name)
         self.bus = Bus(transport=self.transport)
@@ -316,6 +362,7 @@ class RobotRuntime:
         self.frames = frames.RobotFrames(f"{cfg.name}/" if cfg.frame_prefix else "")
         self.node.advertise("/tf", TFMessage)
         self.node.advertise("/tf_static", TFMessage)
+        self.node.advertise(DIAGNOSTICS_TOPIC, DiagnosticArray)
         self.estimator = PoseEstimator(cfg.initial_pose, cfg.fingerprint_gain)
         self.stats = RuntimeStats()
         self._lock = threading.Lock()
@@ -365,18 +412,23 @@ class RobotRuntime:
         self.opencr = OpenCR(opencr_url, publish, model=cfg.model,
                              topics={k: self.topics[k] for k in ("odom", "imu", "battery_state")},
                              odom_frame=fr.odom, base_frame=fr.base_footprint,
-                             imu_frame=fr.imu_link).start()
+                             imu_frame=fr.imu_link,
+                             diagnostics_topic=None).start()  # the runtime publishes all diagnostics
         if lidar_url:
             self.lidar = RPLidar(lidar_url, publish, baudrate=cfg.rplidar_baudrate,
-                                 topic=self.topics["scan"], frame_id=fr.base_scan).start()
+                                 topic=self.topics["scan"], frame_id=fr.base_scan,
+                                 diagnostics_topic=None).start()
         if cfg.oakd:
             try:
-                from engine.devices.oakd import OakD
+                from engine.devices.oakd import OakD, ReplaySource, generated_frames
 
+                # emulated: generated frames through the driver's device path (needs depthai)
+                replay = ReplaySource(generated_frames(), fps=15.0) if cfg.emulated else None
                 self.oakd = OakD(cfg.oakd if isinstance(cfg.oakd, str) else "", self._publish_any,
                                  topics={"color": f"/{cfg.name}/camera/color/image_raw",
                                          "depth": f"/{cfg.name}/camera/depth/image_raw",
-                                         "imu": f"/{cfg.name}/camera/imu"}).start()
+                                         "imu": f"/{cfg.name}/camera/imu"},
+                                 diagnostics_topic=None, replay=replay).start()
             except Exception as exc:  # noqa: BLE001 - the camera is optional
                 log.warning("%s: OAK-D unavailable (%s); running without it", cfg.name, exc)
         self._stop.clear()
@@ -405,10 +457,40 @@ class RobotRuntime:
         for d in (self.oakd, self.lidar, self.opencr):
             if d is not None:
                 d.stop()
+                if not d.ever_connected:
+                    log.warning("%s: %s", self.config.name, d.summary())
         for e in reversed(self.emulators):
             e.stop()
         self.emulators = []
         self.transport.close()
+
+    def drivers(self) -> list[tuple[str, object]]:
+        """(name, driver) of every device driver running."""
+        return [(n, d) for n, d in (("OpenCR", self.opencr), ("RPLIDAR", self.lidar), ("OAK-D", self.oakd))
+                if d is not None]
+
+    def diagnostics(self) -> DiagnosticArray:
+        """``/diagnostics`` now: one status per device (see
+        :meth:`engine.devices.base.DeviceDriver.diagnostic_status`) and the
+        runtime's own, as bad as its worst device, naming those not connected."""
+        name = self.config.name
+        devs = []
+        for dev_name, d in self.drivers():
+            st = d.diagnostic_status()
+            st.name = f"{name}: {dev_name}"
+            devs.append(st)
+        missing = [st.name.split(": ", 1)[1] for st in devs if st.level != DiagnosticStatus.OK
+                   and not st.message.startswith("connected")]
+        level = max([st.level for st in devs], default=DiagnosticStatus.OK)
+        msg = f"mode {self.stats.mode}; " + (f"not connected: {', '.join(missing)}" if missing
+                                            else f"all {len(devs)} devices connected")
+        values = [(k, str(v)) for k, v in vars(self.stats).items()]
+        own = DiagnosticStatus(level, f"{name}: runtime", msg, name, values)
+        return DiagnosticArray(Header(stamp=time.time(), frame_id=""), [own, *devs])
+
+    def device_summaries(self) -> list[str]:
+        """One line per device driver: whether it ever connected, frames, messages."""
+        return [f"{name}: {d.summary()}" for name, d in self.drivers()]
 
     def __enter__(self) -> RobotRuntime:
         return self.start()
@@ -480,7 +562,14 @@ class RobotRuntime:
         period = 1.0 / self.config.rate_hz
         last = None
         next_t = time.monotonic()
+        next_diag = next_t
         while not self._stop.is_set():
+            if time.monotonic() >= next_diag:
+                next_diag = time.monotonic() + self.diagnostics_period_s
+                try:
+                    self.node.publish(DIAGNOSTICS_TOPIC, self.diagnostics())
+                except Exception:  # noqa: BLE001 - diagnostics must not stop the robot
+                    log.exception("%s: publishing diagnostics failed", self.config.name)
             try:
                 v, w = self.command()
                 self.stats.control_ticks += 1

@@ -9,7 +9,9 @@ out through a plain ``publish(topic, msg)`` callable, so the bus's
 
 Each driver declares the topics it publishes and their message types in
 ``MESSAGE_TYPES``; :mod:`engine.devices.conformance` checks that it keeps to
-them.
+them. A started driver also publishes ``diagnostic_msgs/DiagnosticArray`` on
+``diagnostics_topic`` every ``diagnostics_period_s`` and at once when it
+connects or loses the device, connected or not (:meth:`DeviceDriver.diagnostic_status`).
 """
 
 from __future__ import annotations
@@ -18,8 +20,10 @@ import logging
 import termios
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import Any, Callable, ClassVar
+
+from engine.msgs import DiagnosticArray, DiagnosticStatus, Header
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +70,13 @@ class DeviceDriver:
         stale_timeout: s without a valid frame before the device counts as lost.
         backoff_initial: s before the first reconnect attempt.
         backoff_max: s, cap of the doubling reconnect delay.
+        connect_warn_s: s after :meth:`start` without a connection before a
+            WARNING names the port and the last error (once; every further
+            failure stays at INFO).
+        diagnostics_topic: where :meth:`start` ed drivers publish their
+            ``DiagnosticArray`` (``None``: not published; a runtime may collect
+            :meth:`diagnostic_status` itself).
+        diagnostics_period_s: s between diagnostics messages.
     """
 
     #: topic -> message class published there.
@@ -79,13 +90,23 @@ class DeviceDriver:
         stale_timeout: float = 1.0,
         backoff_initial: float = 0.05,
         backoff_max: float = 2.0,
+        connect_warn_s: float = 3.0,
+        diagnostics_topic: str | None = "diagnostics",
+        diagnostics_period_s: float = 1.0,
     ) -> None:
         self.url = url
         self.publish_fn: Publish = publish or _discard
         self.stale_timeout = stale_timeout
         self.backoff_initial = backoff_initial
         self.backoff_max = backoff_max
+        self.connect_warn_s = connect_warn_s
         self.stats = DriverStats()
+        self._started_at: float | None = None
+        self._warned_absent = False
+        self.diagnostics_topic = diagnostics_topic
+        self.diagnostics_period_s = diagnostics_period_s
+        self._next_diag = 0.0
+        self._diag_bad = 0
         self._stop_evt = threading.Event()
         self._thread: threading.Thread | None = None
         self._connected = False
@@ -114,11 +135,30 @@ class DeviceDriver:
     def connected(self) -> bool:
         return self._connected
 
+    @property
+    def ever_connected(self) -> bool:
+        return self.stats.connects > 0
+
+    def summary(self) -> str:
+        """One line for the end of a run: whether the device ever connected,
+        reconnects, frames, messages per topic, the last error."""
+        st = self.stats
+        if not st.connects:
+            return f"{self.url}: NEVER connected; last error: {st.last_error or 'none'}"
+        pub = ", ".join(f"{t}: {n}" for t, n in sorted(st.published.items())) or "nothing published"
+        return (f"{self.url}: connected {st.connects} time{'s' if st.connects > 1 else ''}, "
+                f"{st.disconnects} lost; frames {st.frames_ok} ok / {st.frames_bad} bad; {pub}"
+                + (f"; last error: {st.last_error}" if st.last_error else ""))
+
     def start(self) -> "DeviceDriver":
         """Start the read-loop thread (returns at once; connection is retried)."""
         if self.running:
             return self
         self._stop_evt.clear()
+        self._started_at = time.monotonic()
+        self._warned_absent = False
+        if self.diagnostics_topic:
+            self.MESSAGE_TYPES = {**self.MESSAGE_TYPES, self.diagnostics_topic: DiagnosticArray}
         self._thread = threading.Thread(target=self._run, name=f"{type(self).__name__}({self.url})", daemon=True)
         self._thread.start()
         return self
@@ -149,6 +189,40 @@ class DeviceDriver:
                 self._pub_cond.wait(remaining)
         return True
 
+    def diagnostic_status(self) -> DiagnosticStatus:
+        """The driver's health now: OK connected; WARN connected but frames were
+        bad since the last report, or still connecting within ``connect_warn_s``;
+        ERROR never connected (with the error) or lost (reconnecting). Values:
+        every counter of ``stats``, messages per topic, the last error."""
+        st = self.stats
+        if self._connected:
+            bad = st.frames_bad - self._diag_bad
+            level, msg = ((DiagnosticStatus.OK, "connected") if bad <= 0 else
+                          (DiagnosticStatus.WARN, f"connected; {bad} bad frames since the last report"))
+        elif not st.connects:
+            waited = time.monotonic() - (self._started_at or time.monotonic())
+            if waited < self.connect_warn_s:
+                level, msg = DiagnosticStatus.WARN, f"connecting ({waited:.1f} s)"
+            else:
+                level, msg = DiagnosticStatus.ERROR, f"never connected: {st.last_error or 'no attempt finished'}"
+        else:
+            level, msg = DiagnosticStatus.ERROR, f"lost: {st.last_error}; reconnecting"
+        values = [(f.name, str(getattr(st, f.name))) for f in fields(st) if f.name not in ("published", "last_error")]
+        values += [(f"published {t}", str(n)) for t, n in sorted(st.published.items())]
+        values.append(("last_error", st.last_error))
+        return DiagnosticStatus(level, type(self).__name__, msg, self.url, values)
+
+    def _publish_diagnostics(self, force: bool = False) -> None:
+        if not self.diagnostics_topic:
+            return
+        now = time.monotonic()
+        if not force and now < self._next_diag:
+            return
+        status = self.diagnostic_status()
+        self._next_diag = now + self.diagnostics_period_s
+        self._diag_bad = self.stats.frames_bad
+        self._publish(self.diagnostics_topic, DiagnosticArray(Header(stamp=time.time(), frame_id=""), [status]))
+
     # -- helpers for subclasses -------------------------------------------------
     def _publish(self, topic: str, msg: Any) -> None:
         try:
@@ -173,12 +247,19 @@ class DeviceDriver:
     def _run(self) -> None:
         backoff = self.backoff_initial
         while not self._stop_evt.is_set():
+            self._publish_diagnostics()
             if not self._connected:
                 try:
                     self._connect()
                 except Exception as exc:  # noqa: BLE001 - any failure means "retry later"
                     self.stats.last_error = f"{self.url}: connect failed: {exc}"
-                    log.info("%s; retry in %.2f s", self.stats.last_error, backoff)
+                    waited = time.monotonic() - (self._started_at or time.monotonic())
+                    if not self.stats.connects and not self._warned_absent and waited >= self.connect_warn_s:
+                        self._warned_absent = True
+                        log.warning("%s: never connected in %.1f s (%s); still retrying every <= %.1f s",
+                                    self.url, waited, exc, self.backoff_max)
+                    else:
+                        log.info("%s; retry in %.2f s", self.stats.last_error, backoff)
                     self._safe_disconnect()
                     self._stop_evt.wait(backoff)
                     backoff = min(backoff * 2, self.backoff_max)
@@ -188,6 +269,7 @@ class DeviceDriver:
                 self._last_valid = time.monotonic()
                 backoff = self.backoff_initial
                 log.info("%s: connected (connection #%d)", self.url, self.stats.connects)
+                self._publish_diagnostics(force=True)
             try:
                 self._poll()
                 idle = time.monotonic() - self._last_valid
@@ -200,6 +282,7 @@ class DeviceDriver:
                 log.warning("%s: device lost (%s); reconnecting in %.2f s", self.url, exc, backoff,
                             exc_info=not expected)
                 self._safe_disconnect()
+                self._publish_diagnostics(force=True)
                 self._stop_evt.wait(backoff)
                 backoff = min(backoff * 2, self.backoff_max)
         self._safe_disconnect()

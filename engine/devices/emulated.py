@@ -31,6 +31,7 @@ class EmulatorStats:
     bytes_overflow: int = 0  #: output dropped because the host was not reading
     requests: int = 0  #: well-formed requests handled
     bad_requests: int = 0  #: requests with a bad checksum/CRC or unknown framing
+    ignored: int = 0  #: well-framed requests the device does not answer (broadcast, unsupported)
     unplugs: int = 0
 
 

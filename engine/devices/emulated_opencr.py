@@ -4,11 +4,12 @@ The server side of Protocol 2.0 (ROBOTIS e-Manual): packets
 ``FF FF FD 00 | ID | LEN (LE) | INST | params | CRC16 (LE)``, CRC-16 with
 polynomial 0x8005 (init 0) over the *stuffed* packet, ``FF FF FD`` in the
 body sent as ``FF FF FD FD``; status packets carry INST 0x55 and an error
-byte. Instructions: PING, READ, WRITE, SYNC_READ, BULK_READ (broadcast ID
-0xFE for the last two); anything else addressed to the board gets an
-"instruction error" status. Packets with a bad CRC are dropped (counted in
-``stats.bad_requests``) and answered with a CRC-error status if the ID
-matches, as DYNAMIXEL firmware does.
+byte. The board answers as the TurtleBot3 firmware's packet handler,
+ROBOTIS' Dynamixel2Arduino ``Slave`` (``src/utility/slave.cpp``), does: only
+PING, READ and WRITE addressed to its ID get a status; broadcast packets,
+SYNC_READ, BULK_READ and any other instruction get none (counted in
+``stats.ignored``), as do READ/WRITE with too few parameters; a packet with a
+bad CRC never parses and gets no reply (``stats.bad_requests``).
 
 Behind the control table sits a robot: ``step(v, w, dt)`` (m/s, rad/s, s)
 returns ``(left_pos, right_pos, left_vel, right_vel, gyro[3], accel[3],
@@ -17,8 +18,11 @@ acceleration in m/s^2 (gravity included, as an IMU measures it) and the
 orientation quaternion ``[x, y, z, w]``. :class:`DiffDriveRobot` is the
 default; the twin's kinematics can be plugged in instead.
 
-Firmware behaviour kept: cmd_vel clamped to the model's limits, and zeroed
-when neither the heartbeat nor cmd_vel changed for ``watchdog_s`` (0.5 s).
+Firmware behaviour kept: cmd_vel stays in the table as written and is
+limited to the model's speeds when it drives the wheels; it is zeroed when
+neither the heartbeat nor cmd_vel changed for ``watchdog_s`` (0.5 s). Not
+verified against the firmware: the data-access error (7) for writes to
+read-only addresses.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ import numpy as np
 
 from engine.devices import opencr as oc
 from engine.devices.emulated import EmulatedSerialDevice
+from engine.msgs import BatteryState, Imu, Odometry
 
 log = logging.getLogger(__name__)
 
@@ -229,6 +234,28 @@ class EmulatedOpenCR(EmulatedSerialDevice):
         with self._lock:
             self._faults.append(kind)
 
+    # -- truth ------------------------------------------------------------------------------
+    def check_message(self, topic: str, msg: object) -> str:
+        """What is wrong with a message a driver published from this board (``""``
+        if nothing), for the conformance checker: every number finite, the
+        battery voltage the one this board reports (V, 0.01 V steps), the IMU
+        orientation a unit quaternion."""
+        if isinstance(msg, BatteryState):
+            if not abs(msg.voltage - self.battery_voltage) <= 0.006:
+                return f"battery {msg.voltage!r} V, the board reports {self.battery_voltage:.2f} V"
+            return ""
+        if isinstance(msg, Imu):
+            vals = np.concatenate([msg.orientation, msg.angular_velocity, msg.linear_acceleration])
+            if not np.all(np.isfinite(vals)):
+                return f"non-finite IMU values {vals}"
+            if abs(float(np.linalg.norm(msg.orientation)) - 1.0) > 1e-3:
+                return f"IMU orientation {msg.orientation} is not a unit quaternion"
+            return ""
+        if isinstance(msg, Odometry):
+            vals = np.concatenate([msg.pose.position, msg.pose.orientation, msg.twist.linear, msg.twist.angular])
+            return "" if np.all(np.isfinite(vals)) else f"non-finite odometry {vals}"
+        return f"unexpected message {type(msg).__name__}"
+
     # -- physics ---------------------------------------------------------------------------
     def _advance(self, now: float) -> None:
         if self._boot is None:
@@ -240,6 +267,9 @@ class EmulatedOpenCR(EmulatedSerialDevice):
             self.watchdog_trips += 1
             log.info("emulated OpenCR: no heartbeat/cmd_vel change for %.2f s, cmd_vel zeroed", now - self._last_alive)
         v, w = self.cmd_vel
+        lim_v = getattr(self.robot, "max_linear", oc.MAX_LINEAR[self.model])
+        lim_w = getattr(self.robot, "max_angular", oc.MAX_ANGULAR[self.model])
+        v, w = max(-lim_v, min(lim_v, v)), max(-lim_w, min(lim_w, w))
         if not self.motors_connected or not self.table[oc.Addr.MOTOR_TORQUE_ENABLE]:
             v = w = 0.0
         state = None
@@ -299,9 +329,7 @@ class EmulatedOpenCR(EmulatedSerialDevice):
             del buf[:total]
             dxl_id = pkt[4]
             if crc16(pkt[:-2]) != struct.unpack_from("<H", pkt, total - 2)[0]:
-                self.stats.bad_requests += 1
-                if dxl_id == self.dxl_id:
-                    self._reply(ERR_CRC, b"")
+                self.stats.bad_requests += 1  # never parses in the slave library: no reply
                 continue
             body = unstuff(pkt[:7], pkt[7:-2])
             self._advance(now)
@@ -325,38 +353,29 @@ class EmulatedOpenCR(EmulatedSerialDevice):
         return 0, bytes(self.table[addr: addr + length])
 
     def _handle(self, dxl_id: int, inst: int, params: bytes, now: float) -> None:
-        mine = dxl_id == self.dxl_id
-        if not mine and dxl_id != BROADCAST_ID:
+        """As Dynamixel2Arduino's ``Slave::processInst``: PING, READ and WRITE to
+        this ID only; broadcast and every other instruction get no status."""
+        if dxl_id != self.dxl_id:
+            if dxl_id == BROADCAST_ID:
+                self.stats.ignored += 1
             return
         self.stats.requests += 1
         if inst == INST_PING:
             self._reply(0, struct.pack("<HB", oc.MODEL_NUMBER, self.firmware_version))
-        elif inst == INST_READ and mine:
-            if len(params) != 4:
-                self._reply(ERR_DATA_LENGTH, b"")
+        elif inst == INST_READ:
+            if len(params) != 4:  # WRONG_PACKET: no status
+                self.stats.ignored += 1
                 return
             addr, length = struct.unpack("<HH", params)
             self._reply(*self._read(addr, length))
         elif inst == INST_WRITE:
-            if len(params) < 3:
-                if mine:
-                    self._reply(ERR_DATA_LENGTH, b"")
+            if len(params) <= 2:  # WRONG_PACKET: no status
+                self.stats.ignored += 1
                 return
             addr = struct.unpack_from("<H", params)[0]
-            err = self._write(addr, params[2:], now)
-            if mine:
-                self._reply(err, b"")
-        elif inst == INST_SYNC_READ and dxl_id == BROADCAST_ID:
-            if len(params) >= 5 and self.dxl_id in params[4:]:
-                addr, length = struct.unpack_from("<HH", params)
-                self._reply(*self._read(addr, length))
-        elif inst == INST_BULK_READ and dxl_id == BROADCAST_ID:
-            for k in range(0, len(params) - 4, 5):
-                if params[k] == self.dxl_id:
-                    addr, length = struct.unpack_from("<HH", params, k + 1)
-                    self._reply(*self._read(addr, length))
-        elif mine:
-            self._reply(ERR_INSTRUCTION, b"")
+            self._reply(self._write(addr, params[2:], now), b"")
+        else:
+            self.stats.ignored += 1
 
     def _write(self, addr: int, data: bytes, now: float) -> int:
         end = addr + len(data)
@@ -365,15 +384,7 @@ class EmulatedOpenCR(EmulatedSerialDevice):
         hb_before = self.table[oc.Addr.HEARTBEAT]
         self.table[addr:end] = data
         touches_cmd = addr < oc.Addr.CMD_VELOCITY + oc.CMD_VEL_LEN and end > oc.Addr.CMD_VELOCITY
-        if touches_cmd:
-            v, w = self.cmd_vel
-            r = self.robot
-            lim_v = getattr(r, "max_linear", oc.MAX_LINEAR[self.model])
-            lim_w = getattr(r, "max_angular", oc.MAX_ANGULAR[self.model])
-            c = list(self._get(oc.Addr.CMD_VELOCITY, "6i"))
-            c[0] = int(round(max(-lim_v, min(lim_v, v)) * 100))
-            c[5] = int(round(max(-lim_w, min(lim_w, w)) * 100))
-            self._put(oc.Addr.CMD_VELOCITY, "6i", *c)
+        if touches_cmd:  # kept as written; limited when applied (_advance)
             self._last_alive = now
         if addr <= oc.Addr.HEARTBEAT < end and self.table[oc.Addr.HEARTBEAT] != hb_before:
             self._last_alive = now

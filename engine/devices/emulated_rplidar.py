@@ -7,10 +7,17 @@ rad, ROS convention (counter-clockwise in the laser frame, see
 here (:func:`laser_scan_source` adapts anything returning a ``LaserScan``);
 the default is a 4 m x 3 m room centred on the sensor.
 
-What it implements: GET_INFO, GET_HEALTH, GET_SAMPLERATE, SCAN/FORCE_SCAN
-(5-byte nodes), EXPRESS_SCAN (legacy 84-byte capsules), STOP, RESET (with
-the boot banner a real unit prints), SET_MOTOR_PWM (A2/A3) and DTR motor
-control (A1, through ``pty://`` URLs). Any other request, with or without
+What it implements: GET_INFO, GET_HEALTH, GET_SAMPLERATE, GET_LIDAR_CONF
+(scan mode count, typical mode, and per mode the name, us per sample, max
+distance and answer type, as Slamtec's SDK and ``rplidar_ros`` ask on
+firmware >= 1.24), SCAN/FORCE_SCAN (5-byte nodes), EXPRESS_SCAN (legacy
+84-byte capsules), STOP, RESET (with the boot banner a real unit prints),
+SET_MOTOR_PWM (A2/A3) and DTR motor control (A1, through ``pty://`` URLs).
+The default sample times are an A1's on firmware 1.29: 508 us standard,
+254 us express. Unlike a real A1 (5 scan modes: also Boost, Sensitivity and
+Stability in ultra capsules, typical Sensitivity) it reports only the two
+modes it can stream, typical Express; a configuration type it does not
+know is answered with the type and no payload (unverified on hardware). Any other request, with or without
 payload, is parsed (checksum and all) and ignored, as the firmware does.
 A new request while scanning stops the stream first (real units need STOP;
 clients send it anyway).
@@ -23,6 +30,7 @@ sample clock produces them (``sample_rate_hz`` standard,
 from __future__ import annotations
 
 import logging
+import math
 import struct
 from typing import Callable
 
@@ -83,8 +91,9 @@ class EmulatedRPLidar(EmulatedSerialDevice):
         serial_number: 16 bytes.
         health: (status, error_code) returned by GET_HEALTH.
         scan_rate_hz: head rotation (A1 nominal 5.5 Hz).
-        sample_rate_hz: standard-scan samples/s (A1 2000).
-        express_sample_rate_hz: express-scan samples/s (A1 4000).
+        sample_rate_hz: standard-scan samples/s (A1: 1e6 / 508 us).
+        express_sample_rate_hz: express-scan samples/s (A1: 1e6 / 254 us).
+        max_distance_m: per-mode max distance reported by GET_LIDAR_CONF (A1 12 m).
         motor_control: ``"dtr"`` (A1: DTR low spins) or ``"pwm"`` (SET_MOTOR_PWM).
         require_motor: if True, scans carry no samples while the motor is off.
         angle_offset: rad, see :func:`engine.devices.rplidar.device_to_ros_angle`.
@@ -98,7 +107,8 @@ class EmulatedRPLidar(EmulatedSerialDevice):
                  firmware: tuple[int, int] = (1, 29), hardware: int = 7,
                  serial_number: bytes = bytes.fromhex("8ba7ed1ee6e19dd3a4e39ef331554b33"),
                  health: tuple[int, int] = (rp.STATUS_OK, 0), scan_rate_hz: float = 5.5,
-                 sample_rate_hz: float = 2000.0, express_sample_rate_hz: float = 4000.0,
+                 sample_rate_hz: float = 1e6 / 508, express_sample_rate_hz: float = 1e6 / 254,
+                 max_distance_m: float = 12.0,
                  motor_control: str = "dtr", require_motor: bool = False, angle_offset: float = 0.0,
                  time_scale: float = 1.0, link_path: str | None = None) -> None:
         super().__init__(link_path)
@@ -110,6 +120,7 @@ class EmulatedRPLidar(EmulatedSerialDevice):
         self.scan_rate_hz = scan_rate_hz
         self.sample_rate_hz = sample_rate_hz
         self.express_sample_rate_hz = express_sample_rate_hz
+        self.max_distance_m = max_distance_m
         self.motor_control = motor_control
         self.require_motor = require_motor
         self.angle_offset = angle_offset
@@ -196,7 +207,7 @@ class EmulatedRPLidar(EmulatedSerialDevice):
         elif cmd == rp.CMD_GET_HEALTH:
             self.send(rp.build_descriptor(3, rp.SEND_MODE_SINGLE, rp.ANS_TYPE_DEVHEALTH) + self.health.to_bytes())
         elif cmd == rp.CMD_GET_SAMPLERATE:
-            body = struct.pack("<HH", int(1e6 / self.sample_rate_hz), int(1e6 / self.express_sample_rate_hz))
+            body = struct.pack("<HH", round(1e6 / self.sample_rate_hz), round(1e6 / self.express_sample_rate_hz))
             self.send(rp.build_descriptor(4, rp.SEND_MODE_SINGLE, rp.ANS_TYPE_SAMPLERATE) + body)
         elif cmd in (rp.CMD_SCAN, rp.CMD_FORCE_SCAN):
             self.send(rp.build_descriptor(rp.NODE_SIZE, rp.SEND_MODE_MULTIPLE, rp.ANS_TYPE_MEASUREMENT))
@@ -204,10 +215,41 @@ class EmulatedRPLidar(EmulatedSerialDevice):
         elif cmd == rp.CMD_EXPRESS_SCAN:
             self.send(rp.build_descriptor(rp.CAPSULE_SIZE, rp.SEND_MODE_MULTIPLE, rp.ANS_TYPE_MEASUREMENT_CAPSULED))
             self._begin("express", now)
+        elif cmd == rp.CMD_GET_LIDAR_CONF and len(payload) >= 4:
+            body = self._lidar_conf(payload)
+            self.send(rp.build_descriptor(len(body), rp.SEND_MODE_SINGLE, rp.ANS_TYPE_GET_LIDAR_CONF) + body)
         elif cmd == rp.CMD_SET_MOTOR_PWM and self.motor_control == "pwm" and len(payload) == 2:
             self.motor_pwm = min(struct.unpack("<H", payload)[0], rp.MAX_MOTOR_PWM)
         else:
             self.ignored_commands.append(cmd)
+
+    def scan_modes(self) -> list[tuple[str, float, float, int]]:
+        """(name, us per sample, max distance m, answer type) of each scan mode."""
+        return [("Standard", 1e6 / self.sample_rate_hz, self.max_distance_m, rp.ANS_TYPE_MEASUREMENT),
+                ("Express", 1e6 / self.express_sample_rate_hz, self.max_distance_m, rp.ANS_TYPE_MEASUREMENT_CAPSULED)]
+
+    def _lidar_conf(self, payload: bytes) -> bytes:
+        """GET_LIDAR_CONF answer: u32 type + value (sl_lidar_cmd.h; q8 = x 256)."""
+        conf = struct.unpack_from("<I", payload)[0]
+        modes = self.scan_modes()
+        head = struct.pack("<I", conf)
+        if conf == rp.CONF_SCAN_MODE_COUNT:
+            return head + struct.pack("<H", len(modes))
+        if conf == rp.CONF_SCAN_MODE_TYPICAL:
+            return head + struct.pack("<H", 1)
+        mode = struct.unpack_from("<H", payload, 4)[0] if len(payload) >= 6 else 0
+        if mode >= len(modes):
+            return head
+        name, us, dist, ans = modes[mode]
+        if conf == rp.CONF_SCAN_MODE_US_PER_SAMPLE:
+            return head + struct.pack("<I", round(us * 256))
+        if conf == rp.CONF_SCAN_MODE_MAX_DISTANCE:
+            return head + struct.pack("<I", round(dist * 256))
+        if conf == rp.CONF_SCAN_MODE_ANS_TYPE:
+            return head + bytes((ans,))
+        if conf == rp.CONF_SCAN_MODE_NAME:
+            return head + name.encode("ascii") + b"\0"
+        return head
 
     def _begin(self, mode: str, now: float) -> None:
         self._mode = mode
@@ -277,6 +319,52 @@ class EmulatedRPLidar(EmulatedSerialDevice):
         self._sample_idx += rp.NODES_PER_CAPSULE
         self.nodes_sent += rp.NODES_PER_CAPSULE
         self.send(cap)
+
+    # -- truth ------------------------------------------------------------------------
+    def check_message(self, topic: str, msg: object, angle_tol_deg: float = 0.2,
+                      range_tol_m: float = 0.002) -> str:
+        """What is wrong with a ``LaserScan`` a driver published from this device
+        (``""`` if nothing), judged against ``scan_source`` (for the conformance
+        checker; the source must not have changed since the scan was taken).
+
+        Each finite beam at ``angle_min + i * angle_increment`` must lie between
+        the smallest and largest true range within half a beam step plus
+        ``angle_tol_deg`` of its angle (plus ``range_tol_m``); a ``+inf`` beam
+        needs a "no return" there; NaN (missing, REP-117) is always allowed.
+        Angles in the driver's frame are assumed to use this emulator's
+        ``angle_offset``.
+        """
+        if not isinstance(msg, LaserScan):
+            return f"expected a LaserScan, got {type(msg).__name__}"
+        r = np.asarray(msg.ranges, dtype=float)
+        if r.size == 0:
+            return "empty scan"
+        if not (math.isfinite(msg.angle_min) and math.isfinite(msg.angle_increment) and msg.angle_increment > 0):
+            return f"angle_min {msg.angle_min!r}, angle_increment {msg.angle_increment!r}"
+        if r.size * msg.angle_increment > 2 * math.pi + 1.5 * msg.angle_increment:
+            return f"{r.size} beams of {math.degrees(msg.angle_increment):.3f} deg span more than one turn"
+        if self.require_motor and not self.motor_on:
+            return ""
+        ang = msg.angle_min + np.arange(r.size) * msg.angle_increment
+        half = msg.angle_increment / 2 + math.radians(angle_tol_deg)
+        probe = ang[:, None] + np.linspace(-half, half, 9)[None, :]
+        truth = np.asarray(self.scan_source(np.mod(probe, 2 * math.pi).ravel()), dtype=float).reshape(probe.shape)
+        none = ~(np.isfinite(truth) & (truth > 0) & (truth * 1000.0 <= 16383.0))
+        t = np.where(none, np.nan, truth)
+        with np.errstate(all="ignore"):
+            lo, hi = np.nanmin(t, axis=1), np.nanmax(t, axis=1)
+        fin = np.isfinite(r)
+        with np.errstate(invalid="ignore"):
+            wrong = fin & ~((r >= lo - range_tol_m) & (r <= hi + range_tol_m))
+        wrong_inf = np.isposinf(r) & ~none.any(axis=1)
+        if np.isneginf(r).any():
+            return f"{int(np.isneginf(r).sum())} beams -inf: this device never reports 'too close'"
+        if wrong.any() or wrong_inf.any():
+            k = int(np.flatnonzero(wrong | wrong_inf)[0])
+            return (f"{int(wrong.sum())} beams with a range not measured at their angle, {int(wrong_inf.sum())} "
+                    f"'no return' where there is one; e.g. beam {k} at {math.degrees(ang[k]) % 360:.2f} deg: "
+                    f"{r[k]:.4f} m, true {lo[k]:.4f}..{hi[k]:.4f} m")
+        return ""
 
     @property
     def nominal_nodes_per_s(self) -> float:

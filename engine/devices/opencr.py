@@ -209,9 +209,11 @@ class OpenCR(DeviceDriver):
                  baudrate: int = DEFAULT_BAUDRATE, dxl_id: int = DEFAULT_ID, read_rate_hz: float = 20.0,
                  heartbeat_period: float = 0.1, odom_frame: str = "odom", base_frame: str = "base_footprint",
                  imu_frame: str = "imu_link", topics: dict[str, str] | None = None, stale_timeout: float = 1.0,
-                 backoff_initial: float = 0.05, backoff_max: float = 2.0) -> None:
+                 backoff_initial: float = 0.05, backoff_max: float = 2.0, connect_warn_s: float = 3.0,
+                 diagnostics_topic: str | None = "diagnostics", diagnostics_period_s: float = 1.0) -> None:
         super().__init__(url, publish, stale_timeout=stale_timeout, backoff_initial=backoff_initial,
-                         backoff_max=backoff_max)
+                         backoff_max=backoff_max, connect_warn_s=connect_warn_s,
+                         diagnostics_topic=diagnostics_topic, diagnostics_period_s=diagnostics_period_s)
         if model not in WHEEL_SEPARATION:
             raise ValueError(f"model must be one of {sorted(WHEEL_SEPARATION)}, got {model!r}")
         self.model = model

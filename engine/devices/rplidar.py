@@ -15,6 +15,17 @@ Protocol (Slamtec rplidar_sdk ``sl_lidar_cmd.h`` / ``rplidar_cmd.h``,
   capsule's; the arithmetic below is the SDK's ``_capsuleToNormal`` in the same
   fixed point.
 
+Validation (nothing is published that was not measured). A standard node
+passes the protocol's checks (``S != !S``, ``C = 1``, angle < 360 deg) *and*
+continues the rotation from the nodes before and after it
+(:class:`NodeStreamParser`); an express capsule passes its sync nibbles and
+checksum and advances plausibly from the previous one. A turn runs between
+start flags (a flag far from 0 deg is garbage) and never spans more than
+360 deg; each node is published in its own slot at the angle it was measured
+at, lost nodes as NaN, "no return" as +inf (REP-117); a turn with too few
+nodes, or a node count the scan mode cannot make, is dropped
+(:class:`ScanAssembler`). :class:`LidarStats` counts what was dropped.
+
 Angles. The RPLIDAR reports angles in degrees **clockwise** seen from above
 (0 deg = the device's forward mark). ROS (REP-103) angles are radians
 **counter-clockwise** about +Z. :func:`device_to_ros_angle` maps one to the
@@ -66,6 +77,15 @@ ANS_TYPE_DEVHEALTH = 0x06
 ANS_TYPE_SAMPLERATE = 0x15
 ANS_TYPE_MEASUREMENT = 0x81
 ANS_TYPE_MEASUREMENT_CAPSULED = 0x82
+ANS_TYPE_GET_LIDAR_CONF = 0x20
+
+# GET_LIDAR_CONF (0x84, firmware >= 1.24) configuration types (sl_lidar_cmd.h)
+CONF_SCAN_MODE_COUNT = 0x70
+CONF_SCAN_MODE_US_PER_SAMPLE = 0x71
+CONF_SCAN_MODE_MAX_DISTANCE = 0x74
+CONF_SCAN_MODE_ANS_TYPE = 0x75
+CONF_SCAN_MODE_TYPICAL = 0x7C
+CONF_SCAN_MODE_NAME = 0x7F
 
 SEND_MODE_SINGLE = 0
 SEND_MODE_MULTIPLE = 1
@@ -175,14 +195,21 @@ def encode_node(angle_deg: float, distance_mm: float, quality: int, start: bool)
     return struct.pack("<BHH", b0, (q6 << 1) | 1, d_q2)
 
 
+def node_angle_q6(raw: bytes | bytearray | memoryview, offset: int = 0) -> int | None:
+    """The per-node checks of the protocol: ``S != !S`` (byte 0 bits 0/1), check
+    bit ``C = 1`` (byte 1 bit 0) and an angle below 360 deg. Returns the angle
+    (q6, 1/64 deg) of a node that passes, ``None`` otherwise. Quality (6 bits)
+    and distance (16 bits) have no invalid values, so they cannot be checked."""
+    b0, b1, b2 = raw[offset], raw[offset + 1], raw[offset + 2]
+    if not ((b0 ^ (b0 >> 1)) & 1) or not (b1 & 1):
+        return None
+    q6 = (b1 | (b2 << 8)) >> 1
+    return q6 if q6 < 360 * 64 else None
+
+
 def node_is_valid(raw: bytes | bytearray | memoryview, offset: int = 0) -> bool:
     """The SDK's checks on a 5-byte node: S != !S, check bit = 1; plus angle < 360 deg."""
-    b0, b1, b2 = raw[offset], raw[offset + 1], raw[offset + 2]
-    if not ((b0 ^ (b0 >> 1)) & 1):
-        return False
-    if not (b1 & 1):
-        return False
-    return ((b1 | (b2 << 8)) >> 1) < 360 * 64
+    return node_angle_q6(raw, offset) is not None
 
 
 def decode_node(raw: bytes | bytearray | memoryview, offset: int = 0) -> ScanNode:
@@ -231,9 +258,18 @@ def capsule_checksum_ok(raw: bytes | bytearray | memoryview, offset: int = 0) ->
 
 
 class CapsuleDecoder:
-    """Turns consecutive capsules into nodes (needs the next capsule's start angle)."""
+    """Turns consecutive capsules into nodes (needs the next capsule's start angle).
 
-    def __init__(self) -> None:
+    Args:
+        max_capsule_step_deg: largest plausible advance (deg) of the start angle
+            from one capsule to the next; a pair outside ``(0, max]`` is not
+            decoded (its nodes would be spread over the wrong arc) and counted
+            in ``rejected``.
+    """
+
+    def __init__(self, max_capsule_step_deg: float = 60.0) -> None:
+        self.max_capsule_step_q8 = int(max_capsule_step_deg * 256)
+        self.rejected = 0
         self._prev: bytes | None = None
 
     def reset(self) -> None:
@@ -252,6 +288,10 @@ class CapsuleDecoder:
             diff_q8 = cur_q8 - prev_q8
             if prev_q8 > cur_q8:
                 diff_q8 += 360 << 8
+            if not 0 < diff_q8 <= self.max_capsule_step_q8:
+                self.rejected += 1  # a capsule went missing or one is garbage: do not stretch
+                prev = None
+        if prev is not None:
             inc_q16 = diff_q8 << 3
             cur_q16 = prev_q8 << 8
             for c in range(CABINS_PER_CAPSULE):
@@ -269,26 +309,69 @@ class CapsuleDecoder:
 
 
 # --------------------------------------------------------------------------- stream parsing
-class NodeStreamParser:
-    """Byte stream of a running scan -> nodes, resynchronising after garbage.
+@dataclass
+class LidarStats(DriverStats):
+    """:class:`DriverStats` plus what the RPLIDAR driver did with each node and turn."""
 
-    ``mode`` is ``"standard"`` (5-byte nodes) or ``"express"`` (84-byte
-    capsules). A frame that fails its check is dropped and counted in
-    ``stats.frames_bad``; every skipped byte in ``stats.bytes_dropped``.
+    nodes_bad: int = 0  #: nodes that failed a check (bits, angle, continuity, misplaced start flag)
+    nodes_unpublished: int = 0  #: valid nodes in no published scan (partial or dropped turn, duplicate slot)
+    scans_published: int = 0  #: turns published as ``LaserScan``
+    scans_dropped: int = 0  #: turns dropped for covering less than ``min_coverage`` of 360 deg
+    beams_missing: int = 0  #: NaN beams published (nodes lost on the line, REP-117)
+
+
+class NodeStreamParser:
+    """Byte stream of a running scan -> nodes that passed every check.
+
+    ``mode`` is ``"standard"`` (5-byte nodes) or ``"express"`` (84-byte capsules).
+
+    Standard nodes carry only three check bits (``S``, ``!S``, ``C``), so 1 in
+    8 random 5-byte windows passes them, and windows straddling two real nodes
+    pass in long, smoothly changing runs (a window starting at a node's second
+    byte always claims ``S = 1`` and reads part of the distance as its angle).
+    A node is therefore accepted only when it also continues the rotation as
+    the head turns it: its start flag is set only within ``start_window_deg``
+    of 0 deg, and its angle steps ahead of the node before it *and* to the node
+    after it by 1 q6 .. ``max_angle_step_deg``, within ``step_tolerance`` of
+    the head's current step (learned from accepted nodes, forgotten after 1 kB
+    without sync so a changed motor speed is re-learned). Out of sync (at start
+    and after a bad node) three such nodes in a row with equal steps are
+    needed before the first is accepted; until then the parser slides one byte
+    at a time. A good node whose successor is bad is dropped with it.
+
+    Express capsules are checked by their sync nibbles and XOR checksum (as
+    the SDK does) and by the advance of their start angle
+    (:class:`CapsuleDecoder`).
+
+    Counters (``stats``): ``frames_bad`` once per loss of sync (and per bad
+    capsule), ``nodes_bad`` per rejected node window, ``bytes_dropped`` per
+    skipped byte, ``frames_ok`` per accepted node/capsule.
     """
 
-    def __init__(self, mode: str, stats: DriverStats) -> None:
+    def __init__(self, mode: str, stats: DriverStats, max_angle_step_deg: float = 5.0,
+                 max_capsule_step_deg: float = 60.0, start_window_deg: float = 10.0,
+                 step_tolerance: float = 0.2) -> None:
         if mode not in ("standard", "express"):
             raise ValueError(f"scan mode must be 'standard' or 'express', got {mode!r}")
         self.mode = mode
         self.stats = stats
+        self.max_step_q6 = int(round(max_angle_step_deg * 64))
+        self.start_window_q6 = int(round(start_window_deg * 64))
+        self.step_tolerance = step_tolerance
         self._buf = bytearray()
         self._synced = True
-        self._decoder = CapsuleDecoder()
+        self._prev_q6: int | None = None  #: angle of the last accepted node; None = out of sync
+        self._ref_step: float | None = None  #: q6, the head's step between neighbouring nodes
+        self._unsynced_bytes = 0
+        self._decoder = CapsuleDecoder(max_capsule_step_deg)
 
     def feed(self, data: bytes) -> list[ScanNode]:
         self._buf += data
         return self._parse_standard() if self.mode == "standard" else self._parse_express()
+
+    def _bad_node(self) -> None:
+        if isinstance(self.stats, LidarStats):
+            self.stats.nodes_bad += 1
 
     def _drop(self, n: int = 1) -> None:
         if self._synced:  # count each loss of sync once as a bad frame
@@ -297,24 +380,83 @@ class NodeStreamParser:
         del self._buf[:n]
         self.stats.bytes_dropped += n
 
+    def _node(self, buf: bytearray, i: int) -> int | None:
+        """Angle (q6) of the node at ``i`` if it passes the protocol's checks and
+        its start flag, if set, is near 0 deg; else ``None``."""
+        a = node_angle_q6(buf, i)
+        if a is not None and buf[i] & 1 and self.start_window_q6 < a < 360 * 64 - self.start_window_q6:
+            return None
+        return a
+
+    def _step(self, a_q6: int | None, b_q6: int | None) -> int | None:
+        """Step (q6) from ``a`` to ``b`` if the head can make it, else ``None``."""
+        if a_q6 is None or b_q6 is None:
+            return None
+        d = (b_q6 - a_q6) % (360 * 64)
+        if not 0 < d <= self.max_step_q6:
+            return None
+        ref = self._ref_step
+        if ref is not None and abs(d - ref) > max(4.0, self.step_tolerance * ref):
+            return None
+        return d
+
+    def _alike(self, s1: int, s2: int) -> bool:
+        return abs(s1 - s2) <= max(4.0, self.step_tolerance * max(s1, s2))
+
+    def _learn(self, step: int) -> None:
+        self._ref_step = float(step) if self._ref_step is None else 0.9 * self._ref_step + 0.1 * step
+
     def _parse_standard(self) -> list[ScanNode]:
         out: list[ScanNode] = []
         buf = self._buf
         i = 0
         n = len(buf)
         dropped = 0
-        while n - i >= NODE_SIZE:
-            if node_is_valid(buf, i):
-                out.append(decode_node(buf, i))
-                i += NODE_SIZE
-                self._synced = True
-                self.stats.frames_ok += 1
-            else:
-                if self._synced:
-                    self.stats.frames_bad += 1
-                    self._synced = False
+        while True:
+            if self._prev_q6 is not None:  # in sync: this node and the next must continue the turn
+                if n - i < 2 * NODE_SIZE:
+                    break
+                a = self._node(buf, i)
+                s1 = self._step(self._prev_q6, a)
+                s2 = self._step(a, self._node(buf, i + NODE_SIZE)) if s1 is not None else None
+                if s2 is not None:
+                    out.append(decode_node(buf, i))
+                    self._prev_q6 = a
+                    self._learn(s1)
+                    i += NODE_SIZE
+                    self.stats.frames_ok += 1
+                    continue
+                self._bad_node()
+                self.stats.frames_bad += 1
+                self._synced = False
+                self._prev_q6 = None
+                self._unsynced_bytes = 0
                 i += 1
                 dropped += 1
+                continue
+            if n - i < 3 * NODE_SIZE:  # out of sync: three nodes in a row that continue each other
+                break
+            a0 = self._node(buf, i)
+            a1 = self._node(buf, i + NODE_SIZE) if a0 is not None else None
+            s1 = self._step(a0, a1)
+            s2 = self._step(a1, self._node(buf, i + 2 * NODE_SIZE)) if s1 is not None else None
+            if s2 is not None and self._alike(s1, s2):
+                out.append(decode_node(buf, i))
+                self._prev_q6 = a0
+                self._learn(s1)
+                self._synced = True
+                i += NODE_SIZE
+                self.stats.frames_ok += 1
+                continue
+            if self._synced:  # first byte of a loss of sync (e.g. right after start)
+                self.stats.frames_bad += 1
+                self._synced = False
+            self._unsynced_bytes += 1
+            if self._unsynced_bytes > 1024:  # the head may have changed speed: learn its step anew
+                self._ref_step = None
+                self._unsynced_bytes = 0
+            i += 1
+            dropped += 1
         self.stats.bytes_dropped += dropped
         del buf[:i]
         return out
@@ -342,7 +484,11 @@ class NodeStreamParser:
             del buf[:CAPSULE_SIZE]
             self._synced = True
             self.stats.frames_ok += 1
+            rejected = self._decoder.rejected
             out.extend(self._decoder.feed(capsule))
+            if self._decoder.rejected > rejected:
+                self.stats.frames_bad += 1
+                self._bad_node()
         return out
 
 
@@ -357,105 +503,207 @@ def ros_to_device_angle(angle_rad, angle_offset: float = 0.0):
     return np.mod(np.degrees(angle_offset - np.asarray(angle_rad)), 360.0)
 
 
-class ScanAssembler:
-    """Collects nodes into full 360 deg turns and converts them to ``LaserScan``.
+#: Rotation rates (Hz) an RPLIDAR head turns at in service (A1 nominal 5.5, A2/A3 up to 15),
+#: with margin; outside them a "turn" is not a turn of a working head.
+MIN_ROTATION_HZ, MAX_ROTATION_HZ = 2.0, 20.0
 
-    A turn runs from one start-flagged node to the next; nodes before the
-    first start flag (a partial turn) are discarded. ``ranges[i]`` is at
-    ROS angle ``angle_min + i * angle_increment`` (see :meth:`to_laser_scan`);
-    zero distances and empty bins are ``inf`` (no return).
+
+def nodes_per_turn_range(us_per_sample: float, min_hz: float = MIN_ROTATION_HZ,
+                         max_hz: float = MAX_ROTATION_HZ) -> tuple[float, float]:
+    """(fewest, most) nodes one turn can hold at ``us_per_sample`` (GET_SAMPLERATE)
+    for a head turning at ``min_hz .. max_hz``."""
+    per_s = 1e6 / us_per_sample
+    return per_s / max_hz, per_s / min_hz
+
+
+class ScanAssembler:
+    """Collects validated nodes into 360 deg turns and converts them to ``LaserScan``.
+
+    A turn starts at a start-flagged node and ends at the next one, or where
+    the angle wraps past the turn's first node (the start node was lost);
+    it never spans more than 360 deg. A start flag on a node more than
+    ``start_window_deg`` from 0 deg is garbage that passed the check bits:
+    the node is dropped (``stats.nodes_bad``). Nodes before the first start
+    flag are not published.
+
+    Every beam is published at the angle it was measured at, on a grid:
+
+    * ``angle_bins = None``: the grid is the device's own sample step (the
+      turn's median node spacing refined over the turn), one full turn of
+      ``round(360 / step)`` beams starting at the turn's first node; each node
+      goes to its nearest grid slot (error <= half a step), so a lost node
+      leaves its slot empty instead of closing up the turn;
+    * ``angle_bins = N``: N fixed bins from ROS angle 0, nearest return per bin.
+
+    REP-117: a slot with a node whose distance is 0 (measured, no return) is
+    ``+inf``; a slot no node reached (lost on the line) is ``NaN``. A turn
+    whose nodes cover less than ``min_coverage`` of the device's turn is
+    dropped (``stats.scans_dropped``), not published; so is one whose node
+    count per full turn (360 deg / step) lies outside ``nodes_per_turn``
+    (see :func:`nodes_per_turn_range`; ``None`` = not checked).
+
+    The per-node grid assumes the nodes of a turn are evenly spaced, as in
+    standard scans and in express scans without angle compensation; with
+    compensated express nodes two nodes may share a slot (the one nearer its
+    centre is kept, the other counted in ``nodes_unpublished``); use
+    ``angle_bins`` there.
     """
 
     def __init__(self, *, frame_id: str = "base_scan", angle_offset: float = 0.0,
                  angle_bins: int | None = None, range_min: float = 0.15, range_max: float = 12.0,
-                 max_angle_step_deg: float = 20.0, stats: DriverStats | None = None) -> None:
+                 start_window_deg: float = 10.0, min_coverage: float = 0.5,
+                 nodes_per_turn: tuple[float, float] | None = None, stats: LidarStats | None = None) -> None:
+        if not 0.0 < min_coverage <= 1.0:
+            raise ValueError(f"min_coverage must be in (0, 1], got {min_coverage!r}")
         self.frame_id = frame_id
         self.angle_offset = angle_offset
         self.angle_bins = angle_bins
         self.range_min = range_min
         self.range_max = range_max
-        self.max_angle_step_deg = max_angle_step_deg
-        self.stats = stats if stats is not None else DriverStats()
+        self.start_window_deg = start_window_deg
+        self.min_coverage = min_coverage
+        self.nodes_per_turn = nodes_per_turn
+        self.stats = stats if stats is not None else LidarStats()
         self._nodes: list[ScanNode] = []
+        self._rel: list[float] = []
+        self._a0 = 0.0
+        self._half = False
         self._started = False
         self._t_start: float | None = None
         self._last_scan_time = 0.0
-        self._last_angle: float | None = None
-        self._rejected = 0
 
     def reset(self) -> None:
-        self._nodes.clear()
+        self.stats.nodes_unpublished += len(self._nodes)
+        self._nodes, self._rel = [], []
         self._started = False
+        self._half = False
         self._t_start = None
-        self._last_angle = None
-        self._rejected = 0
 
-    def _plausible(self, node: ScanNode) -> bool:
-        """The head turns one way in small steps: a node that jumps ahead by more
-        than ``max_angle_step_deg`` is garbage that passed the 3 check bits
-        (counted in ``stats.frames_bad``), unless 3 in a row agree (re-anchor)."""
-        if self._last_angle is None or self.max_angle_step_deg >= 360:
-            return True
-        if (node.angle_deg - self._last_angle) % 360.0 <= self.max_angle_step_deg:
-            self._rejected = 0
-            return True
-        self._rejected += 1
-        if self._rejected > 3:
-            self._rejected = 0
-            return True
-        self.stats.frames_bad += 1
-        return False
+    def _count(self, name: str, n: int = 1) -> None:
+        setattr(self.stats, name, getattr(self.stats, name) + n)
+
+    def _begin(self, node: ScanNode, stamp: float) -> None:
+        self._nodes, self._rel = [node], [0.0]
+        self._a0 = node.angle_deg
+        self._half = False
+        self._started = True
+        self._t_start = stamp
 
     def add(self, nodes: list[ScanNode], stamp: float) -> list[LaserScan]:
         """Add nodes received at ``stamp`` (s); returns the turns they completed."""
         scans: list[LaserScan] = []
         for node in nodes:
-            if not self._plausible(node):
-                continue
-            self._last_angle = node.angle_deg
             if node.start:
-                if self._started and len(self._nodes) > 1:
-                    if self._t_start is not None:
-                        self._last_scan_time = max(0.0, stamp - self._t_start)
-                    scans.append(self.to_laser_scan(self._nodes, self._t_start or stamp, self._last_scan_time))
-                self._nodes = []
-                self._started = True
-                self._t_start = stamp
-            if self._started:
-                self._nodes.append(node)
+                a = node.angle_deg % 360.0
+                if min(a, 360.0 - a) > self.start_window_deg:
+                    self._count("nodes_bad")
+                    self.stats.frames_bad += 1
+                    continue
+                scans += self._close(stamp)
+                self._begin(node, stamp)
+                continue
+            if not self._started:
+                self._count("nodes_unpublished")
+                continue
+            rel = (node.angle_deg - self._a0) % 360.0
+            if self._half and rel < 90.0:  # wrapped past the start: its start node was lost
+                scans += self._close(stamp)
+                self._begin(node, stamp)
+                continue
+            if rel > 270.0 and not self._half:
+                rel -= 360.0  # a little behind the first node (angle compensation)
+            elif 90.0 <= rel <= 270.0:
+                self._half = True
+            self._nodes.append(node)
+            self._rel.append(rel)
         return scans
 
-    def to_laser_scan(self, nodes: list[ScanNode], stamp: float, scan_time: float) -> LaserScan:
+    def _close(self, stamp: float) -> list[LaserScan]:
+        """Turn the collected turn into a scan (or drop it); start nothing."""
+        nodes, rel = self._nodes, np.asarray(self._rel, dtype=float)
+        self._nodes, self._rel = [], []
+        if not self._started or not nodes:
+            return []
+        scan_time = max(0.0, stamp - self._t_start) if self._t_start is not None else 0.0
+        step = _sample_step_deg(rel)
+        why = None
+        if step is None or len(nodes) / (360.0 / step) < self.min_coverage:
+            why = f"covers < {100 * self.min_coverage:.0f} % of a turn"
+        elif self.nodes_per_turn is not None and not (
+                self.nodes_per_turn[0] <= 360.0 / step <= self.nodes_per_turn[1]):
+            why = (f"{360.0 / step:.0f} nodes per turn, the scan mode makes "
+                   f"{self.nodes_per_turn[0]:.0f}..{self.nodes_per_turn[1]:.0f}")
+        if why is not None:
+            self._count("scans_dropped")
+            self._count("nodes_unpublished", len(nodes))
+            log.debug("turn of %d nodes dropped (%s)", len(nodes), why)
+            return []
+        self._last_scan_time = scan_time
+        scan = self.to_laser_scan(nodes, self._t_start if self._t_start is not None else stamp, scan_time,
+                                  rel=rel, step_deg=step)
+        self._count("scans_published")
+        return [scan]
+
+    def to_laser_scan(self, nodes: list[ScanNode], stamp: float, scan_time: float, *,
+                      rel: np.ndarray | None = None, step_deg: float | None = None) -> LaserScan:
         """One turn of nodes -> ``LaserScan`` (ranges m, intensities = quality).
 
-        ``angle_bins = None``: one range per node, sorted counter-clockwise,
-        ``angle_min``/``angle_max`` = first/last node, uniform increment (as
-        ``rplidar_ros`` without angle compensation). ``angle_bins = N``: N
-        fixed bins from 0, nearest return per bin (angle-compensated).
+        Args:
+            nodes: the turn's nodes in arrival order.
+            stamp: s, time of the turn's first node.
+            scan_time: s, duration of the turn.
+            rel: ``[len(nodes)]`` device angles (deg) relative to the first
+                node, unwrapped; default from the nodes.
+            step_deg: the device's sample step; default estimated from ``rel``.
+
+        Beams are ordered by increasing ROS angle (the reverse of measurement
+        order, as ``rplidar_ros`` publishes); ``time_increment`` is
+        ``scan_time / len(ranges)``. Per-node grid: ``angle_min`` in
+        [-pi, pi), the turn spans ``angle_max - angle_min < 2 pi``.
         """
-        ang = device_to_ros_angle(np.array([nd.angle_deg for nd in nodes]), self.angle_offset)
-        dist = np.array([nd.distance_mm for nd in nodes]) / 1000.0
+        if rel is None:
+            rel = np.mod(np.array([nd.angle_deg for nd in nodes]) - nodes[0].angle_deg, 360.0)
+        step = step_deg if step_deg is not None else _sample_step_deg(rel)
+        dist = np.array([nd.distance_mm for nd in nodes], dtype=float) / 1000.0
         qual = np.array([nd.quality for nd in nodes], dtype=float)
         valid = dist > 0
         if self.angle_bins is None:
-            order = np.argsort(ang, kind="stable")
-            ang, dist, qual, valid = ang[order], dist[order], qual[order], valid[order]
-            n = len(nodes)
-            a0, a1 = float(ang[0]), float(ang[-1])
-            inc = (a1 - a0) / (n - 1) if n > 1 else 0.0
-            ranges = np.where(valid, dist, np.inf)
-            inten = np.where(valid, qual, 0.0)
+            if step is None:
+                raise ValueError("cannot place fewer than 2 nodes on a grid")
+            base = float(rel.min())
+            fslot = (rel - base) / step
+            slot = np.rint(fslot).astype(int)
+            n = max(int(round(360.0 / step)), int(slot.max()) + 1)
+            # one node per slot: the one nearest the slot's centre
+            order = np.lexsort((np.abs(fslot - slot), slot))
+            first = np.ones(len(order), bool)
+            first[1:] = slot[order][1:] != slot[order][:-1]
+            keep = order[first]
+            self._count("nodes_unpublished", len(nodes) - len(keep))
+            # ROS angle decreases with device angle: index j = n - 1 - slot
+            idx = n - 1 - slot[keep]
+            inc = math.radians(step)
+            a0 = float(np.mod(self.angle_offset - math.radians(nodes[0].angle_deg + base + (n - 1) * step)
+                              + np.pi, 2 * np.pi) - np.pi)
+            ranges = np.full(n, np.nan)
+            inten = np.zeros(n)
+            ranges[idx] = np.where(valid[keep], dist[keep], np.inf)
+            inten[idx] = np.where(valid[keep], qual[keep], 0.0)
+            a1 = a0 + (n - 1) * inc
         else:
             n = self.angle_bins
             inc = 2 * math.pi / n
             a0, a1 = 0.0, (n - 1) * inc
+            ang = device_to_ros_angle(np.array([nd.angle_deg for nd in nodes]), self.angle_offset)
             idx = np.rint(ang / inc).astype(int) % n
-            ranges = np.full(n, np.inf)
+            ranges = np.full(n, np.nan)
             inten = np.zeros(n)
-            for k in np.argsort(-np.where(valid, dist, np.inf)):  # nearest return written last
+            ranges[idx[~valid]] = np.inf  # measured without a return ...
+            for k in np.argsort(-np.where(valid, dist, np.inf)):  # ... unless a return: nearest written last
                 if valid[k]:
                     ranges[idx[k]] = dist[k]
                     inten[idx[k]] = qual[k]
+        self._count("beams_missing", int(np.isnan(ranges).sum()))
         return LaserScan(
             header=Header(stamp=stamp, frame_id=self.frame_id),
             angle_min=a0, angle_max=a1, angle_increment=inc,
@@ -463,6 +711,25 @@ class ScanAssembler:
             range_min=self.range_min, range_max=self.range_max,
             ranges=ranges, intensities=inten,
         )
+
+
+def _sample_step_deg(rel: np.ndarray) -> float | None:
+    """The device's angular sample step (deg) from one turn's node angles.
+
+    The median spacing of neighbouring nodes, refined over the whole turn:
+    each spacing counts as ``round(spacing / step)`` steps (gaps from lost
+    nodes count as several) and the step is their mean, three times, so q6
+    rounding (steps alternate 63/64 q6) does not accumulate along the turn. ``None`` with fewer than 2 distinct angles.
+    """
+    d = np.diff(np.sort(np.asarray(rel, dtype=float)))
+    d = d[d > 1e-9]
+    if d.size == 0:
+        return None
+    step = float(np.median(d))
+    for _ in range(3):  # a gap of ~100 steps is miscounted by one with the median alone
+        k = np.rint(d / step)
+        step = float(d[k > 0].sum() / k[k > 0].sum())
+    return step
 
 
 # --------------------------------------------------------------------------- driver
@@ -487,7 +754,10 @@ class RPLidar(DeviceDriver):
         baudrate: 115200 (A1, A2M8) or 256000 (A2M7/A3...).
         scan_mode: ``"standard"`` (SCAN 0x20) or ``"express"`` (EXPRESS_SCAN 0x82, legacy capsules).
         motor_pwm: PWM sent with SET_MOTOR_PWM (0..1023).
-        topic, frame_id, angle_offset, angle_bins, range_min, range_max: see :class:`ScanAssembler`.
+        topic, frame_id, angle_offset, angle_bins, range_min, range_max, min_coverage: see
+            :class:`ScanAssembler`.
+        max_angle_step_deg: largest angle step between neighbouring standard nodes
+            (see :class:`NodeStreamParser`); 5 deg covers an A1/A2 at up to 15 Hz.
         timeout: s to wait for a command's answer.
     """
 
@@ -496,10 +766,13 @@ class RPLidar(DeviceDriver):
     def __init__(self, url: str, publish: Publish | None = None, *, baudrate: int = 115200,
                  scan_mode: str = "standard", motor_pwm: int = DEFAULT_MOTOR_PWM, topic: str = "scan",
                  frame_id: str = "base_scan", angle_offset: float = 0.0, angle_bins: int | None = None,
-                 range_min: float = 0.15, range_max: float = 12.0, timeout: float = 1.0,
-                 stale_timeout: float = 1.0, backoff_initial: float = 0.05, backoff_max: float = 2.0) -> None:
+                 range_min: float = 0.15, range_max: float = 12.0, max_angle_step_deg: float = 5.0,
+                 min_coverage: float = 0.5, timeout: float = 1.0, stale_timeout: float = 1.0,
+                 backoff_initial: float = 0.05, backoff_max: float = 2.0, connect_warn_s: float = 3.0,
+                 diagnostics_topic: str | None = "diagnostics", diagnostics_period_s: float = 1.0) -> None:
         super().__init__(url, publish, stale_timeout=stale_timeout, backoff_initial=backoff_initial,
-                         backoff_max=backoff_max)
+                         backoff_max=backoff_max, connect_warn_s=connect_warn_s,
+                         diagnostics_topic=diagnostics_topic, diagnostics_period_s=diagnostics_period_s)
         if scan_mode not in ("standard", "express"):
             raise ValueError(f"scan_mode must be 'standard' or 'express', got {scan_mode!r}")
         self.baudrate = baudrate
@@ -508,8 +781,11 @@ class RPLidar(DeviceDriver):
         self.topic = topic
         self.timeout = timeout
         self.MESSAGE_TYPES = {topic: LaserScan}
+        self.stats: LidarStats = LidarStats()
+        self.max_angle_step_deg = max_angle_step_deg
         self.assembler = ScanAssembler(frame_id=frame_id, angle_offset=angle_offset, angle_bins=angle_bins,
-                                       range_min=range_min, range_max=range_max, stats=self.stats)
+                                       range_min=range_min, range_max=range_max, min_coverage=min_coverage,
+                                       stats=self.stats)
         self.info: DeviceInfo | None = None
         self.health: DeviceHealth | None = None
         self._ser: serial.SerialBase | None = None
@@ -649,7 +925,7 @@ class RPLidar(DeviceDriver):
         if desc.size != want or desc.send_mode != SEND_MODE_MULTIPLE:
             raise DeviceError(f"{self.url}: scan descriptor says {desc.size}-byte answers, "
                               f"send mode {desc.send_mode}; expected {want} bytes, mode 1")
-        self._parser = NodeStreamParser(mode, self.stats)
+        self._parser = NodeStreamParser(mode, self.stats, self.max_angle_step_deg)
         self.assembler.reset()
         leftover = bytes(self._rx)
         self._rx.clear()
@@ -694,6 +970,13 @@ class RPLidar(DeviceDriver):
         info = self.get_info()
         log.info("%s: RPLIDAR model 0x%02X fw %d.%02d hw %d s/n %s", self.url, info.model, *info.firmware,
                  info.hardware, info.serial_hex)
+        try:  # GET_SAMPLERATE (firmware >= 1.17): bounds the node count of a turn
+            standard_us, express_us = self.get_samplerate()
+            us = standard_us if self.scan_mode == "standard" else express_us
+            if us > 0:
+                self.assembler.nodes_per_turn = nodes_per_turn_range(float(us))
+        except DeviceTimeout:
+            log.info("%s: no GET_SAMPLERATE answer; node counts per turn are not checked", self.url)
         self.set_motor(True)
         self.start_scan(self.scan_mode)
 

@@ -8,7 +8,9 @@ a second bus whose transport is the network (zenoh) and, per real robot
   from the robot runtime (:mod:`engine.runtime`), re-publishes them on the
   twin's bus as ``/<name>/real/pose_estimate``, ``/<name>/real/odom`` and
   ``/<name>/real/scan`` (beside the twin's synthetic ``/<name>/odom``,
-  ``/<name>/scan``; recorders and the live view see both);
+  ``/<name>/scan``; recorders and the live view see both), and the robots'
+  ``/diagnostics`` as they are (their statuses are named ``<name>: ...``;
+  :meth:`TwinBridge.status` lists the newest per robot);
 * **sends** the twin's control ``/<name>/cmd_vel`` (what the twin's controller
   for that robot publishes, when ``send_cmd_vel``), path commands
   (:meth:`TwinBridge.send_path`) and fingerprints (the step's localization
@@ -54,8 +56,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from engine.bus import Bus
-from engine.msgs import (Header, LaserScan, Odometry, PoseStamped, Twist, quaternion_to_yaw,
-                         shift_stamps)
+from engine.msgs import (DiagnosticArray, Header, LaserScan, Odometry, PoseStamped, Twist,
+                         quaternion_to_yaw, shift_stamps)
 from engine.transport.clock import ClockProbe
 from engine.transport.twin_msgs import Fingerprint, PathCommand
 
@@ -173,6 +175,8 @@ class TwinBridge:
                                 lambda m, r=r: self._on_net(r, "pose_estimate", m))
             self.node.subscribe(f"{ns}/odom", Odometry, lambda m, r=r: self._on_net(r, "odom", m))
             self.node.subscribe(f"{ns}/scan", LaserScan, lambda m, r=r: self._on_net(r, "scan", m))
+        self.diagnostics: dict[str, tuple[int, str]] = {}  #: status name -> (level, message), newest
+        self.node.subscribe("/diagnostics", DiagnosticArray, self._on_diagnostics)
         self.clock = ClockProbe(self.net, name, period_s=clock_period_s or 1.0)
         if clock_period_s:
             self.clock.start()
@@ -188,6 +192,7 @@ class TwinBridge:
             return
         self._twin_bus = bus
         self._tnode = bus.node("bridge")
+        self._tnode.advertise("/diagnostics", DiagnosticArray)
         for r in self.robots:
             ns = f"/{r}"
             self._tnode.advertise(f"{ns}/real/pose_estimate", PoseStamped)
@@ -262,6 +267,12 @@ class TwinBridge:
                 st.scans += 1
             self._inbox.append((robot, kind, msg))
 
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        with self._lock:
+            for st in msg.status:
+                self.diagnostics[st.name] = (int(st.level), st.message)
+            self._inbox.append(("", "diagnostics", msg))
+
     # ------------------------------------------------------------ per step
     def sync(self) -> None:
         """Before a twin step: re-publish received real data on the twin's bus and fuse
@@ -271,7 +282,7 @@ class TwinBridge:
         with self._lock:
             inbox, self._inbox = self._inbox, []
         for robot, kind, msg in inbox:
-            self._tnode.publish(f"/{robot}/real/{kind}", msg)
+            self._tnode.publish("/diagnostics" if kind == "diagnostics" else f"/{robot}/real/{kind}", msg)
         now_wall, now = time.time(), time.monotonic()
         for robot in self.robots:
             st = self.mirrors[robot]
@@ -328,7 +339,8 @@ class TwinBridge:
         self.node.publish(f"/{robot}/path", msg)
 
     def status(self) -> dict[str, dict]:
-        """Per robot: connected (fresh within ``stale_s``), counters, clock offset (s)."""
+        """Per robot: connected (fresh within ``stale_s``), counters, clock offset (s),
+        ``diagnostics``: component -> (level, message) from its newest ``/diagnostics``."""
         now = time.monotonic()
         out = {}
         for r, st in self.mirrors.items():
@@ -336,7 +348,9 @@ class TwinBridge:
                       "received": st.received, "scans": st.scans,
                       "corrections": st.corrections, "catchups": st.catchups,
                       "clock_offset_s": self.clock.offset_s(r),
-                      "estimate": None if st.estimate is None else st.estimate.tolist()}
+                      "estimate": None if st.estimate is None else st.estimate.tolist(),
+                      "diagnostics": {k.split(": ", 1)[1]: v for k, v in self.diagnostics.items()
+                                      if k.startswith(f"{r}: ")}}
         return out
 
     def close(self) -> None:

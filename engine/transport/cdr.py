@@ -225,6 +225,11 @@ def to_ros(msg: Any):
         return R(transforms=[_transform(t) for t in msg.transforms])
     if isinstance(msg, m.Clock):
         return R(clock=stamp_to_ros(msg.clock))
+    if isinstance(msg, m.DiagnosticArray):
+        S, KV = _t("diagnostic_msgs/msg/DiagnosticStatus"), _t("diagnostic_msgs/msg/KeyValue")
+        return R(header=_header(msg.header), status=[
+            S(level=int(st.level), name=str(st.name), message=str(st.message), hardware_id=str(st.hardware_id),
+              values=[KV(key=str(k), value=str(v)) for k, v in st.values]) for st in msg.status])
     if isinstance(msg, tm.LinkMetrics):
         return R(header=_header(msg.header), tx=msg.tx, rx=msg.rx, snr_db=float(msg.snr_db),
                  rate_bps=float(msg.rate_bps), num_paths=int(msg.num_paths), los=bool(msg.los),
@@ -326,6 +331,10 @@ def from_ros(obj: Any, type_name: str):
         return m.TFMessage(transforms=[_transform_from(x) for x in obj.transforms])
     if t == "rosgraph_msgs/msg/Clock":
         return m.Clock(clock=stamp_from_ros(obj.clock))
+    if t == m.DiagnosticArray.ROS_TYPE:
+        return m.DiagnosticArray(header=_header_from(obj.header), status=[
+            m.DiagnosticStatus(int(st.level), st.name, st.message, st.hardware_id,
+                               [(kv.key, kv.value) for kv in st.values]) for st in obj.status])
     if t == tm.LinkMetrics.ROS_TYPE:
         return tm.LinkMetrics(header=_header_from(obj.header), tx=obj.tx, rx=obj.rx,
                               snr_db=float(obj.snr_db), rate_bps=float(obj.rate_bps),

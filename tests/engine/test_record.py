@@ -329,3 +329,26 @@ def test_stamp_epoch_time_chunks_and_compact_csi(tmp_path):
         CsiRecording(subcarrier_step=0)
     with pytest.raises(ValueError, match="stamp_offset_s"):
         McapRecorder(tmp_path / "x.mcap", stamp_offset_s=float("nan"))
+
+
+def test_diagnostics_are_recorded_and_read_back(tmp_path):
+    """/diagnostics (issue 21) goes to MCAP like every other topic: mcap_ros2 decodes
+    it with ROS' own definition, our reader gives the dataclasses back."""
+    from engine.msgs import DiagnosticArray, DiagnosticStatus
+
+    out = tmp_path / "diag.mcap"
+    bus = Bus()
+    node = bus.node("robot1")
+    node.advertise("/diagnostics", DiagnosticArray)
+    rec = McapRecorder(out)
+    rec.attach(bus)
+    msg = DiagnosticArray(Header(stamp=5.0), [DiagnosticStatus(DiagnosticStatus.ERROR, "robot1: RPLIDAR",
+                                                               "never connected: no such file", "/dev/ttyUSB0",
+                                                               [("connects", "0")])])
+    node.publish("/diagnostics", msg)
+    rec.close()
+    decoded = _decoded(out)
+    assert decoded[0].schema.name == "diagnostic_msgs/msg/DiagnosticArray"
+    st = decoded[0].ros_msg.status[0]
+    assert (st.level, st.name, st.values[0].key, st.values[0].value) == (2, "robot1: RPLIDAR", "connects", "0")
+    assert [r.decode() for r in read_messages(out)] == [msg]

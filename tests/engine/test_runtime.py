@@ -66,9 +66,76 @@ def test_robot_toml_parses_and_rejects_bad_values(tmp_path):
                        ({"control": {"rate_hz": 0}}, "rate_hz"),
                        ({"robot": {"colour": "red"}}, "unknown key 'colour'"),
                        ({"robot": {"frame_prefix": "yes"}}, "frame_prefix"),
-                       ({"lidar": {}}, r"unknown section \[lidar\]")):
+                       ({"lidar": {}}, r"unknown section \[lidar\]"),
+                       # issue 21: these ended in tracebacks
+                       ({"network": {"domain_id": "abc"}}, r"\[network\] domain_id = 'abc': expected an integer 0\.\.232"),
+                       ({"drivers": {"rplidar_baudrate": "fast"}},
+                        r"\[drivers\] rplidar_baudrate = 'fast': expected one of 115200, 256000"),
+                       ({"network": {"listen": ["tcp/127.0.0.1:99999"]}}, r"listen.*port 99999.*0\.\.65535"),
+                       ({"robot": {"initial_pose": [math.nan, 0, 0]}}, r"initial_pose = \[nan, 0, 0\].*finite"),
+                       ({"robot": {"emulated": "yes"}}, r"\[robot\] emulated = 'yes': expected true or false"),
+                       ({"drivers": {"opencr": 5}}, r"\[drivers\] opencr = 5: expected a port path"),
+                       ({"drivers": {"oakd": 1.5}}, r"\[drivers\] oakd = 1\.5: expected true, false or"),
+                       ({"emulation": {"lidar_rate_hz": 1}}, r"lidar_rate_hz = 1: expected 2\.\.20 Hz")):
         with pytest.raises(RobotConfigError, match=match):
             robot_config_from_dict(doc, "r.toml")
+    bad = tmp_path / "latin1.toml"
+    bad.write_bytes('[robot]\nname = "roböt"\n'.encode("latin-1"))
+    with pytest.raises(RobotConfigError, match=r"latin1\.toml: not UTF-8 \(byte 0xf6 at offset 19\)"):
+        load_robot_config(bad)
+
+
+def _robot_cli(toml, *extra):
+    return subprocess.Popen([sys.executable, "-m", "engine.cli", "robot", str(toml), *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+@pytest.mark.slow
+def test_robot_cli_address_in_use_is_one_line_exit_2(tmp_path):
+    """The listen port is taken: one line naming [network] listen, exit 2, no
+    traceback, and the process ends (it used to hang on SIGTERM after the error)."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        toml = tmp_path / "robot.toml"
+        toml.write_text(ROBOT_TOML.format(x=1, y=1, yaw=0, w=6, d=4, port=port))
+        proc = _robot_cli(toml, "--duration", "30")
+        try:
+            out, err = proc.communicate(timeout=30)
+        finally:
+            proc.kill()
+    assert proc.returncode == 2, (out, err)
+    lines = [ln for ln in err.splitlines() if ln.startswith("isac-twin: error:")]
+    assert len(lines) == 1 and "[network] listen" in lines[0] and str(port) in lines[0], err
+    assert "Traceback" not in err
+
+
+@pytest.mark.slow
+def test_robot_cli_sigterm_ends_it_during_start_up_and_when_running(tmp_path):
+    toml = tmp_path / "robot.toml"
+    toml.write_text(ROBOT_TOML.format(x=1, y=1, yaw=0, w=6, d=4, port=_free_port()))
+    # while running: a clean stop with the per-device summary
+    proc = _robot_cli(toml, "--duration", "60")
+    try:
+        first = proc.stdout.readline()
+        assert "up" in first, first
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=40)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and "stopped" in out and "RPLIDAR:" in out, (out, err)
+    # during start-up (before 'up'): it ends, without a traceback
+    toml.write_text(ROBOT_TOML.format(x=1, y=1, yaw=0, w=6, d=4, port=_free_port()))
+    proc = _robot_cli(toml, "--duration", "60")
+    try:
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=40)
+    finally:
+        proc.kill()
+    assert proc.returncode in (0, 130, 143, -signal.SIGTERM), (proc.returncode, out, err)
+    assert "Traceback" not in err, err
 
 
 def test_pose_estimator_composes_odometry_and_fixes():
@@ -167,7 +234,7 @@ def test_twin_and_robot_runtime_in_two_processes(tmp_path):
     from mcap_ros2.decoder import DecoderFactory
 
     from engine.paths import bundled_scene_dir
-    from engine.record import McapRecorder
+    from engine.record import McapRecorder, read_messages
     from engine.transport.bridge import FusionConfig, TwinBridge
     from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
 
@@ -239,6 +306,10 @@ def test_twin_and_robot_runtime_in_two_processes(tmp_path):
         assert math.dist(twin.agents["robot1"].state.pose[:2], after[:2]) < 0.1
         run(0.5)
         rec.close()
+        # the robot's /diagnostics reached the twin, which recorded them
+        diag = bridge.status()["robot1"]["diagnostics"]
+        assert diag["runtime"][0] == 0 and diag["OpenCR"] == (0, "connected"), diag
+        assert "/diagnostics" in {m.topic for m in read_messages(tmp_path / "live.mcap")}
     finally:
         if bridge is not None:
             bridge.close()
@@ -262,3 +333,35 @@ def test_twin_and_robot_runtime_in_two_processes(tmp_path):
     assert topics["/robot1/ground_truth"] > 20 and topics["/robot1/cmd_vel"] > 20
     scan = next(m for _, ch, _, m in decoded if ch.topic == "/robot1/real/scan")
     assert len(scan.ranges) > 100
+
+
+def test_runtime_says_which_device_never_connected(tmp_path, caplog):
+    """Serial ports that do not exist: the runtime keeps running, and at stop
+    a WARNING and the per-device summary say that neither device ever connected."""
+    import logging
+
+    cfg = robot_config_from_dict({"drivers": {"opencr": str(tmp_path / "ttyACM7"), "rplidar": str(tmp_path / "ttyUSB7")},
+                                  "network": {"listen": [f"tcp/127.0.0.1:{_free_port()}"]}})
+    from engine.msgs import DiagnosticArray, DiagnosticStatus
+
+    with caplog.at_level(logging.WARNING):
+        rt = RobotRuntime(cfg, diagnostics_period_s=0.1)
+        diags = rt.bus.node("probe").subscribe("/diagnostics", DiagnosticArray)
+        rt.start()
+        try:
+            time.sleep(0.4)
+        finally:
+            rt.stop()
+    # /diagnostics: one array per period with the runtime and every device, said as it is
+    last = diags.drain()[-1]
+    by_name = {st.name: st for st in last.status}
+    assert set(by_name) == {"robot1: runtime", "robot1: OpenCR", "robot1: RPLIDAR"}
+    assert by_name["robot1: OpenCR"].level == by_name["robot1: RPLIDAR"].level == DiagnosticStatus.WARN
+    assert "connecting" in by_name["robot1: RPLIDAR"].message  # 0.4 s < connect_warn_s
+    assert by_name["robot1: runtime"].level == DiagnosticStatus.WARN
+    assert "not connected: OpenCR, RPLIDAR" in by_name["robot1: runtime"].message
+    lines = rt.device_summaries()
+    assert [ln.split(":")[0] for ln in lines] == ["OpenCR", "RPLIDAR"]
+    assert all("NEVER connected" in ln and "No such file" in ln for ln in lines), lines
+    warned = [r.getMessage() for r in caplog.records if "NEVER connected" in r.getMessage()]
+    assert len(warned) == 2, warned

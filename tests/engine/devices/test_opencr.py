@@ -57,10 +57,9 @@ def test_sdk_ping_read_block_and_errors(sdk, emu):
         block, res2, err2 = pk.readTxRx(port, 200, oc.BLOCK_ADDR, oc.BLOCK_LEN)
         wrong_id = pk.ping(port, 7)[1]
         ro = pk.write1ByteTxRx(port, 200, oc.Addr.MILLIS, 1)
-        bad_inst = pk.reboot(port, 200)
-        return model, res, err, block, res2, err2, wrong_id, ro, bad_inst
+        return model, res, err, block, res2, err2, wrong_id, ro
 
-    model, res, err, block, res2, err2, wrong_id, ro, bad_inst = run_with_timeout(client, 5)
+    model, res, err, block, res2, err2, wrong_id, ro = run_with_timeout(client, 5)
     assert (model, res, err) == (0x5000, dxl.COMM_SUCCESS, 0)
     assert res2 == dxl.COMM_SUCCESS and err2 == 0 and len(block) == 172
     st = oc.OpenCRState.from_block(bytes(block))
@@ -68,26 +67,42 @@ def test_sdk_ping_read_block_and_errors(sdk, emu):
     assert st.linear_acceleration[2] == pytest.approx(9.80665, rel=1e-6)
     assert wrong_id == dxl.COMM_RX_TIMEOUT  # nobody answers ID 7
     assert ro == (dxl.COMM_SUCCESS, 7)  # millis is read-only: data-access error
-    assert bad_inst == (dxl.COMM_SUCCESS, 2)  # instruction error
 
 
-def test_sdk_sync_and_bulk_read(sdk):
+def test_no_replies_the_firmware_does_not_give(sdk, emu):
+    """The TurtleBot3 firmware answers through ROBOTIS' Dynamixel2Arduino slave
+    (``src/utility/slave.cpp``): a packet with a bad CRC never parses (no reply),
+    broadcast PING/READ/WRITE get no status, and only PING, READ and WRITE are
+    processed: SYNC_READ, BULK_READ, REBOOT... get nothing back."""
     port, pk = sdk
 
     def client():
         sync = dxl.GroupSyncRead(port, pk, oc.Addr.MODEL_NUMBER, 2)
         sync.addParam(200)
         r1 = sync.txRxPacket()
-        m1 = sync.getData(200, oc.Addr.MODEL_NUMBER, 2)
         bulk = dxl.GroupBulkRead(port, pk)
         bulk.addParam(200, oc.Addr.BATTERY_VOLTAGE, 4)
         r2 = bulk.txRxPacket()
-        v = bulk.getData(200, oc.Addr.BATTERY_VOLTAGE, 4)
-        return r1, m1, r2, v
+        found, _ = pk.broadcastPing(port)
+        reboot = pk.reboot(port, 200)[0]
+        bcast_write = pk.write1ByteTxOnly(port, dxl.BROADCAST_ID, oc.Addr.MOTOR_TORQUE_ENABLE, 0)
+        port.clearPort()
+        good = build_packet(200, 0x02, struct.pack("<HH", oc.Addr.MODEL_NUMBER, 2))
+        port.writePort(list(good[:-1] + bytes((good[-1] ^ 0x5A,))))  # READ with a bad CRC
+        time.sleep(0.1)
+        after_bad_crc = port.readPort(64)
+        still = pk.read2ByteTxRx(port, 200, oc.Addr.MODEL_NUMBER)
+        torque = pk.read1ByteTxRx(port, 200, oc.Addr.MOTOR_TORQUE_ENABLE)[0]
+        return r1, r2, found, reboot, bcast_write, after_bad_crc, still, torque
 
-    r1, m1, r2, v = run_with_timeout(client, 5)
-    assert (r1, m1) == (dxl.COMM_SUCCESS, 0x5000)
-    assert (r2, v) == (dxl.COMM_SUCCESS, 1210)
+    r1, r2, found, reboot, bcast_write, after_bad_crc, still, torque = run_with_timeout(client, 8)
+    assert r1 == dxl.COMM_RX_TIMEOUT and r2 == dxl.COMM_RX_TIMEOUT
+    assert not found  # broadcast PING: no status from the board
+    assert reboot == dxl.COMM_RX_TIMEOUT
+    assert bcast_write == dxl.COMM_SUCCESS and torque == 1  # broadcast WRITE ignored
+    assert list(after_bad_crc) == []  # bad CRC: silence, not error 0x03
+    assert still == (0x5000, dxl.COMM_SUCCESS, 0)  # and the board keeps answering
+    assert emu.stats.bad_requests >= 1
 
 
 def test_sdk_cmd_vel_moves_the_robot_and_watchdog_stops_it(sdk, emu):
@@ -118,6 +133,27 @@ def test_sdk_cmd_vel_moves_the_robot_and_watchdog_stops_it(sdk, emu):
     assert pos_r - pos0[1] > pos_l - pos0[0] > 0  # turning left: right wheel ran further
     assert x_moving > 0.03
     assert struct.unpack("<6i", bytes(cmd_after)) == (0,) * 6 and emu.watchdog_trips == 1
+
+
+def test_cmd_vel_is_kept_raw_and_limited_when_applied(sdk, emu):
+    """The firmware keeps the written cmd_vel in its table and limits the
+    speed when it drives the wheels (burger 0.211 m/s): 1.00 m/s reads back as 100."""
+    port, pk = sdk
+
+    def client():
+        res = pk.writeTxRx(port, 200, oc.Addr.CMD_VELOCITY, 24, list(struct.pack("<6i", 100, 0, 0, 0, 0, -900)))
+        time.sleep(0.2)
+        back = pk.readTxRx(port, 200, oc.Addr.CMD_VELOCITY, 24)[0]
+        vel = pk.readTxRx(port, 200, oc.Addr.PRESENT_VELOCITY, 8)[0]
+        return res, back, vel
+
+    res, back, vel = run_with_timeout(client, 5)
+    assert res == (dxl.COMM_SUCCESS, 0)
+    assert struct.unpack("<6i", bytes(back)) == (100, 0, 0, 0, 0, -900)
+    wl, wr = oc.velocity_units_to_rad_s(list(struct.unpack("<2i", bytes(vel))))
+    r = oc.WHEEL_RADIUS
+    assert abs(r * (wl + wr) / 2) <= oc.MAX_LINEAR["burger"] + 1e-3
+    assert emu.cmd_vel == (1.0, -9.0)
 
 
 def test_driver_odometry_imu_battery(emu):

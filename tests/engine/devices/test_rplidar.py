@@ -108,8 +108,11 @@ def test_parser_resyncs_after_garbage_and_counts_bad_frames():
     bad = rp.encode_node(50, 1000, 10, False)
     bad = bytes((bad[0] | 3,)) + bad[1:]
     nodes = p.feed(good[:50] + b"\x00\xff\x13" + bad + good[50:])
-    assert len(nodes) == 20
+    # node 9 is dropped with the garbage after it (a node needs a good successor),
+    # node 19 waits for its successor; nothing else is lost, nothing invented
+    assert [n.angle_deg for n in nodes] == [float(a) for a in range(20) if a not in (9, 19)]
     assert stats.frames_bad >= 1 and stats.bytes_dropped >= 8
+    assert [n.angle_deg for n in p.feed(rp.encode_node(20, 1000, 10, False))] == [19.0]
 
     stats = DriverStats()
     p = rp.NodeStreamParser("express", stats)
@@ -123,7 +126,7 @@ def test_parser_resyncs_after_garbage_and_counts_bad_frames():
 def test_assembler_ignores_garbage_that_passes_the_check_bits():
     """A garbage node can pass S/!S and the check bit (1 in 8); a false start flag
     must not split the turn."""
-    stats = DriverStats()
+    stats = rp.LidarStats()
     asm = rp.ScanAssembler(stats=stats)
     turn = [rp.ScanNode(a, 1000.0, 47, a == 0) for a in np.arange(0, 360, 1.0)]
     fake = rp.ScanNode(200.0, 5.0, 3, True)
@@ -174,8 +177,8 @@ def test_pyrplidar_gets_info_health_and_scans(emu):
     assert info.serialnumber == emu.info.serial_hex
     assert health.status == rp.STATUS_WARNING
     assert health.error_code == 0x0101  # (pyrplidar decodes it big-endian; symmetric value)
-    assert (rate.t_standard, rate.t_express) == (500, 250)
-    for nodes, per_turn in ((std, 2000 / 5.5), (exp, 4000 / 5.5)):
+    assert (rate.t_standard, rate.t_express) == (508, 254)  # an A1 on firmware 1.29
+    for nodes, per_turn in ((std, emu.sample_rate_hz / 5.5), (exp, emu.express_sample_rate_hz / 5.5)):
         assert len(nodes) == pytest.approx(per_turn, abs=3)
         ang = np.array([n.angle for n in nodes])
         dist = np.array([n.distance for n in nodes])
@@ -239,7 +242,7 @@ def test_driver_scans_ccw_laserscan(emu, mode):
     assert emu.motor_on  # DTR cleared through the pty:// handler
     assert len(scans) == 2 and stats.frames_bad == 0
     s = scans[1]
-    per_turn = (2000 if mode == "standard" else 4000) / 5.5
+    per_turn = (emu.sample_rate_hz if mode == "standard" else emu.express_sample_rate_hz) / 5.5
     assert len(s.ranges) == pytest.approx(per_turn, abs=3)
     # scan_time is the wall-clock duration of the turn as the driver saw it:
     # never much shorter than the emulator's 5.5 Hz turn, longer when the
@@ -248,7 +251,9 @@ def test_driver_scans_ccw_laserscan(emu, mode):
     assert s.time_increment * len(s.ranges) == pytest.approx(s.scan_time)
     assert s.header.frame_id == "base_scan"
     angles = s.angle_min + np.arange(len(s.ranges)) * s.angle_increment
-    assert np.all(np.diff(angles) > 0) and 0 <= s.angle_min < s.angle_max < 2 * math.pi
+    assert np.all(np.diff(angles) > 0) and -math.pi <= s.angle_min < math.pi
+    assert s.angle_max - s.angle_min < 2 * math.pi
+    angles = np.mod(angles, 2 * math.pi)
     left = np.abs(angles - math.pi / 2) < math.radians(8)
     right = np.abs(angles - 3 * math.pi / 2) < math.radians(8)
     np.testing.assert_allclose(s.ranges[left], 1.0, atol=2e-3)
@@ -293,11 +298,28 @@ def test_reset_banner_is_skipped():
     assert info.model == 0x18
 
 
+def test_pyrplidar_reads_the_scan_modes():
+    """GET_LIDAR_CONF (0x84): Slamtec's SDK (and so rplidar_ros) asks for the scan
+    modes on firmware >= 1.24; pyrplidar's independent client decodes them."""
+    with EmulatedRPLidar() as emu:
+        def client():
+            lidar = pyrplidar.PyRPlidar()
+            lidar.connect(port=emu.path, baudrate=115200, timeout=1)
+            try:
+                return lidar.get_scan_mode_count(), lidar.get_scan_mode_typical(), lidar.get_scan_modes()
+            finally:
+                lidar.disconnect()
+
+        count, typical, modes = run_with_timeout(client, 5)
+    assert count == 2 and typical == 1
+    assert [(m.name, m.us_per_sample / 256, m.max_distance >> 8, m.ans_type) for m in modes] == [
+        ("Standard", 508.0, 12, rp.ANS_TYPE_MEASUREMENT), ("Express", 254.0, 12, rp.ANS_TYPE_MEASUREMENT_CAPSULED)]
+
+
 def test_reset_command_and_unknown_payload_commands_are_ignored():
     with EmulatedRPLidar() as emu:
         port = serial.serial_for_url(emu.url, timeout=0.5)
         try:
-            port.write(rp.build_request(rp.CMD_GET_LIDAR_CONF, bytes(4)))
             port.write(rp.build_request(0x99, b"\x01\x02\x03"))
             port.write(bytes.fromhex("a5f0029402ff"))  # SET_MOTOR_PWM with a bad checksum
             port.write(rp.build_request(rp.CMD_GET_HEALTH))
@@ -305,7 +327,7 @@ def test_reset_command_and_unknown_payload_commands_are_ignored():
             assert desc.data_type == rp.ANS_TYPE_DEVHEALTH and port.read(3) == emu.health.to_bytes()
         finally:
             port.close()
-    assert rp.CMD_GET_LIDAR_CONF in emu.ignored_commands and 0x99 in emu.ignored_commands
+    assert 0x99 in emu.ignored_commands
     assert emu.stats.bad_requests >= 1
 
 
@@ -325,7 +347,8 @@ def test_threaded_driver_publishes_and_survives_faults(emu):
     finally:
         lidar.stop()
     assert not lidar.running
-    assert all(t == "scan" and isinstance(m, rp.LaserScan) for t, m in got)
+    assert all(isinstance(m, rp.LaserScan) if t == "scan" else t == "diagnostics" for t, m in got)
+    assert {t for t, _ in got} == {"scan", "diagnostics"}
 
 
 def test_laser_scan_source_feeds_the_emulator_from_a_simulated_scan():
@@ -350,3 +373,239 @@ def test_laser_scan_source_feeds_the_emulator_from_a_simulated_scan():
     angles = s.angle_min + np.arange(len(s.ranges)) * s.angle_increment
     assert np.allclose(s.ranges[np.abs(angles - math.pi / 2) < 1.0], 2.5, atol=1e-3)
     assert np.allclose(s.ranges[np.abs(angles - 3 * math.pi / 2) < 1.0], 1.5, atol=1e-3)
+
+
+# ----------------------------------------------------------------------------- line noise (issue 21)
+# A spiral room: the range (m) says at which ROS angle it was measured, so a
+# beam published at the wrong angle, or a garbage range, is caught exactly.
+SPIRAL_MIN, SPIRAL_SPAN = 0.5, 1.0
+#: deg of angle one quantum of range stands for: express ranges come in 1 mm
+#: steps, so +-0.5 mm of the 1 m spiral is +-0.18 deg (standard: 0.25 mm steps).
+RANGE_QUANTUM_DEG = 360 * 0.0005 / SPIRAL_SPAN
+
+
+def spiral_source(angles: np.ndarray) -> np.ndarray:
+    """0.5 m at ROS angle 0 growing to 1.5 m at 2 pi (500..1,500 mm)."""
+    return SPIRAL_MIN + SPIRAL_SPAN * np.mod(angles, 2 * math.pi) / (2 * math.pi)
+
+
+def spiral_angle_errors(scan) -> tuple[np.ndarray, np.ndarray]:
+    """(angle errors (deg) of the measured beams, ranges outside what the device sent)."""
+    r = np.asarray(scan.ranges, dtype=float)
+    ang = scan.angle_min + np.arange(len(r)) * scan.angle_increment
+    meas = np.isfinite(r)
+    truth = (r[meas] - SPIRAL_MIN) / SPIRAL_SPAN * 2 * math.pi
+    err = np.degrees(np.abs((ang[meas] - truth + math.pi) % (2 * math.pi) - math.pi))
+    outside = r[meas][(r[meas] < SPIRAL_MIN - 1e-3) | (r[meas] > SPIRAL_MIN + SPIRAL_SPAN + 1e-3)]
+    return err, outside
+
+
+def assert_scans_truthful(scans, tol_deg: float, per_turn: float | None = None) -> None:
+    """Every measured beam at its true angle (within ``tol_deg``), no invented range,
+    and (with ``per_turn``) every scan on the device's grid (not stretched)."""
+    bad = []
+    for k, s in enumerate(scans):
+        err, outside = spiral_angle_errors(s)
+        worst = float(err.max()) if err.size else 0.0
+        if worst > tol_deg or outside.size:
+            bad.append(f"scan {k}: {int((err > tol_deg).sum())} beams off (worst {worst:.1f} deg), "
+                       f"{outside.size} ranges the device never sent {outside[:3]}")
+        if per_turn is not None and abs(len(s.ranges) - per_turn) > 2:
+            bad.append(f"scan {k}: {len(s.ranges)} beams, the device makes {per_turn:.1f} per turn")
+    assert not bad, f"{len(bad)} problems in {len(scans)} scans:\n" + "\n".join(bad[:10])
+
+
+def test_assembler_never_stretches_a_split_turn():
+    """A garbage node that passes the check bits with the start flag set, a few
+    nodes after the true start: the turn must not be split and the stub spread
+    over 0..2 pi; every beam stays at its measured angle."""
+    step = 360 / 364
+    dev = np.arange(364) * step
+    dist = spiral_source(rp.device_to_ros_angle(dev)) * 1000
+    turn = [rp.ScanNode(a, d, 47, i == 0) for i, (a, d) in enumerate(zip(dev, dist))]
+    fake = rp.ScanNode(float(dev[40] + 0.3), 9489.0, 12, True)  # garbage: S set, range never sent
+    stats = rp.LidarStats()
+    asm = rp.ScanAssembler(stats=stats)
+    scans = asm.add(turn[:41] + [fake] + turn[41:] + turn + turn[:1], 0.0)
+    assert len(scans) == 2
+    assert_scans_truthful(scans, tol_deg=step / 2 + 0.02, per_turn=364)
+    assert stats.nodes_bad >= 1
+
+
+def test_missing_beams_are_nan_and_no_return_is_inf():
+    """REP-117: a beam the device measured without a return is +inf; a beam lost
+    on the line is NaN at its own angle, never closed up by stretching."""
+    step = 360 / 364
+    dev = np.arange(364) * step
+    dist = spiral_source(rp.device_to_ros_angle(dev)) * 1000
+    dist[10:13] = 0.0  # measured, no return
+    turn = [rp.ScanNode(a, d, 47 if d else 0, i == 0) for i, (a, d) in enumerate(zip(dev, dist))]
+    lost = set(range(100, 140))
+    stats = rp.LidarStats()
+    asm = rp.ScanAssembler(stats=stats)
+    scans = asm.add([n for i, n in enumerate(turn) if i not in lost] + turn[:1], 0.0)
+    assert len(scans) == 1
+    s = scans[0]
+    assert_scans_truthful(scans, tol_deg=step / 2 + 0.02, per_turn=364)
+    assert np.isnan(s.ranges).sum() == len(lost) and np.isposinf(s.ranges).sum() == 3
+    assert stats.beams_missing == len(lost)
+
+
+def _scans_under_fault(mode: str, kind: str, count: int, every_s: float) -> tuple[list, rp.RPLidar]:
+    got: list = []
+    with EmulatedRPLidar(spiral_source) as emu:
+        lidar = rp.RPLidar(emu.url, lambda t, m: got.append(m) if t == "scan" else None, scan_mode=mode)
+        lidar.start()
+        try:
+            assert lidar.wait_published("scan", 1, 3)
+            for _ in range(count):
+                emu.inject_fault(kind)
+                time.sleep(every_s)
+            time.sleep(0.4)  # the turn in progress
+        finally:
+            lidar.stop()
+    return got, lidar
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["standard", "express"])
+def test_garbage_bursts_never_publish_a_wrong_beam(mode):
+    """50 bursts of 37 random bytes during a scan (the issue's measurement): no
+    published beam more than half a beam step from its true angle, no range the
+    device did not send, and the driver says how many nodes it dropped."""
+    scans, lidar = _scans_under_fault(mode, "garbage", 50, 0.04)
+    per_turn = 1e6 / (508 if mode == "standard" else 254) / 5.5
+    assert len(scans) >= 8, f"only {len(scans)} scans published"
+    assert_scans_truthful(scans, tol_deg=360 / per_turn / 2 + RANGE_QUANTUM_DEG + 0.02, per_turn=per_turn)
+    st = lidar.stats
+    assert st.frames_bad > 0 and st.bytes_dropped > 0
+    assert st.scans_published == len(scans)
+    assert st.beams_missing > 0  # bursts cost beams, published as NaN (or whole turns dropped)
+
+
+@pytest.mark.slow
+def test_truncated_nodes_are_dropped_not_published():
+    """10 nodes cut to 2 bytes: no corrupt node published, every scan on the device's grid."""
+    scans, lidar = _scans_under_fault("standard", "truncate", 10, 0.1)
+    per_turn = 1e6 / 508 / 5.5
+    assert len(scans) >= 8
+    assert_scans_truthful(scans, tol_deg=360 / per_turn / 2 + RANGE_QUANTUM_DEG + 0.02, per_turn=per_turn)
+    assert lidar.stats.nodes_bad > 0
+
+
+def test_turn_with_a_node_count_the_scan_mode_cannot_make_is_dropped():
+    """With the sample time known (GET_SAMPLERATE), a turn's node count must fit a
+    rotation rate the head can turn at: 508 us per sample at 2..20 Hz is 98..984
+    nodes; a 'turn' of 2,000 nodes (the head nearly stalled) is not published."""
+    lo, hi = rp.nodes_per_turn_range(508.0)
+    assert (lo, hi) == pytest.approx((1e6 / 508 / 20, 1e6 / 508 / 2))
+    stats = rp.LidarStats()
+    asm = rp.ScanAssembler(stats=stats, nodes_per_turn=(lo, hi))
+
+    def turn(n):
+        dev = np.arange(n) * 360 / n
+        return [rp.ScanNode(a, 1000.0, 47, i == 0) for i, a in enumerate(dev)]
+
+    assert len(asm.add(turn(364) + turn(2000)[:1], 0.0)) == 1
+    assert asm.add(turn(2000)[1:] + turn(364)[:1], 0.0) == []
+    assert stats.scans_dropped == 1 and stats.scans_published == 1
+
+
+def test_driver_learns_the_sample_time_on_connect():
+    with EmulatedRPLidar() as emu:
+        lidar = rp.RPLidar(emu.url, scan_mode="express")
+        lidar.start()
+        try:
+            assert lidar.wait_published("scan", 1, 3)
+        finally:
+            lidar.stop()
+    assert lidar.assembler.nodes_per_turn == pytest.approx(rp.nodes_per_turn_range(254.0))
+
+
+def test_parser_never_returns_a_node_the_device_did_not_send():
+    """Garbage bursts (5..80 random bytes) and nodes cut to 1..4 bytes at 2,000
+    places in a room scan at 5.5 and 10 Hz: every node the parser returns is
+    one the device sent. Windows straddling two real nodes form long smooth
+    runs (a window at a node's second byte always claims S = 1 and reads part
+    of the distance as angle); the start-flag and step checks reject them."""
+    rng = np.random.default_rng(1)
+    foreign = cases = 0
+    for hz in (5.5, 10.0):
+        k = np.arange(1300)
+        dev = np.mod(k * 360 * hz / (1e6 / 508), 360)
+        dist = np.clip(room_scan_source(1.0, 0.8)(rp.device_to_ros_angle(dev)) * 1000, 0, 16383)
+        step = 360 * hz / (1e6 / 508)
+        nodes = [rp.encode_node(a, d, 47, a < step - 1e-9) for a, d in zip(dev, dist)]
+        sent = {(rp.decode_node(n).angle_deg, rp.decode_node(n).distance_mm) for n in nodes}
+        for pos in range(40, 1260, 1):
+            if pos % 2:
+                fault = nodes[pos][: int(rng.integers(1, 5))]
+                after = nodes[pos + 1: pos + 30]
+            else:
+                fault = rng.integers(0, 256, int(rng.integers(5, 80)), dtype=np.uint8).tobytes()
+                after = nodes[pos: pos + 30]
+            out = rp.NodeStreamParser("standard", rp.LidarStats()).feed(
+                b"".join(nodes[pos - 40: pos]) + fault + b"".join(after))
+            cases += 1
+            foreign += any((n.angle_deg, n.distance_mm) not in sent for n in out)
+    assert cases == 2440 and foreign == 0, f"{foreign} of {cases} streams gave a node the device never sent"
+
+
+def test_slamtec_sdk_start_sequence_gets_express_capsules():
+    """The requests Slamtec's SDK sends when rplidar_ros starts (sl_lidar_driver.cpp:
+    GET_INFO, GET_HEALTH, GET_LIDAR_CONF mode count / typical / per mode
+    (payload u32 type + u16 mode id), then startScanExpress with
+    sl_lidar_payload_express_scan_t {u8 working_mode = the mode id, u16 flags,
+    u16 param}), as raw bytes on the pty: every answer arrives, the typical
+    mode's answer type is what the scan then streams."""
+    import struct as st
+
+    def conf(kind, mode=None):
+        payload = st.pack("<I", kind) + (b"" if mode is None else st.pack("<H", mode))
+        body = bytes((0xA5, 0x84, len(payload))) + payload
+        x = 0
+        for v in body:
+            x ^= v
+        return body + bytes((x,))
+
+    assert conf(0x70) == bytes.fromhex("a584047000000055")  # the SDK's GET_LIDAR_CONF(SCAN_MODE_COUNT) request
+
+    def answer(port, want_type):
+        d = rp.parse_descriptor(port.read(7))
+        assert d.data_type == want_type and d.send_mode == rp.SEND_MODE_SINGLE
+        return port.read(d.size)
+
+    with EmulatedRPLidar() as emu:
+        port = serial.serial_for_url(emu.url, timeout=1)
+        try:
+            port.write(b"\xa5\x50")
+            assert answer(port, rp.ANS_TYPE_DEVINFO)[2] >= 1 and emu.info.firmware >= (1, 24)
+            port.write(b"\xa5\x52")
+            answer(port, rp.ANS_TYPE_DEVHEALTH)
+            port.write(conf(0x70))
+            body = answer(port, rp.ANS_TYPE_GET_LIDAR_CONF)
+            assert st.unpack_from("<I", body)[0] == 0x70
+            count = st.unpack_from("<H", body, 4)[0]
+            modes = {}
+            for m in range(count):
+                fields = {}
+                for kind in (0x71, 0x74, 0x75, 0x7F):
+                    port.write(conf(kind, m))
+                    b = answer(port, rp.ANS_TYPE_GET_LIDAR_CONF)
+                    assert st.unpack_from("<I", b)[0] == kind
+                    fields[kind] = b[4:]
+                modes[m] = fields
+            port.write(conf(0x7C))
+            typical = st.unpack_from("<H", answer(port, rp.ANS_TYPE_GET_LIDAR_CONF), 4)[0]
+            assert modes[typical][0x7F] == b"Express\0" and modes[typical][0x75] == bytes((rp.ANS_TYPE_MEASUREMENT_CAPSULED,))
+            assert st.unpack("<I", modes[typical][0x71])[0] / 256 == 254.0
+            req = st.pack("<BHH", typical, 0, 0)
+            port.write(rp.build_request(rp.CMD_EXPRESS_SCAN, req))
+            d = rp.parse_descriptor(port.read(7))
+            assert (d.size, d.send_mode, d.data_type) == (rp.CAPSULE_SIZE, rp.SEND_MODE_MULTIPLE,
+                                                          rp.ANS_TYPE_MEASUREMENT_CAPSULED)
+            caps = port.read(3 * rp.CAPSULE_SIZE)
+            assert all(rp.capsule_checksum_ok(caps, k * rp.CAPSULE_SIZE) for k in range(3))
+            port.write(b"\xa5\x25")
+        finally:
+            port.close()

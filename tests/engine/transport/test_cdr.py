@@ -62,6 +62,10 @@ def _sample(type_name: str):
         "tf2_msgs/msg/TFMessage": m.TFMessage([m.TransformStamped(h, "c", np.array([1.0, 2, 3]),
                                                                   q)] * 2),
         "rosgraph_msgs/msg/Clock": m.Clock(STAMP),
+        "diagnostic_msgs/msg/DiagnosticArray": m.DiagnosticArray(h, [
+            m.DiagnosticStatus(m.DiagnosticStatus.ERROR, "RPLidar", "never connected: no such file",
+                               "pty:///tmp/ttyUSB0", [("connects", "0"), ("frames_bad", "12")]),
+            m.DiagnosticStatus(m.DiagnosticStatus.OK, "runtime", "up", "robot1", [])]),
     }[type_name]
 
 
