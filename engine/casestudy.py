@@ -410,7 +410,7 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
     if path is not None:  # an override: checked as if it stood in twin.toml
         import dataclasses
 
-        robot, _ = robot_path(scene.config)
+        robot, _ = robot_path(scene.config, path)
         path = parse_path_spec(path, scene.config.path, f"case study path ({robot})")
         dev = dataclasses.replace(scene.config.device(robot), path=path)
         check_placement(scene, devices=[dev])

@@ -253,8 +253,10 @@ def check_placement(scene, devices=None) -> None:
         hits = locate(scene, pts, meshes, parts)
         bad = next((j for j, h in enumerate(hits) if h is not None), None)
         if bad is not None:
+            what = (f"straight drive to the goal {_fmt(d.path['goal'])}"
+                    if d.path["kind"] == "goal" else path.describe())
             raise ConfigError(
-                f"{where}.path: the {path.describe()} is not in free space: its point "
+                f"{where}.path: the {what} is not in free space: its point "
                 f"{_fmt(pts[bad][:2])} ({s[bad]:.2f} m along it) lies in {hits[bad]}")
 
 

@@ -283,7 +283,7 @@ def l_room(folder: str | Path, *, robot=(2.0, 1.5, 0.0), path: dict | None = Non
     """A small furnished L-shaped room (:data:`L_FOOTPRINT`, 3 m high) named the way the
     add-on names rooms (``Room_Floor``, ``Room_Wall_1`` ...), with AP1 (2x2, symbols
     0-6) and AP2 (1x1, 7-13) and robot1 on ``path`` (default a polyline loop around
-    the desk). ``room``: a ``[room]`` table to write. Keyword arguments go to
+    the desk; ``{}``: none). ``room``: a ``[room]`` table to write. Keyword arguments go to
     :func:`write_scene_folder`."""
     furniture = furniture if furniture is not None else {
         "Desk": ((1.2, 3.6, 0.0), (2.8, 4.4, 0.75)),
