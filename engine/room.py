@@ -294,7 +294,7 @@ def draw_plan(ax, scene, *, label_aps: bool = True) -> None:
     meshes = object_meshes(scene)
     parts = room_parts(scene)
     polys = plan_polygons(scene, meshes, parts)
-    style = {"floor": ("white", "0.75", 0), "furniture": ("0.82", "0.82", 1),
+    style = {"floor": ("white", "white", 0), "furniture": ("0.82", "0.82", 1),
              "walls": ("0.35", "0.35", 2)}
     ax.set_facecolor("0.93")
     for cat in ("floor", "furniture", "walls"):

@@ -1,9 +1,15 @@
 """engine/cli.py: info, run and fingerprints on real scene folders; bad input exits 2."""
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from engine.cli import main
 from engine.synthetic import two_ap_lab
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -47,3 +53,34 @@ def test_bad_input_exits_2_with_the_culprit(lab, tmp_path, capsys):
     bad.write_text((lab / "twin.toml").read_text().replace("rows = 2", "rows = 0"))
     assert main(["info", str(bad)]) == 2
     assert "array.rows: expected an integer >= 1" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_localize_runs_the_case_study_on_an_l_room(tmp_path):
+    """`isac-twin localize` on a non-lab room: its own polyline path from twin.toml, every
+    output of the lab's demo, floor plan from its geometry; a bad --path exits 2."""
+    import json
+
+    from engine.synthetic import l_room
+
+    f = l_room(tmp_path / "l", robot=(1.0, 1.0, 0.0),
+               tracer={"samples_per_src": 2000, "max_depth": 1})
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "engine.cli", "localize", str(f), "--out", str(out),
+                        "--spacing", "0.6", "--steps", "3", "--table-points", "2",
+                        "--snr", "20", "--cache-dir", str(tmp_path / "cache")],
+                       cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "robot1 follows polyline of 4 waypoints" in r.stdout
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["paper_mode"]["path"]["waypoints"][1] == [3.5, 1.0]
+    assert m["closed_loop"]["steps"] == 3
+    for name in ("trajectories_paper.png", "errors_paper.png", "rates_paper.png",
+                 "trajectories_closed_loop.png"):
+        assert (out / name).stat().st_size > 10000, name
+    assert (out / "table.md").read_text().count("| PDP |") == 2
+    bad = subprocess.run([sys.executable, "-m", "engine.cli", "localize", str(f), "--out",
+                          str(out), "--path", '{kind = "circle", centre = [5, 4], radius = 0.5}'],
+                         cwd=ROOT, capture_output=True, text=True)
+    assert bad.returncode == 2
+    assert bad.stderr.count("\n") == 1 and "outside the room's footprint" in bad.stderr
