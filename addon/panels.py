@@ -84,6 +84,7 @@ class ISAC_PT_object(_Base, bpy.types.Panel):
             layout.prop(p, "export_geometry")
             layout.prop(p, "itu_material")
             layout.prop(p, "thickness")
+            layout.prop(p, "room_part")
             layout.operator("isac.tag_material", icon="MATERIAL")
             return
         layout.prop(p, "role")
@@ -92,9 +93,11 @@ class ISAC_PT_object(_Base, bpy.types.Panel):
             layout.prop(p, "robot_model")
             layout.prop(p, "antenna_offset")
             layout.prop(p, "path_kind")
-            if p.path_kind == "circle":
-                for key in ("path_centre", "path_radius", "path_direction", "path_speed"):
-                    layout.prop(p, key)
+            keys = {"circle": ("path_centre", "path_radius", "path_direction"),
+                    "polyline": ("path_curve",), "figure_eight": ("path_centre", "path_size"),
+                    "goal": ("path_goal",)}.get(p.path_kind, ())
+            for key in keys + (("path_speed",) if keys else ()):
+                layout.prop(p, key)
         box = layout.box()
         box.label(text="Antenna array")
         row = box.row(align=True)
