@@ -268,7 +268,7 @@ def plan_polygons(scene, meshes=None, parts: RoomParts | None = None) -> dict[st
 
     Returns:
         ``{"floor": [...], "walls": [...], "furniture": [...]}``: per object
-        the projections of its non-vertical triangles (their union is the
+        ``(name, triangles [T, 3, 2])``, the projections of its non-vertical triangles (their union is the
         object's exact footprint, non-convex shapes included). The ceiling is
         left out (it would cover the plan).
     """
@@ -282,7 +282,7 @@ def plan_polygons(scene, meshes=None, parts: RoomParts | None = None) -> dict[st
             tri = v[f][:, :, :2]
             area = np.abs(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
             if (area > 1e-9).any():
-                out[cat].append(tri[area > 1e-9])
+                out[cat].append((n, tri[area > 1e-9]))
     return out
 
 
@@ -297,11 +297,15 @@ def draw_plan(ax, scene, *, label_aps: bool = True) -> None:
     style = {"floor": ("white", "white", 0), "furniture": ("0.82", "0.82", 1),
              "walls": ("0.35", "0.35", 2)}
     ax.set_facecolor("0.93")
+    glass = "#9ecae1"  # windows, glass walls: light blue, so openings show in the plan
     for cat in ("floor", "furniture", "walls"):
         face, edge, z = style[cat]
-        for tri in polys[cat]:
-            ax.add_collection(PolyCollection(list(tri), facecolors=face, edgecolors=edge,
-                                             linewidths=0.2, zorder=z))
+        for name, tri in polys[cat]:
+            is_glass = cat != "floor" and scene.objects[name].material == "glass"
+            c = glass if is_glass else face
+            ax.add_collection(PolyCollection(list(tri), facecolors=c,
+                                             edgecolors=glass if is_glass else edge,
+                                             linewidths=0.2, zorder=z + 0.5 * is_glass))
     if label_aps:
         for d in scene.config.devices:
             if d.kind == "access_point":

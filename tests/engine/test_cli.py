@@ -84,3 +84,40 @@ def test_localize_runs_the_case_study_on_an_l_room(tmp_path):
                          cwd=ROOT, capture_output=True, text=True)
     assert bad.returncode == 2
     assert bad.stderr.count("\n") == 1 and "outside the room's footprint" in bad.stderr
+
+
+@pytest.mark.slow
+def test_cli_tools_on_the_bundled_l_office(tmp_path):
+    """The second bundled room (L-shaped, 5.8 GHz, glass): info, trace and localize (coarse
+    grid, a few steps) through the command line, on its own path from twin.toml."""
+    import json
+
+    folder = ROOT / "blend_scenes" / "l_office" / "scene"
+
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "engine.cli", *args], cwd=ROOT,
+                              capture_output=True, text=True)
+
+    r = cli("info", str(folder))
+    assert r.returncode == 0, r.stderr
+    assert "5.8 GHz" in r.stdout and "glass (0.02 m): 1 -- Glass_Partition" in r.stdout
+    r = cli("trace", str(folder), "--out", str(tmp_path / "t.json"))
+    assert r.returncode == 0, r.stderr
+    links = json.loads((tmp_path / "t.json").read_text())["links"]
+    assert len(links) == 2 and all(lk["los"] for lk in links)
+    # the same room with a lighter tracer (2 bounces, 10^4 rays): the database in ~10 s
+    import shutil
+
+    light = tmp_path / "light"
+    shutil.copytree(folder, light)
+    with open(light / "twin.toml", "a") as f:
+        f.write("\n[tracer]\nmax_depth = 2\nsamples_per_src = 10000\n")
+    out = tmp_path / "loc"
+    r = cli("localize", str(light), "--out", str(out), "--spacing", "0.8", "--steps", "3",
+            "--table-points", "2", "--snr", "20", "--cache-dir", str(tmp_path / "cache"))
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "robot1 follows polyline of 6 waypoints" in r.stdout
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["paper_mode"]["path"]["closed"] is True
+    assert m["database"]["frequency_hz"] == 5.8e9
+    assert (out / "trajectories_closed_loop.png").stat().st_size > 10000

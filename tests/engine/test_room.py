@@ -142,7 +142,8 @@ def test_locate_agrees_with_the_tracers_free_space_test(tmp_path):
 def test_plan_polygons_give_the_exact_l_footprint(tmp_path):
     s = load_scene(l_room(tmp_path / "pl"), load_sionna=False)
     plan = plan_polygons(s)
-    (floor,) = plan["floor"]
+    ((name, floor),) = plan["floor"]
+    assert name == "Room_Floor"
     area = np.abs(np.cross(floor[:, 1] - floor[:, 0], floor[:, 2] - floor[:, 0])).sum() / 2
     assert area == pytest.approx(2 * 26.0)  # top and bottom caps of 6 x 5 - 2 x 2 m^2
     assert len(plan["walls"]) == 6 and len(plan["furniture"]) == 2
