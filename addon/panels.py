@@ -59,6 +59,7 @@ class ISAC_PT_modelling(_Base, bpy.types.Panel):
         col = layout.column(align=True)
         col.operator("isac.add_room", icon="MESH_CUBE")
         col.operator("isac.add_room_polygon", icon="MOD_BUILD")
+        col.operator("isac.add_box", icon="CUBE")
         col.operator("isac.add_furniture", icon="OUTLINER_OB_MESH")
         col = layout.column(align=True)
         col.operator("isac.add_access_point", icon="OUTLINER_OB_LIGHTPROBE")
@@ -98,6 +99,7 @@ class ISAC_PT_object(_Base, bpy.types.Panel):
                     "goal": ("path_goal",)}.get(p.path_kind, ())
             for key in keys + (("path_speed",) if keys else ()):
                 layout.prop(p, key)
+            layout.operator("isac.robot_path_preset", icon="CURVE_PATH")
         box = layout.box()
         box.label(text="Antenna array")
         row = box.row(align=True)
