@@ -8,7 +8,7 @@ import bpy
 from bpy.props import (EnumProperty, FloatProperty, FloatVectorProperty, IntProperty,
                        IntVectorProperty, StringProperty)
 
-from . import devices, live, live_view, materials, modelling
+from . import devices, live, live_view, materials, modelling, placement
 from .exporter import ExportError, export_scene
 from .properties import (PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES, ROOM_PARTS,
                          addon_preferences)
@@ -286,6 +286,30 @@ class ISAC_OT_export_scene(_Reporting, bpy.types.Operator):
             raise ValueError(str(exc)) from exc
         self.report({"INFO"}, f"Exported {len(report.objects)} objects, "
                               f"{len(report.devices)} devices to {report.folder}")
+        for line in _store_placement(context):  # the engine will refuse these at load
+            self.report({"WARNING"}, line)
+
+
+def _store_placement(context) -> list[str]:
+    lines = placement.placement_warnings(context.scene, context.evaluated_depsgraph_get())
+    context.scene.isac.placement_warnings = "\n".join(lines)
+    return lines
+
+
+class ISAC_OT_check_placement(_Reporting, bpy.types.Operator):
+    """Check that every device and robot path lies in free space (not in a wall or furniture,
+    above the floor): the engine refuses the scene at load otherwise"""
+
+    bl_idname = "isac.check_placement"
+    bl_label = "Check Placement"
+    bl_options = _OPTS
+
+    def run(self, context):
+        lines = _store_placement(context)
+        for line in lines:
+            self.report({"WARNING"}, line)
+        if not lines:
+            self.report({"INFO"}, "Every device and robot path is in free space")
 
 
 # --------------------------------------------------------------------------- live link
@@ -368,7 +392,8 @@ class ISAC_OT_live_clear(_Reporting, bpy.types.Operator):
 CLASSES = (ISAC_OT_add_room, ISAC_OT_add_room_polygon, ISAC_OT_add_box, ISAC_OT_add_furniture,
            ISAC_OT_add_access_point, ISAC_OT_add_robot, ISAC_OT_robot_path_preset,
            ISAC_OT_tag_material,
-           ISAC_OT_add_link, ISAC_OT_remove_link, ISAC_OT_export_scene)
+           ISAC_OT_add_link, ISAC_OT_remove_link, ISAC_OT_export_scene,
+           ISAC_OT_check_placement)
 #: Live-link operators: not undoable (they talk to a process, not to the scene's data).
 LIVE_CLASSES = (ISAC_OT_live_connect, ISAC_OT_live_disconnect, ISAC_OT_live_start_engine,
                 ISAC_OT_live_command, ISAC_OT_live_clear)

@@ -44,6 +44,9 @@ class ISAC_PT_scene(_Base, bpy.types.Panel):
             box.prop(p, key)
         for text in materials.band_warnings(context.scene):
             layout.label(text=text, icon="ERROR")
+        for text in filter(None, p.placement_warnings.split("\n")):
+            layout.label(text=text, icon="ERROR")
+        layout.operator("isac.check_placement", icon="CHECKMARK")
         layout.prop(p, "export_directory")
         layout.operator("isac.export_scene", icon="EXPORT")
 

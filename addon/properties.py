@@ -133,6 +133,9 @@ class ISAC_SceneProps(bpy.types.PropertyGroup):
     links: CollectionProperty(type=ISAC_LinkItem)
     links_index: IntProperty(name="Active link", default=0)
     sensing_links: CollectionProperty(type=ISAC_SensingItem)
+    placement_warnings: StringProperty(
+        name="Placement warnings", default="",
+        description="Devices or path points not in free space, one per line (Check Placement)")
     export_directory: StringProperty(name="Scene folder", subtype="DIR_PATH", default="//scene",
                                      options={"PATH_SUPPORTS_BLEND_RELATIVE"},
                                      description="Folder the exporter writes")
