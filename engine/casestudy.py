@@ -94,10 +94,11 @@ def path_points(path: dict, n: int, height: float,
     """``n`` antenna positions ``[n, 3]`` m evenly spaced in arc length along a path spec
     (any ``[devices.path]`` kind; ``start`` ``[2]`` m is the robot's position, needed for
     ``"goal"``) and the path's heading there ``[n]`` rad. A closed path is sampled
-    half a step off its start point, an open one from end to end."""
+    a quarter step past its start point (on a circle: the points of
+    :func:`circle_points`, the lab's table), an open one from end to end."""
     p = path_from_spec(path, start=start)
     if p.closed:
-        s = (np.arange(n) + 0.5) * p.length / n
+        s = (np.arange(n) + 0.25) * p.length / n
     else:
         s = np.linspace(0.0, p.length, n)
     xy = p.point(s)

@@ -134,3 +134,13 @@ def test_every_path_kind_drives_the_deployment(tmp_path, l_cache, start, spec):
     pts, yaws = path_points(spec, 5, 0.25, start=start)
     assert max(abs(dep.path.project(p).error) for p in pts[:, :2]) < 1e-6
     assert pts.shape == (5, 3) and np.isfinite(yaws).all()
+
+
+def test_table_points_on_the_labs_circle_are_unchanged():
+    """path_points on a circle spec gives exactly the old circle_points (the lab's table)."""
+    from engine.casestudy import circle_points, path_points
+
+    a, ya = circle_points((4.0, 3.0), 1.5, 12, 0.25)
+    b, yb = path_points({"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5}, 12, 0.25)
+    assert np.allclose(a, b, atol=1e-12)
+    assert np.allclose(np.exp(1j * ya), np.exp(1j * yb), atol=1e-12)
