@@ -188,9 +188,10 @@ def locate(scene, points, meshes=None, parts: RoomParts | None = None) -> list[s
                 out[i] = f"object '{name}'"
     if parts.floor:
         tri = np.concatenate([meshes[n][0][meshes[n][1]] for n in parts.floor])
-        for i in np.flatnonzero([o is None for o in out]):
-            inside, _ = _xy_hits(tri, pts[i:i + 1])
-            if not inside.any():
+        todo = np.flatnonzero([o is None for o in out])
+        if len(todo):
+            inside, _ = _xy_hits(tri, pts[todo])
+            for i in todo[~inside.any(axis=1)]:
                 out[i] = "no floor (outside the room's footprint)"
     return out
 
