@@ -108,6 +108,10 @@ def build(scene=None):
     scene.isac.links.clear()
     devices.add_link(scene, "AP1", "robot1")
     devices.add_link(scene, "AP2", "robot1")
+    # bistatic radar: AP2 (2 x 2) illuminates, AP1's 4 x 4 array receives (angles);
+    # a quarter of the REs, every 10th step, as in the lab
+    scene.isac.sensing_links.clear()
+    devices.add_sensing_link(scene, "AP2", "AP1", rho=0.25, every=10)
     scene.isac.export_directory = "//scene"
     return scene
 
