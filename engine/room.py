@@ -68,11 +68,23 @@ class RoomParts:
 
 
 def object_meshes(scene) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """``name -> (vertices [V, 3], faces [F, 3])`` of every object as in its PLY."""
+    """``name -> (vertices [V, 3], faces [F, 3])`` of every object where it is now: its
+    PLY, moved and turned as ``scene.object_poses`` says (an edited twin)."""
     out = {}
     for name, o in scene.objects.items():
         m = read_ply(o.mesh_file)
-        out[name] = (m.vertices, m.faces)
+        v = m.vertices
+        pose = getattr(scene, "object_poses", {}).get(name)
+        if pose is not None:  # Sionna's sense: bbox centre as loaded -> position, turned
+            c0 = (np.asarray(o.bounds_min) + np.asarray(o.bounds_max)) / 2
+            r, p, y = pose[3:]
+            cr, sr, cp, sp, cy, sy = (math.cos(r), math.sin(r), math.cos(p), math.sin(p),
+                                      math.cos(y), math.sin(y))
+            rot = np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                            [-sp, cp * sr, cp * cr]])
+            v = (v - c0) @ rot.T + np.asarray(pose[:3])
+        out[name] = (v, m.faces)
     return out
 
 
@@ -215,6 +227,28 @@ def robot_path_points(device, spacing: float = PATH_CHECK_SPACING_M):
     return np.hstack([xy, z]), s, path
 
 
+def path_obstruction(scene, spec: dict, start, z: float, *, meshes=None,
+                     parts: RoomParts | None = None) -> str | None:
+    """Where a robot path spec leaves free space, or None: checked every
+    ``PATH_CHECK_SPACING_M`` at height ``z`` (m); ``start`` ``[2]`` m is the robot's
+    position (a goal path runs from it). The text names the path, the first
+    point off free space and what it lies in."""
+    from engine.robots.control import path_from_spec
+
+    path = path_from_spec(spec, start=start)
+    n = max(2, int(math.ceil(path.length / PATH_CHECK_SPACING_M)) + 1)
+    s = np.linspace(0.0, path.length, n, endpoint=not path.closed)
+    pts = np.column_stack([path.point(s), np.full(n, float(z))])
+    hits = locate(scene, pts, meshes, parts)
+    bad = next((j for j, h in enumerate(hits) if h is not None), None)
+    if bad is None:
+        return None
+    what = (f"straight drive to the goal {_fmt(spec['goal'])}" if spec["kind"] == "goal"
+            else path.describe())
+    return (f"the {what} is not in free space: its point {_fmt(pts[bad][:2])} "
+            f"({s[bad]:.2f} m along it) lies in {hits[bad]}")
+
+
 def check_placement(scene, devices=None) -> None:
     """Refuse a device or robot path point that is not in free space (see :func:`locate`).
 
@@ -247,18 +281,12 @@ def check_placement(scene, devices=None) -> None:
             what = "robot body" if d.kind == "robot" else "array centre"
             raise ConfigError(f"{where}.position: {list(d.position)} is not in free space: "
                               f"its {what} {_fmt(body)} lies in {hit}")
-        sampled = robot_path_points(d) if d.kind == "robot" else None
-        if sampled is None:
+        if d.kind != "robot" or d.path is None:
             continue
-        pts, s, path = sampled
-        hits = locate(scene, pts, meshes, parts)
-        bad = next((j for j, h in enumerate(hits) if h is not None), None)
-        if bad is not None:
-            what = (f"straight drive to the goal {_fmt(d.path['goal'])}"
-                    if d.path["kind"] == "goal" else path.describe())
-            raise ConfigError(
-                f"{where}.path: the {what} is not in free space: its point "
-                f"{_fmt(pts[bad][:2])} ({s[bad]:.2f} m along it) lies in {hits[bad]}")
+        msg = path_obstruction(scene, d.path, d.position[:2], body[2], meshes=meshes,
+                               parts=parts)
+        if msg is not None:
+            raise ConfigError(f"{where}.path: {msg}")
 
 
 # --------------------------------------------------------------------------- floor plan
