@@ -98,14 +98,100 @@ def set_circle_path(obj, centre: Sequence[float], radius: float, direction: str 
                     speed: float | None = None) -> None:
     """Make a robot follow a circle (centre ``[2]`` m, radius m, ``"ccw"``/``"cw"``,
     cruise speed m/s or None for the model's limit) in the twin."""
-    p = obj.isac
-    if p.device_kind != "ROBOT":
-        raise ValueError(f"'{obj.name}' is not a robot: only robots follow paths")
+    p = _path_robot(obj)
     p.path_kind = "circle"
     p.path_centre = tuple(centre)
     p.path_radius = float(radius)
     p.path_direction = direction
     p.path_speed = float(speed or 0.0)
+
+
+def _path_robot(obj):
+    p = obj.isac
+    if p.device_kind != "ROBOT":
+        raise ValueError(f"'{obj.name}' is not a robot: only robots follow paths")
+    return p
+
+
+def set_polyline_path(obj, curve, speed: float | None = None) -> None:
+    """Make a robot follow a Blender curve object's points (world x, y, m) as a
+    polyline; the curve's first spline being cyclic makes it a closed loop."""
+    p = _path_robot(obj)
+    if curve is None or curve.type != "CURVE":
+        raise ValueError(f"'{getattr(curve, 'name', curve)}' is not a curve object")
+    p.path_kind = "polyline"
+    p.path_curve = curve
+    p.path_speed = float(speed or 0.0)
+
+
+def set_figure_eight_path(obj, centre: Sequence[float], size: float,
+                          speed: float | None = None) -> None:
+    """Make a robot follow a figure eight (lemniscate of Gerono) ``size`` m wide along x,
+    ``size / 2`` high, centred on ``centre`` ``[2]`` m."""
+    p = _path_robot(obj)
+    p.path_kind = "figure_eight"
+    p.path_centre = tuple(centre)
+    p.path_size = float(size)
+    p.path_speed = float(speed or 0.0)
+
+
+def set_goal_path(obj, goal: Sequence[float], speed: float | None = None) -> None:
+    """Make a robot drive to ``goal`` ``[2]`` m and stop."""
+    p = _path_robot(obj)
+    p.path_kind = "goal"
+    p.path_goal = tuple(goal)
+    p.path_speed = float(speed or 0.0)
+
+
+def add_path_curve(name: str, points: Sequence[Sequence[float]], *, closed: bool = False,
+                   z: float = 0.0, scene=None):
+    """A poly curve object through ``points`` ``[(x, y), ...]`` m (at height ``z``), in the
+    Devices collection: a robot path the user can edit in the viewport."""
+    if len(points) < 2:
+        raise ValueError(f"Path '{name}': a polyline needs at least 2 points, got {len(points)}")
+    scene = scene if scene is not None else bpy.context.scene
+    data = bpy.data.curves.new(name, type="CURVE")
+    data.dimensions = "3D"
+    spline = data.splines.new("POLY")
+    spline.points.add(len(points) - 1)
+    for pt, (x, y, *_) in zip(spline.points, points):
+        pt.co = (float(x), float(y), float(z), 1.0)
+    spline.use_cyclic_u = bool(closed)
+    obj = bpy.data.objects.new(name, data)
+    get_collection(scene, DEVICE_COLLECTION).objects.link(obj)
+    return obj
+
+
+def set_rectangle_path(obj, centre: Sequence[float], width: float, depth: float,
+                       speed: float | None = None, scene=None):
+    """Make a robot drive a closed rectangle (``width`` along x, ``depth`` along y, m)
+    counter-clockwise around ``centre``: a cyclic path curve it follows as a polyline.
+    Returns the curve object."""
+    for key, v in (("width", width), ("depth", depth)):
+        if not v > 0:
+            raise ValueError(f"Rectangle path: {key} must be > 0 m, got {v!r}")
+    cx, cy = centre[0], centre[1]
+    w, d = width / 2, depth / 2
+    curve = add_path_curve(f"{obj.name}_Path", [(cx - w, cy - d), (cx + w, cy - d),
+                                               (cx + w, cy + d), (cx - w, cy + d)],
+                           closed=True, scene=scene)
+    set_polyline_path(obj, curve, speed)
+    return curve
+
+
+def curve_waypoints(curve) -> tuple[list[list[float]], bool]:
+    """World ``[[x, y], ...]`` (m) of a curve object's first spline and whether it is
+    cyclic; Bezier splines give their control points."""
+    if curve is None or not curve.data.splines:
+        return [], False
+    spline = curve.data.splines[0]
+    mw = curve.matrix_world
+    if spline.type == "BEZIER":
+        cos = [bp.co for bp in spline.bezier_points]
+    else:
+        cos = [pt.co.xyz for pt in spline.points]
+    pts = [list((mw @ c)[:2]) for c in cos]
+    return [[float(x), float(y)] for x, y in pts], bool(spline.use_cyclic_u)
 
 
 def add_robot(

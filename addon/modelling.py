@@ -176,6 +176,8 @@ def create_room_from_polygon(
         wname = f"{name}_Wall_{i + 1}"
         mesh, origin = prism_mesh(wname, quad, 0.0, height)
         walls.append(_new_object(wname, mesh, origin, coll, wall_material, wall_thickness))
+    for obj in [floor, ceiling, *walls]:
+        obj.isac.room_part = "SHELL"  # fixed structure, whatever the user renames it to
     return {"floor": floor, "ceiling": ceiling, "walls": walls}
 
 
@@ -270,7 +272,7 @@ def add_furniture(
         raise ValueError(f"Unknown furniture preset '{kind}'; choose one of "
                          f"{', '.join(FURNITURE_PRESETS)}")
     preset = FURNITURE_PRESETS[kind]
-    return add_box(
+    obj = add_box(
         name or kind.title().replace("_", ""),
         preset["dimensions"] if dimensions is None else dimensions,
         location, rotation_z,
@@ -278,6 +280,8 @@ def add_furniture(
         thickness=preset["thickness"] if thickness is None else thickness,
         scene=scene,
     )
+    obj.isac.room_part = "FURNITURE"
+    return obj
 
 
 def add_window(
@@ -322,6 +326,8 @@ def add_window(
     mod.operation = "DIFFERENCE"
     mod.object = cutter
     mod.solver = "EXACT"
-    return add_box(name, (width, pane_thickness, height), base, rotation_z,
+    pane = add_box(name, (width, pane_thickness, height), base, rotation_z,
                    material=material, thickness=pane_thickness,
                    collection_name=ROOM_COLLECTION, scene=scene)
+    pane.isac.room_part = "SHELL"  # part of the wall
+    return pane

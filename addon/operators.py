@@ -5,11 +5,13 @@ from __future__ import annotations
 import math
 
 import bpy
-from bpy.props import EnumProperty, FloatProperty, FloatVectorProperty, IntProperty, StringProperty
+from bpy.props import (EnumProperty, FloatProperty, FloatVectorProperty, IntProperty,
+                       IntVectorProperty, StringProperty)
 
-from . import devices, live, live_view, materials, modelling, schema
+from . import devices, live, live_view, materials, modelling, placement, schema
 from .exporter import ExportError, export_scene
-from .properties import PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES, addon_preferences
+from .properties import (PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES, ROOM_PARTS,
+                         addon_preferences)
 
 _OPTS = {"REGISTER", "UNDO"}
 _FURNITURE_ITEMS = [(k, k.replace("_", " ").title(), "") for k in modelling.FURNITURE_PRESETS]
@@ -69,11 +71,42 @@ class ISAC_OT_add_room_polygon(_Reporting, bpy.types.Operator):
     height: FloatProperty(name="Height", default=3.0, min=0.01, unit="LENGTH")
     wall_thickness: FloatProperty(name="Wall thickness", default=0.2, min=0.001, unit="LENGTH")
     name: StringProperty(name="Name", default="Room")
+    wall_material: EnumProperty(name="Walls", items=_MATERIAL_ITEMS, default="concrete")
+    floor_material: EnumProperty(name="Floor", items=_MATERIAL_ITEMS, default="concrete")
+    ceiling_material: EnumProperty(name="Ceiling", items=_MATERIAL_ITEMS,
+                                   default="ceiling_board")
 
     def run(self, context):
         modelling.create_room_from_polygon(parse_polygon(self.vertices), self.height,
                                            self.wall_thickness, name=self.name,
+                                           wall_material=self.wall_material,
+                                           floor_material=self.floor_material,
+                                           ceiling_material=self.ceiling_material,
                                            scene=context.scene)
+
+
+class ISAC_OT_add_box(_Reporting, bpy.types.Operator):
+    """Add a plain box of any size and ITU material (a partition, a column, a cupboard)"""
+
+    bl_idname = "isac.add_box"
+    bl_label = "Add Box"
+    bl_options = _OPTS
+
+    name: StringProperty(name="Name", default="Box")
+    dimensions: FloatVectorProperty(name="Size", size=3, default=(1.0, 1.0, 1.0), min=0.001,
+                                    subtype="XYZ", unit="LENGTH")
+    location: FloatVectorProperty(name="Location", size=3, subtype="TRANSLATION", unit="LENGTH",
+                                  description="Bottom-face centre, m")
+    rotation_z: FloatProperty(name="Rotation Z", subtype="ANGLE", unit="ROTATION")
+    material: EnumProperty(name="ITU material", items=_MATERIAL_ITEMS, default="concrete")
+    thickness: FloatProperty(name="Thickness", default=0.1, min=0.0001, unit="LENGTH")
+    room_part: EnumProperty(name="Room part", items=ROOM_PARTS, default="AUTO")
+
+    def run(self, context):
+        obj = modelling.add_box(self.name, tuple(self.dimensions), tuple(self.location),
+                                self.rotation_z, material=self.material,
+                                thickness=self.thickness, scene=context.scene)
+        obj.isac.room_part = self.room_part
 
 
 class ISAC_OT_add_furniture(_Reporting, bpy.types.Operator):
@@ -95,6 +128,13 @@ class ISAC_OT_add_furniture(_Reporting, bpy.types.Operator):
 class _ArrayProps:
     rows: IntProperty(name="Rows", default=1, min=1)
     cols: IntProperty(name="Columns", default=1, min=1)
+    vertical_spacing: FloatProperty(name="Vertical spacing",
+                                    default=schema.DEFAULT_ELEMENT_SPACING, min=0.01,
+                                    description="Element spacing between rows, wavelengths")
+    horizontal_spacing: FloatProperty(name="Horizontal spacing",
+                                      default=schema.DEFAULT_ELEMENT_SPACING, min=0.01,
+                                      description="Element spacing between columns, "
+                                                  "wavelengths")
     pattern: EnumProperty(name="Pattern", items=PATTERNS, default=schema.DEFAULT_PATTERN)
     polarization: EnumProperty(name="Polarization", items=POLARIZATIONS,
                                default=schema.DEFAULT_POLARIZATION)
@@ -113,12 +153,23 @@ class ISAC_OT_add_access_point(_Reporting, _ArrayProps, bpy.types.Operator):
     yaw: FloatProperty(name="Yaw", subtype="ANGLE", unit="ROTATION")
     power_dbm: FloatProperty(name="Power (dBm)", default=20.0)
     role: EnumProperty(name="Role", items=ROLES, default="tx")
+    subcarriers: IntVectorProperty(name="Subcarriers [start, stop)", size=2, default=(0, 0),
+                                   min=0, description="Resource set; 0, 0 = the whole grid")
+    symbols: IntVectorProperty(name="Symbols [start, stop)", size=2, default=(0, 0), min=0,
+                               description="Resource set; 0, 0 = all OFDM symbols")
 
     def run(self, context):
         devices.add_access_point(self.name, tuple(self.location), (0.0, 0.0, self.yaw),
-                                 rows=self.rows, cols=self.cols, pattern=self.pattern,
+                                 rows=self.rows, cols=self.cols,
+                                 vertical_spacing=self.vertical_spacing,
+                                 horizontal_spacing=self.horizontal_spacing,
+                                 pattern=self.pattern,
                                  polarization=self.polarization, power_dbm=self.power_dbm,
-                                 role=self.role, scene=context.scene)
+                                 role=self.role,
+                                 subcarriers=tuple(self.subcarriers) if any(self.subcarriers)
+                                 else None,
+                                 symbols=tuple(self.symbols) if any(self.symbols) else None,
+                                 scene=context.scene)
 
 
 class ISAC_OT_add_robot(_Reporting, _ArrayProps, bpy.types.Operator):
@@ -136,8 +187,39 @@ class ISAC_OT_add_robot(_Reporting, _ArrayProps, bpy.types.Operator):
 
     def run(self, context):
         devices.add_robot(self.name, tuple(self.location), self.yaw, model=self.model,
-                          rows=self.rows, cols=self.cols, pattern=self.pattern,
+                          rows=self.rows, cols=self.cols, vertical_spacing=self.vertical_spacing,
+                          horizontal_spacing=self.horizontal_spacing, pattern=self.pattern,
                           polarization=self.polarization, role=self.role, scene=context.scene)
+
+
+class ISAC_OT_robot_path_preset(_Reporting, bpy.types.Operator):
+    """Give the active robot a path: a circle, a rectangle (an editable cyclic curve it
+    follows as a polyline) or a figure eight, centred on a point"""
+
+    bl_idname = "isac.robot_path_preset"
+    bl_label = "Path Preset"
+    bl_options = _OPTS
+
+    preset: EnumProperty(name="Preset", default="rectangle", items=[
+        ("circle", "Circle", "Radius = half the width"),
+        ("rectangle", "Rectangle", "A closed polyline curve, width x depth"),
+        ("figure_eight", "Figure eight", "Width along x, half as high")])
+    centre: FloatVectorProperty(name="Centre", size=2, default=(2.0, 2.0), subtype="XYZ",
+                                unit="LENGTH")
+    width: FloatProperty(name="Width", default=2.0, min=0.01, unit="LENGTH")
+    depth: FloatProperty(name="Depth", default=1.5, min=0.01, unit="LENGTH")
+
+    def run(self, context):
+        robot = context.active_object
+        if robot is None or robot.isac.device_kind != "ROBOT":
+            raise ValueError("Select a robot first: only robots follow paths")
+        c = tuple(self.centre)
+        if self.preset == "circle":
+            devices.set_circle_path(robot, c, self.width / 2)
+        elif self.preset == "figure_eight":
+            devices.set_figure_eight_path(robot, c, self.width)
+        else:
+            devices.set_rectangle_path(robot, c, self.width, self.depth, scene=context.scene)
 
 
 class ISAC_OT_tag_material(_Reporting, bpy.types.Operator):
@@ -207,6 +289,30 @@ class ISAC_OT_export_scene(_Reporting, bpy.types.Operator):
             raise ValueError(str(exc)) from exc
         self.report({"INFO"}, f"Exported {len(report.objects)} objects, "
                               f"{len(report.devices)} devices to {report.folder}")
+        for line in _store_placement(context):  # the engine will refuse these at load
+            self.report({"WARNING"}, line)
+
+
+def _store_placement(context) -> list[str]:
+    lines = placement.placement_warnings(context.scene, context.evaluated_depsgraph_get())
+    context.scene.isac.placement_warnings = "\n".join(lines)
+    return lines
+
+
+class ISAC_OT_check_placement(_Reporting, bpy.types.Operator):
+    """Check that every device and robot path lies in free space (not in a wall or furniture,
+    above the floor): the engine refuses the scene at load otherwise"""
+
+    bl_idname = "isac.check_placement"
+    bl_label = "Check Placement"
+    bl_options = _OPTS
+
+    def run(self, context):
+        lines = _store_placement(context)
+        for line in lines:
+            self.report({"WARNING"}, line)
+        if not lines:
+            self.report({"INFO"}, "Every device and robot path is in free space")
 
 
 # --------------------------------------------------------------------------- live link
@@ -286,9 +392,11 @@ class ISAC_OT_live_clear(_Reporting, bpy.types.Operator):
         live_view.clear(context.scene)
 
 
-CLASSES = (ISAC_OT_add_room, ISAC_OT_add_room_polygon, ISAC_OT_add_furniture,
-           ISAC_OT_add_access_point, ISAC_OT_add_robot, ISAC_OT_tag_material,
-           ISAC_OT_add_link, ISAC_OT_remove_link, ISAC_OT_export_scene)
+CLASSES = (ISAC_OT_add_room, ISAC_OT_add_room_polygon, ISAC_OT_add_box, ISAC_OT_add_furniture,
+           ISAC_OT_add_access_point, ISAC_OT_add_robot, ISAC_OT_robot_path_preset,
+           ISAC_OT_tag_material,
+           ISAC_OT_add_link, ISAC_OT_remove_link, ISAC_OT_export_scene,
+           ISAC_OT_check_placement)
 #: Live-link operators: not undoable (they talk to a process, not to the scene's data).
 LIVE_CLASSES = (ISAC_OT_live_connect, ISAC_OT_live_disconnect, ISAC_OT_live_start_engine,
                 ISAC_OT_live_command, ISAC_OT_live_clear)

@@ -44,6 +44,9 @@ class ISAC_PT_scene(_Base, bpy.types.Panel):
             box.prop(p, key)
         for text in materials.band_warnings(context.scene):
             layout.label(text=text, icon="ERROR")
+        for text in filter(None, p.placement_warnings.split("\n")):
+            layout.label(text=text, icon="ERROR")
+        layout.operator("isac.check_placement", icon="CHECKMARK")
         layout.prop(p, "export_directory")
         layout.operator("isac.export_scene", icon="EXPORT")
 
@@ -59,6 +62,7 @@ class ISAC_PT_modelling(_Base, bpy.types.Panel):
         col = layout.column(align=True)
         col.operator("isac.add_room", icon="MESH_CUBE")
         col.operator("isac.add_room_polygon", icon="MOD_BUILD")
+        col.operator("isac.add_box", icon="CUBE")
         col.operator("isac.add_furniture", icon="OUTLINER_OB_MESH")
         col = layout.column(align=True)
         col.operator("isac.add_access_point", icon="OUTLINER_OB_LIGHTPROBE")
@@ -84,6 +88,7 @@ class ISAC_PT_object(_Base, bpy.types.Panel):
             layout.prop(p, "export_geometry")
             layout.prop(p, "itu_material")
             layout.prop(p, "thickness")
+            layout.prop(p, "room_part")
             layout.operator("isac.tag_material", icon="MATERIAL")
             return
         layout.prop(p, "role")
@@ -92,9 +97,12 @@ class ISAC_PT_object(_Base, bpy.types.Panel):
             layout.prop(p, "robot_model")
             layout.prop(p, "antenna_offset")
             layout.prop(p, "path_kind")
-            if p.path_kind == "circle":
-                for key in ("path_centre", "path_radius", "path_direction", "path_speed"):
-                    layout.prop(p, key)
+            keys = {"circle": ("path_centre", "path_radius", "path_direction"),
+                    "polyline": ("path_curve",), "figure_eight": ("path_centre", "path_size"),
+                    "goal": ("path_goal",)}.get(p.path_kind, ())
+            for key in keys + (("path_speed",) if keys else ()):
+                layout.prop(p, key)
+            layout.operator("isac.robot_path_preset", icon="CURVE_PATH")
         box = layout.box()
         box.label(text="Antenna array")
         row = box.row(align=True)

@@ -31,6 +31,10 @@ PATTERNS = _items(schema.PATTERNS)
 POLARIZATIONS = _items(schema.POLARIZATIONS)
 ROBOT_MODELS = [(k, body.label, "") for k, body in schema.ROBOT_MODELS.items()]
 PATH_DIRECTIONS = _items(schema.PATH_DIRECTIONS)
+ROOM_PARTS = [("AUTO", "Auto", "Decided by the engine from the geometry (large boundary "
+                                "slabs and full-height walls are shell)"),
+              ("SHELL", "Shell", "Walls, floor, ceiling, windows, doors: fixed structure"),
+              ("FURNITURE", "Furniture", "Movable contents of the room")]
 
 _MATERIAL_ITEMS = materials.material_enum_items()  # keep a reference: bpy needs it alive
 
@@ -46,6 +50,10 @@ class ISAC_ObjectProps(bpy.types.PropertyGroup):
     thickness: FloatProperty(name="Thickness", default=materials.DEFAULT_THICKNESS_M,
                              soft_min=0.001, unit="LENGTH", precision=3,
                              description="Slab thickness of the radio material, m")
+    room_part: EnumProperty(name="Room part", default="AUTO", items=ROOM_PARTS,
+                            description="Shell (walls, floor, ceiling, windows: fixed) or "
+                                        "furniture (moved in a perturbed room, drawn as an "
+                                        "obstacle); written to twin.toml's [room]")
     # devices
     role: EnumProperty(name="Role", items=ROLES, default="tx")
     power_dbm: FloatProperty(name="Tx power (dBm)", default=20.0,
@@ -77,7 +85,19 @@ class ISAC_ObjectProps(bpy.types.PropertyGroup):
     # robots: the path the twin's controller follows
     path_kind: EnumProperty(name="Path", default="NONE", items=[
         ("NONE", "None", "No path: the robot stands until commanded"),
-        ("circle", "Circle", "Pure pursuit on a circle")])
+        ("circle", "Circle", "Pure pursuit on a circle"),
+        ("polyline", "Polyline (curve)",
+         "Pure pursuit along a Blender curve object's points (open or cyclic)"),
+        ("figure_eight", "Figure eight", "Pure pursuit on a lemniscate, size wide"),
+        ("goal", "Goal", "Drive straight to a goal point and stop")])
+    path_curve: PointerProperty(name="Curve", type=bpy.types.Object,
+                                poll=lambda self, obj: obj.type == "CURVE",
+                                description="Curve object whose points (world XY) are the "
+                                            "robot's waypoints; a cyclic spline is a closed loop")
+    path_size: FloatProperty(name="Size", default=2.0, min=0.0, unit="LENGTH",
+                             description="Figure eight: width along x, m (height is half)")
+    path_goal: FloatVectorProperty(name="Goal", size=2, default=(0.0, 0.0), subtype="XYZ",
+                                   unit="LENGTH", description="Goal point (x, y), m")
     path_centre: FloatVectorProperty(name="Centre", size=2, default=(0.0, 0.0),
                                      subtype="XYZ", unit="LENGTH")
     path_radius: FloatProperty(name="Radius", default=1.0, min=0.0, unit="LENGTH")
@@ -121,6 +141,9 @@ class ISAC_SceneProps(bpy.types.PropertyGroup):
     links: CollectionProperty(type=ISAC_LinkItem)
     links_index: IntProperty(name="Active link", default=0)
     sensing_links: CollectionProperty(type=ISAC_SensingItem)
+    placement_warnings: StringProperty(
+        name="Placement warnings", default="",
+        description="Devices or path points not in free space, one per line (Check Placement)")
     export_directory: StringProperty(name="Scene folder", subtype="DIR_PATH", default="//scene",
                                      options={"PATH_SUPPORTS_BLEND_RELATIVE"},
                                      description="Folder the exporter writes")

@@ -27,7 +27,10 @@ from engine.localization.fingerprints import FingerprintDB, cached_database
 from engine.localization.measurements import (FeatureSpec, PilotSettings, observe_pilots,
                                               observe_tracer)
 from engine.phy.network import NetworkPHY
+from engine.config import ConfigError, parse_path_spec
 from engine.raytrace import DevicePose, device_poses, make_tracer
+from engine.robots.control import path_from_spec
+from engine.room import check_placement, draw_plan
 from engine.scene import load_scene
 
 log = logging.getLogger(__name__)
@@ -86,17 +89,62 @@ def circle_points(centre, radius: float, n: int, height: float) -> tuple[np.ndar
     return pts, ang + np.pi / 2
 
 
+def path_points(path: dict, n: int, height: float,
+                start=None) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` antenna positions ``[n, 3]`` m evenly spaced in arc length along a path spec
+    (any ``[devices.path]`` kind; ``start`` ``[2]`` m is the robot's position, needed for
+    ``"goal"``) and the path's heading there ``[n]`` rad. A closed path is sampled
+    a quarter step past its start point (on a circle: the points of
+    :func:`circle_points`, the lab's table), an open one from end to end."""
+    p = path_from_spec(path, start=start)
+    if p.closed:
+        s = (np.arange(n) + 0.25) * p.length / n
+    else:
+        s = np.linspace(0.0, p.length, n)
+    xy = p.point(s)
+    t = p.tangent(s)
+    pts = np.column_stack([xy, np.full(n, height)])
+    return pts, np.arctan2(t[:, 1], t[:, 0])
+
+
+def robot_path(config, path: dict | None = None, robot: str | None = None) -> tuple[str, dict]:
+    """The robot the case study drives and its path: ``path`` if given, else the
+    robot's ``[devices.path]`` from twin.toml.
+
+    Raises:
+        ConfigError: no robot, or no path anywhere (naming the file and robot).
+    """
+    robots = [d for d in config.devices if d.kind == "robot"]
+    if robot is not None:
+        robots = [d for d in robots if d.name == robot]
+    if not robots:
+        raise ConfigError(f"{config.path}: devices: the case study needs a robot"
+                          + (f" named {robot!r}" if robot else ""))
+    dev = robots[0]
+    if path is None:
+        if dev.path is None:
+            raise ConfigError(f"{config.path}: devices ({dev.name}).path: the case study needs "
+                              "the robot's path (circle, polyline, figure_eight or goal): add "
+                              "[devices.path] or pass one")
+        path = dev.path
+    return dev.name, dict(path)
+
+
 # --------------------------------------------------------------------------- static table
 
 
 def static_table(folder, db: FingerprintDB, *, n_points: int = 12,
-                 snrs=(0.0, 10.0, 20.0, 30.0), seed: int = 0, centre=(4.0, 3.0),
-                 radius: float = 1.5, mca: dict | None = None) -> list[dict]:
-    """Localization errors of MCA, kNN-CSI and PDP at test points on the circle.
+                 snrs=(0.0, 10.0, 20.0, 30.0), seed: int = 0, path: dict | None = None,
+                 mca: dict | None = None) -> list[dict]:
+    """Localization errors of MCA, kNN-CSI and PDP at test points along the robot's path.
 
     For the twin's own room and for the perturbed "real" room (the same
     perturbation as :class:`Deployment` with this seed), each method gets the
     tracer-mode observation and pilot-mode observations at each SNR.
+
+    Args:
+        path: the path spec (default: the robot's ``[devices.path]``); ``n_points``
+            points evenly spaced along it, robot heading along the path.
 
     Returns:
         Rows ``{"method", "mode", "room", "median", "p90", "max", "errors"}`` (m).
@@ -107,8 +155,8 @@ def static_table(folder, db: FingerprintDB, *, n_points: int = 12,
     cfg = twin_scene.config
     spec = FeatureSpec.from_config(cfg)
     locs = make_localizers(db, spec, mca=mca)
-    robot = [d.name for d in cfg.devices if d.kind == "robot"][0]
-    pts, yaws = circle_points(centre, radius, n_points, db.height)
+    robot, path = robot_path(cfg, path)
+    pts, yaws = path_points(path, n_points, db.height, start=cfg.device(robot).position[:2])
     phy = NetworkPHY(cfg)
     rows = []
     for room, scene in (("twin", twin_scene), ("perturbed", real_scene)):
@@ -172,30 +220,23 @@ def plot_run(dep: Deployment, out: Path, tag: str, title: str) -> list[Path]:
     err = errors(recs)
     files = []
 
-    fig, ax = plt.subplots(figsize=(7, 5.6))
     scene = dep.twin.scene
     lo, hi = scene.bounds_min, scene.bounds_max
-    for name, o in scene.objects.items():
-        if name.startswith(("Lab_Wall", "Lab_Floor", "Lab_Ceiling")):
-            continue
-        ax.add_patch(plt.Rectangle(o.bounds_min[:2], o.bounds_max[0] - o.bounds_min[0],
-                                   o.bounds_max[1] - o.bounds_min[1], color="0.85", zorder=0))
-    for d in dep.twin.config.devices:
-        if d.kind == "access_point":
-            ax.plot(*d.position[:2], "k^", ms=9)
-            ax.annotate(d.name, d.position[:2], textcoords="offset points", xytext=(6, 6))
+    fig, ax = plt.subplots(figsize=(7, 1.0 + 6.0 * min(1.5, max(0.4, (hi[1] - lo[1])
+                                                                / max(hi[0] - lo[0], 1e-9)))))
+    draw_plan(ax, scene)  # floor, walls, furniture and APs from the scene's own geometry
+    plan = dep.path.sample(400)
+    ax.plot(plan[:, 0], plan[:, 1], color="0.6", lw=0.8, ls=(0, (4, 3)), zorder=3,
+            label=f"path ({dep.path.describe()})")
     style = {"estimate": ("C3", ".", f"estimate ({dep.settings.method})", 0.5),
              "twin": ("C2", "-", "twin", 1.6),
              "odometry": ("C0", "-", "odometry (paper's ground truth)", 1.6),
              "truth": ("k", "--", "truth (simulator)", 1.2)}
     for k, (c, ls, lab, lw) in style.items():
         if ls == ".":
-            ax.plot(g[k][:, 0], g[k][:, 1], ".", color=c, ms=4, label=lab)
+            ax.plot(g[k][:, 0], g[k][:, 1], ".", color=c, ms=4, label=lab, zorder=4)
         else:
-            ax.plot(g[k][:, 0], g[k][:, 1], ls, color=c, lw=lw, label=lab)
-    ax.set_xlim(lo[0], hi[0])
-    ax.set_ylim(lo[1], hi[1])
-    ax.set_aspect("equal")
+            ax.plot(g[k][:, 0], g[k][:, 1], ls, color=c, lw=lw, label=lab, zorder=4)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title(f"Robot trajectories: {title}")
@@ -312,11 +353,11 @@ def _run(folder, db, settings, steps, dt, seed, rate_every, label, extra_phy=Non
            "perturbation": dep.perturbation["material"] if dep.perturbation else None,
            "calibration_error": {"dxy_m": dep.calib[0].tolist(),
                                  "dyaw_deg": math.degrees(dep.calib[1])}}
-    # How well the physical robot follows the intended circle (truth vs path).
-    c, rad = np.asarray(settings.path["centre"], float), float(settings.path["radius"])
+    # How well the physical robot follows the intended path (truth vs path).
     truth = np.array([r.truth for r in dep.records])
+    res["path"] = dep.path_spec
     res["rejected_estimates"] = dep.rejected
-    res["truth_off_path"] = summarize(np.abs(np.linalg.norm(truth - c, axis=1) - rad))
+    res["truth_off_path"] = summarize([abs(dep.path.project(p).error) for p in truth])
     i = int(np.argmax(err["positioning"]))
     r = dep.records[i]
     res["worst_step"] = {"step": r.step, "positioning_m": float(err["positioning"][i]),
@@ -342,16 +383,20 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
         out_dir: output folder.
         spacing: fingerprint grid spacing, m (default 5 cm, the paper's; the
             database takes ~25 s to trace on 2 cores with chain reuse).
-        steps: deployment steps (default: one lap of the circle).
+        steps: deployment steps (default: one lap of a closed path, or to the end of
+            an open one).
         dt: step, s.
-        table_points: test points on the circle for the static table.
+        table_points: test points along the path for the static table.
         closed_loop_steps: steps of the closed-loop realistic run (default ``steps``).
         rate_every: PHY (rates) every this many steps.
         mca: MCA parameters (eps, k, num_paths).
         closed_loop_method: localizer of the closed-loop realistic run.
         closed_loop: run it at all (``metrics["closed_loop"]`` is None otherwise).
-        path: the circle the robot follows (``{"kind": "circle", "centre", "radius"}``;
-            default the bundled lab's: centre (4, 3), radius 1.5 m).
+        path: the path the robot follows, a ``[devices.path]`` spec of any kind
+            (``{"kind": "circle", "centre": [x, y], "radius": r}``, ``"polyline"``,
+            ``"figure_eight"``, ``"goal"``; docs/config.md); default: the robot's
+            own ``[devices.path]`` in twin.toml. Checked like twin.toml's (keys,
+            units, free space: exit 2 on the CLI).
         report: where progress lines go (the CLI prints; pass a logger method).
 
     Returns:
@@ -360,12 +405,19 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mca = dict(mca or {"eps": 0.5, "k": 4, "num_paths": 9})
-    path = dict(path or {"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5})
-    if path.get("kind") != "circle":
-        raise ValueError(f"path: the case study drives a circle, got kind {path.get('kind')!r}")
     timings = {}
     t0 = time.perf_counter()
     scene = load_scene(folder)
+    if path is not None:  # an override: checked as if it stood in twin.toml
+        import dataclasses
+
+        robot, _ = robot_path(scene.config, path)
+        path = parse_path_spec(path, scene.config.path, f"case study path ({robot})")
+        dev = dataclasses.replace(scene.config.device(robot), path=path)
+        check_placement(scene, devices=[dev])
+    robot, path = robot_path(scene.config, path)
+    report(f"case study on {scene.config.scene.name!r}: {robot} follows "
+           f"{path_from_spec(path, start=scene.config.device(robot).position[:2]).describe()}")
     db = cached_database(scene, spacing=spacing, cache_dir=cache_dir)
     timings["database"] = time.perf_counter() - t0
     report(f"fingerprint database: {db.path} ({db.summary()['free']} free points, "
@@ -388,7 +440,7 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
            f"(paper ~16 cm), RMSE {100 * e['positioning']['rmse']:.1f} cm; "
            f"max modelling error {100 * e['modelling']['max']:.1f} cm (paper < 8 cm); "
            f"estimate vs truth RMSE {100 * e['estimate_vs_truth']['rmse']:.1f} cm; "
-           f"truth off the circle: max {100 * res_paper['truth_off_path']['max']:.1f} cm")
+           f"truth off the path: max {100 * res_paper['truth_off_path']['max']:.1f} cm")
     files = plot_run(dep, out, "paper", "paper mode (twin tracer MDP, open loop)")
     rates = rate_observations(dep)
     for k, v in rates.items():
@@ -411,18 +463,18 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
                f"{res_closed['steps']} steps, {res_closed['wall_s']:.1f} s): estimate vs truth "
                f"RMSE {100 * e2['estimate_vs_truth']['rmse']:.1f} cm, max "
                f"{100 * e2['estimate_vs_truth']['max']:.1f} cm; odometry drift max "
-               f"{100 * e2['odometry_vs_truth']['max']:.1f} cm; truth off the circle: max "
+               f"{100 * e2['odometry_vs_truth']['max']:.1f} cm; truth off the path: max "
                f"{100 * res_closed['truth_off_path']['max']:.1f} cm")
         files += plot_run(dep2, out, "closed_loop",
                           f"closed loop, {closed_loop_method}, pilots 20 dB, perturbed room")
 
     t1 = time.perf_counter()
     rows = static_table(folder, db, n_points=table_points, snrs=snrs, seed=seed, mca=mca,
-                        centre=path["centre"], radius=path["radius"])
+                        path=path)
     timings["table"] = time.perf_counter() - t1
     md = table_markdown(rows)
     (out / "table.md").write_text(
-        f"Static localization error at {table_points} points on the circle "
+        f"Static localization error at {table_points} points along the robot's path "
         f"(database: {spacing * 100:g} cm grid of the twin's room; cm):\n\n{md}\n")
     report(md)
 

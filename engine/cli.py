@@ -263,6 +263,76 @@ def cmd_fingerprints(args) -> int:
     return 0
 
 
+def _localize_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--path", default=None,
+                   help="the robot's path instead of its [devices.path], as a TOML inline "
+                        "table or JSON object, e.g. '{kind = \"circle\", centre = [4, 3], "
+                        "radius = 1.5}' (kinds: circle, polyline, figure_eight, goal)")
+    p.add_argument("--out", type=Path, default=Path("out/localize"),
+                   help="output folder for figures, table.md, metrics.json "
+                        "(default out/localize)")
+    p.add_argument("--spacing", type=float, default=0.05,
+                   help="fingerprint grid spacing, m (default 0.05, the paper's)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="deployment steps (default: one lap of a closed path, or to its end)")
+    p.add_argument("--table-points", type=int, default=12,
+                   help="test points along the path for the static table (default 12)")
+    p.add_argument("--snr", type=float, action="append", default=None,
+                   help="pilot SNR of the static table, dB (repeat; default 0 10 20 30)")
+    p.add_argument("--no-closed-loop", action="store_true",
+                   help="skip the closed-loop realistic run")
+    p.add_argument("--cache-dir", type=Path, default=Path("out/cache"),
+                   help="where databases are cached (default out/cache)")
+    p.add_argument("--seed", type=int, default=0)
+
+
+def parse_path_option(text: str):
+    """``--path`` text (TOML inline table or JSON object) -> a dict, or ConfigError."""
+    import json
+    import tomllib
+
+    try:
+        return json.loads(text)
+    except ValueError:
+        pass
+    try:
+        return tomllib.loads(f"path = {text}")["path"]
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"--path: expected a TOML inline table or a JSON object, "
+                          f"got {text!r} ({exc})") from None
+
+
+@command("localize", "the paper's case study on a scene folder: fingerprint database, "
+         "deployment loop (paper mode and closed loop), static localizer table, figures, "
+         "metrics.json; the robot follows its [devices.path]", _localize_args)
+def cmd_localize(args) -> int:
+    from engine.casestudy import run_case_study
+
+    for key, v, ok in (("--spacing", args.spacing, args.spacing > 0),
+                       ("--steps", args.steps, args.steps is None or args.steps > 0),
+                       ("--table-points", args.table_points, args.table_points > 0)):
+        if not ok:
+            print(f"isac-twin: error: {key} {v}: expected a positive number", file=sys.stderr)
+            return 2
+    from engine.robots.control import PathError
+
+    path = parse_path_option(args.path) if args.path is not None else None
+    try:
+        run_case_study(scene_path(args), args.out, spacing=args.spacing, steps=args.steps,
+                       seed=args.seed, cache_dir=args.cache_dir, table_points=args.table_points,
+                       snrs=tuple(args.snr) if args.snr else (0.0, 10.0, 20.0, 30.0),
+                       closed_loop=not args.no_closed_loop, path=path)
+    except PathError as exc:  # a path the robot cannot follow (too tight, leaves the room)
+        print(f"isac-twin: error: path: {exc}", file=sys.stderr)
+        return 2
+    print(f"outputs in {args.out}/")
+    return 0
+
+
+COMMANDS["casestudy"] = ("the same as 'localize'", _localize_args, cmd_localize)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="isac-twin", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="count", default=0,

@@ -184,6 +184,21 @@ class LinkAdaptationConfig:
 
 
 @dataclass(frozen=True)
+class RoomConfig:
+    """``[room]``: which objects are the room's shell (walls, floor, ceiling, windows,
+    doors: fixed structure) and which are furniture (movable contents).
+
+    Written by the add-on from each object's *Room part* tag; editable by hand.
+    Objects named in neither list are classified from their geometry
+    (:func:`engine.room.shell_objects`). Names are checked against
+    ``scene.xml`` when the scene loads.
+    """
+
+    shell: tuple[str, ...] = ()
+    furniture: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class TwinConfig:
     """The whole ``twin.toml``, validated."""
 
@@ -197,6 +212,7 @@ class TwinConfig:
     schema: int = SCHEMA_VERSION
     sensing: tuple[SensingConfig, ...] = ()
     link_adaptation: LinkAdaptationConfig = field(default_factory=LinkAdaptationConfig)
+    room: RoomConfig = field(default_factory=RoomConfig)
     raw: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -325,7 +341,7 @@ MAX_SAMPLES_PER_SRC = 100_000_000
 POWER_DBM_RANGE = (-150.0, 100.0)
 
 _TOP_KEYS = ("schema", "scene", "ofdm", "noise", "tracer", "devices", "links", "sensing",
-             "link_adaptation")
+             "link_adaptation", "room")
 SENSING_KEYS = ("tx", "rx", "rho", "subcarriers", "symbols", "power_dbm", "noise_figure_db",
                 "estimate_angles", "target_height_m", "every", "range_method")
 RANGE_METHODS = ("first_arrival", "nls")  #: see engine/sensing/radar.py
@@ -389,6 +405,19 @@ def _parse_path(r: _Reader, data: dict, prefix: str) -> dict:
                             for j, w in enumerate(wps)]
         out["closed"] = r.boolean(data, "closed", prefix, False)
     return out
+
+
+def parse_path_spec(data: Any, file: Path, where: str = "path") -> dict:
+    """Validate a path spec given outside twin.toml (a CLI option, an API argument)
+    exactly as a ``[devices.path]`` table: ``{"kind": ..., ...}`` -> the clean dict.
+
+    Raises:
+        ConfigError: naming ``file``, ``where`` and the key at fault.
+    """
+    r = _Reader(Path(file))
+    if not isinstance(data, dict):
+        raise r.fail(where, f"expected a table with a kind, got {data!r}")
+    return _parse_path(r, data, f"{where}.")
 
 
 def _parse_device(r: _Reader, data: Any, i: int, ofdm: OFDMConfig) -> DeviceConfig:
@@ -553,6 +582,7 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
         raise r.fail("link_adaptation.evm_db", "expected a negative EVM floor in dB "
                      f"(e.g. -35), got {link_adaptation.evm_db!r}")
 
+    room = _parse_room(r, data)
     sensing = _parse_sensing(r, data, devices, noise, ofdm)
     for i, s_ in enumerate(sensing):
         for key in ("tx", "rx"):
@@ -562,7 +592,22 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
                              f"{dev.array.pattern!r}; sensing links model iso elements only")
     return TwinConfig(path=path, scene=scene, ofdm=ofdm, noise=noise, tracer=tracer,
                       devices=devices, links=tuple(links), schema=schema, raw=data,
-                      sensing=sensing, link_adaptation=link_adaptation)
+                      sensing=sensing, link_adaptation=link_adaptation, room=room)
+
+
+def _parse_room(r: _Reader, data: dict) -> RoomConfig:
+    t = r.table(data, "room", "", required=False)
+    r.check_keys(t, ("shell", "furniture"), "room.")
+    lists = {}
+    for key in ("shell", "furniture"):
+        v = r.get(t, key, "room.", [])
+        if not isinstance(v, list) or not all(isinstance(x, str) and x for x in v):
+            raise r.fail(f"room.{key}", f"expected a list of object names, got {v!r}")
+        lists[key] = tuple(v)
+    both = sorted(set(lists["shell"]) & set(lists["furniture"]))
+    if both:
+        raise r.fail("room", f"{', '.join(map(repr, both))} listed as both shell and furniture")
+    return RoomConfig(**lists)
 
 
 def _parse_sensing(r: _Reader, data: dict, devices, noise: NoiseConfig,

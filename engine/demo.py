@@ -1,7 +1,9 @@
-"""The bundled lab end to end: ``python -m engine.demo [--out DIR] [--steps N] [--quick]``.
+"""A bundled room end to end: ``python -m engine.demo [--scene NAME|DIR] [--out DIR] [--quick]``.
 
-1. Export the bundled room from ``blend_scenes/aces_lab/aces_lab.blend`` with
-   the Blender add-on (``bpy`` in a subprocess) to ``<out>/scene``.
+1. Export the bundled room (default the lab) from
+   ``blend_scenes/<name>/<name>.blend`` with the Blender add-on (``bpy`` in a
+   subprocess) to ``<out>/scene``; ``--scene DIR`` (any exported scene
+   folder) skips this step.
 2. Load it in the engine, trace the AP -> robot links once and print a
    summary (objects, materials, paths per link).
 3. The paper's section IV case study on it (:func:`engine.casestudy.run_case_study`):
@@ -48,14 +50,19 @@ finally:
 """
 
 
-def export_bundled(folder: Path, python: str | None = None) -> dict:
-    """Export the bundled .blend with the add-on in a ``bpy`` subprocess -> its report."""
+def bundled_blend(name: str = "aces_lab") -> Path:
+    """The .blend of bundled room ``name`` (``blend_scenes/<name>/<name>.blend``)."""
+    return ROOT / "blend_scenes" / name / f"{name}.blend"
+
+
+def export_bundled(folder: Path, python: str | None = None, blend: Path = BLEND) -> dict:
+    """Export a bundled .blend with the add-on in a ``bpy`` subprocess -> its report."""
     py = python or sys.executable
-    code = _EXPORT.format(root=str(ROOT), blend=str(BLEND), folder=str(folder))
+    code = _EXPORT.format(root=str(ROOT), blend=str(blend), folder=str(folder))
     r = subprocess.run([py, "-c", code], capture_output=True, text=True, cwd=ROOT)
     line = next((x for x in r.stdout.splitlines() if x.startswith("EXPORT ")), None)
     if r.returncode or line is None:
-        raise RuntimeError(f"exporting {BLEND} with the add-on failed (exit {r.returncode}):\n"
+        raise RuntimeError(f"exporting {blend} with the add-on failed (exit {r.returncode}):\n"
                            f"{r.stdout[-2000:]}\n{r.stderr[-4000:]}")
     return json.loads(line[len("EXPORT "):])
 
@@ -89,9 +96,12 @@ def trace_summary(folder: Path) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m engine.demo", description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", default="aces_lab",
+                    help="a bundled room's name (a folder of blend_scenes/, exported from its "
+                         ".blend) or any scene folder (used as is); default aces_lab")
     ap.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
     ap.add_argument("--steps", type=int, default=None,
-                    help="deployment steps (default: one lap of the circle)")
+                    help="deployment steps (default: one lap of the robot's path)")
     ap.add_argument("--quick", action="store_true",
                     help="20 cm database grid, 40 steps, 6 table points (a smoke run)")
     ap.add_argument("--spacing", type=float, default=None,
@@ -108,26 +118,47 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     folder = out / "scene"
-    if a.skip_export:
-        folder = ROOT / "blend_scenes" / "aces_lab" / "scene"
+    blend = bundled_blend(a.scene)
+    if not blend.is_file():  # not a bundled room's name: a scene folder
+        folder = Path(a.scene)
+        if not (folder / "twin.toml").is_file() and not folder.name.endswith(".toml"):
+            names = sorted(p.name for p in (ROOT / "blend_scenes").iterdir()
+                           if (p / f"{p.name}.blend").is_file())
+            print(f"demo: error: --scene {a.scene}: neither a bundled room "
+                  f"({', '.join(names)}) nor a scene folder with a twin.toml", file=sys.stderr)
+            return 2
+        print(f"[1/3] scene folder {folder} (no export)")
+    elif a.skip_export:
+        folder = ROOT / "blend_scenes" / a.scene / "scene"
     else:
         t = time.perf_counter()
-        rep = export_bundled(folder.resolve())
-        print(f"[1/3] exported {BLEND.name} with the add-on -> {folder} in "
+        rep = export_bundled(folder.resolve(), blend=blend)
+        print(f"[1/3] exported {blend.name} with the add-on -> {folder} in "
               f"{time.perf_counter() - t:.1f} s: {len(rep['objects'])} objects, "
               f"materials {rep['materials']}, devices {rep['devices']}")
     t = time.perf_counter()
-    print("[2/3] " + trace_summary(folder) + f"  ({time.perf_counter() - t:.1f} s with loading)")
+    from engine.config import ConfigError
+
+    try:
+        summary = trace_summary(folder)
+    except ConfigError as exc:
+        print(f"demo: error: {exc}", file=sys.stderr)
+        return 2
+    print("[2/3] " + summary + f"  ({time.perf_counter() - t:.1f} s with loading)")
 
     from engine.casestudy import run_case_study
 
     spacing = a.spacing or (0.2 if a.quick else 0.05)
     steps = a.steps if a.steps is not None else (40 if a.quick else None)
     print(f"[3/3] case study (section IV) on {folder}, database grid {spacing * 100:g} cm")
-    run_case_study(folder, out, spacing=spacing, steps=steps, seed=a.seed, cache_dir=a.cache,
-                   table_points=6 if a.quick else 12,
-                   closed_loop_steps=steps if steps is not None else None,
-                   snrs=(0.0, 10.0, 20.0, 30.0))
+    try:
+        run_case_study(folder, out, spacing=spacing, steps=steps, seed=a.seed, cache_dir=a.cache,
+                       table_points=6 if a.quick else 12,
+                       closed_loop_steps=steps if steps is not None else None,
+                       snrs=(0.0, 10.0, 20.0, 30.0))
+    except ConfigError as exc:
+        print(f"demo: error: {exc}", file=sys.stderr)
+        return 2
     wall = time.perf_counter() - t0
     print(f"demo wall time: {wall:.1f} s ({wall / 60:.1f} min); outputs in {out}/")
     return 0

@@ -2,7 +2,9 @@
 
 :func:`load_scene` reads ``twin.toml`` and ``scene.xml``, checks every object
 (material known and defined at the carrier frequency, mesh present and
-readable) and every device (inside the room), and only then builds the
+readable) and every device (inside the room, in free space: not in a wall or
+furniture, above the floor; robots' paths too, see :mod:`engine.room`), and
+only then builds the
 Sionna scene, so a bad folder fails with a message naming the file and the
 object instead of deep inside Mitsuba.
 """
@@ -20,6 +22,7 @@ import numpy as np
 
 from engine.config import ConfigError, TwinConfig, load_config
 from engine.meshes import MeshError, confine, read_ply
+from engine.room import check_placement
 
 log = logging.getLogger(__name__)
 
@@ -347,6 +350,12 @@ def load_scene(path: str | Path, *, load_sionna: bool = True) -> TwinScene:
                 f"{cfg.path}: devices[{i}] ({d.name}).position: {list(d.position)} lies "
                 f"outside the room (x {lo[0]:.2f}..{hi[0]:.2f}, y {lo[1]:.2f}..{hi[1]:.2f}, "
                 f"z {lo[2]:.2f}..{hi[2]:.2f} m)")
+    unknown = [n for n in cfg.room.shell + cfg.room.furniture if n not in objects]
+    if unknown:
+        raise ConfigError(f"{cfg.path}: room: {', '.join(map(repr, unknown))} "
+                          f"{'is not an object' if len(unknown) == 1 else 'are not objects'} "
+                          f"of {cfg.scene.file.name}")
+    check_placement(scene)
     if load_sionna:
         try:
             scene.sionna  # noqa: B018 - force the load so Mitsuba errors surface here

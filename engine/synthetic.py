@@ -96,8 +96,10 @@ def write_scene_folder(folder: str | Path, objects: list[SyntheticObject],
                        devices: list[SyntheticDevice], links: list[tuple[str, str]],
                        *, frequency_hz: float = 2.4e9, name: str = "synthetic",
                        num_subcarriers: int = 1024, subcarrier_spacing_hz: float = 78125.0,
-                       num_symbols: int = 14, tracer: dict | None = None) -> Path:
-    """Write ``scene.xml``, ``meshes/*.ply`` and ``twin.toml``; return the folder."""
+                       num_symbols: int = 14, tracer: dict | None = None,
+                       room: dict | None = None) -> Path:
+    """Write ``scene.xml``, ``meshes/*.ply`` and ``twin.toml``; return the folder.
+    ``room``: a ``[room]`` table (``{"shell": [...], "furniture": [...]}``)."""
     folder = Path(folder)
     (folder / "meshes").mkdir(parents=True, exist_ok=True)
     for o in objects:
@@ -126,6 +128,8 @@ def write_scene_folder(folder: str | Path, objects: list[SyntheticObject],
         for d in devices]
     if links:
         data["links"] = [{"tx": tx, "rx": rx} for tx, rx in links]
+    if room:
+        data["room"] = dict(room)
     exporter("twin_toml").write_twin_toml(folder / "twin.toml", data)
     return folder
 
@@ -190,3 +194,116 @@ def box_room(folder: str | Path, size=(6.0, 4.0, 3.0), *, material: str = "concr
         links = [("AP1", "robot1")]
     return write_scene_folder(folder, room_objects(size, material=material), devices,
                               links or [], **kw)
+
+
+def prism_mesh(polygon, z0: float, z1: float) -> tuple[np.ndarray, np.ndarray]:
+    """Closed prism: the XY ``polygon`` ``[n, 2]`` (either winding, simple) extruded from
+    ``z0`` to ``z1`` m -> vertices ``[2n, 3]``, outward triangles ``[4n - 4, 3]``.
+    Caps are ear-clipped, so non-convex footprints (an L) are exact."""
+    pts = [tuple(map(float, p)) for p in polygon]
+    area = 0.5 * sum(pts[i][0] * pts[(i + 1) % len(pts)][1]
+                     - pts[(i + 1) % len(pts)][0] * pts[i][1] for i in range(len(pts)))
+    if area < 0:
+        pts = pts[::-1]
+    n = len(pts)
+    v = np.array([(x, y, z0) for x, y in pts] + [(x, y, z1) for x, y in pts])
+    cap = _ear_clip(pts)
+    faces = [(c, b, a) for a, b, c in cap] + [(a + n, b + n, c + n) for a, b, c in cap]
+    for i in range(n):
+        j = (i + 1) % n
+        faces += [(i, j, j + n), (i, j + n, i + n)]
+    return v, np.array(faces)
+
+
+def _ear_clip(pts) -> list[tuple[int, int, int]]:
+    """Triangles (ccw index triples) of a simple ccw polygon."""
+    idx = list(range(len(pts)))
+    out = []
+
+    def cross(o, a, b):
+        return (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+
+    while len(idx) > 3:
+        for k in range(len(idx)):
+            a, b, c = idx[k - 1], idx[k], idx[(k + 1) % len(idx)]
+            if cross(pts[a], pts[b], pts[c]) <= 1e-12:
+                continue
+            if any(cross(pts[a], pts[b], pts[m]) >= 0 and cross(pts[b], pts[c], pts[m]) >= 0
+                   and cross(pts[c], pts[a], pts[m]) >= 0 for m in idx if m not in (a, b, c)):
+                continue
+            out.append((a, b, c))
+            idx.pop(k)
+            break
+        else:
+            raise ValueError("polygon is not simple: no ear found")
+    out.append(tuple(idx))
+    return out
+
+
+def polygon_room_objects(polygon, height: float = 3.0, wall: float = 0.2, *,
+                         name: str = "Room", wall_material: str = "concrete",
+                         floor_material: str = "concrete",
+                         ceiling_material: str = "plasterboard",
+                         furniture=None) -> list[SyntheticObject]:
+    """A room on a footprint as the add-on's ``create_room_from_polygon`` builds it:
+    ``<name>_Floor`` below z = 0, ``<name>_Ceiling`` above ``height``, one mitred wall
+    ``<name>_Wall_<i>`` outside each footprint edge (all closed prisms), plus
+    furniture boxes as in :func:`room_objects`."""
+    pts = [tuple(map(float, p)) for p in polygon]
+    area = 0.5 * sum(pts[i][0] * pts[(i + 1) % len(pts)][1]
+                     - pts[(i + 1) % len(pts)][0] * pts[i][1] for i in range(len(pts)))
+    pts = pts if area > 0 else pts[::-1]
+    n = len(pts)
+    normals = []
+    for i in range(n):
+        (x0, y0), (x1, y1) = pts[i], pts[(i + 1) % n]
+        ln = np.hypot(x1 - x0, y1 - y0)
+        normals.append(((y1 - y0) / ln, -(x1 - x0) / ln))
+    outer = []
+    for i in range(n):
+        (ax, ay), (bx, by) = normals[i - 1], normals[i]
+        d = 1.0 + ax * bx + ay * by
+        outer.append((pts[i][0] + wall * (ax + bx) / d, pts[i][1] + wall * (ay + by) / d))
+    objs = [SyntheticObject(f"{name}_Floor", *prism_mesh(pts, -wall, 0.0),
+                            material=floor_material, thickness=wall),
+            SyntheticObject(f"{name}_Ceiling", *prism_mesh(pts, height, height + wall),
+                            material=ceiling_material, thickness=wall)]
+    for i in range(n):
+        j = (i + 1) % n
+        objs.append(SyntheticObject(f"{name}_Wall_{i + 1}",
+                                    *prism_mesh([pts[i], outer[i], outer[j], pts[j]], 0.0,
+                                                height),
+                                    material=wall_material, thickness=wall))
+    for nm, spec in (furniture or {}).items():
+        lo, hi, mat, th = (*spec, "wood", 0.05) if len(spec) == 2 else spec
+        objs.append(SyntheticObject(nm, *box_mesh(lo, hi), material=mat, thickness=th))
+    return objs
+
+
+#: A 6 m x 5 m L-shaped footprint (the corner x > 4, y > 3 cut out), m.
+L_FOOTPRINT = [(0.0, 0.0), (6.0, 0.0), (6.0, 3.0), (4.0, 3.0), (4.0, 5.0), (0.0, 5.0)]
+
+
+def l_room(folder: str | Path, *, robot=(2.0, 1.5, 0.0), path: dict | None = None,
+           furniture=None, room: dict | None = None, **kw) -> Path:
+    """A small furnished L-shaped room (:data:`L_FOOTPRINT`, 3 m high) named the way the
+    add-on names rooms (``Room_Floor``, ``Room_Wall_1`` ...), with AP1 (2x2, symbols
+    0-6) and AP2 (1x1, 7-13) and robot1 on ``path`` (default a polyline loop around
+    the desk; ``{}``: none). ``room``: a ``[room]`` table to write. Keyword arguments go to
+    :func:`write_scene_folder`."""
+    furniture = furniture if furniture is not None else {
+        "Desk": ((1.2, 3.6, 0.0), (2.8, 4.4, 0.75)),
+        "Cabinet": ((5.0, 0.1, 0.0), (5.9, 0.6, 2.0), "metal", 0.002)}
+    path = path if path is not None else {
+        "kind": "polyline", "closed": True,
+        "waypoints": [[1.0, 1.0], [3.5, 1.0], [3.5, 2.5], [1.0, 2.5]]}
+    devs = [SyntheticDevice("AP1", "access_point", "tx", (0.1, 2.5, 2.2), rows=2, cols=2,
+                            extra={"symbols": [0, 7]}),
+            SyntheticDevice("AP2", "access_point", "tx", (5.0, 2.9, 2.2),
+                            orientation=(0.0, 0.0, -1.5708), extra={"symbols": [7, 14]}),
+            SyntheticDevice("robot1", "robot", "rx", robot, cols=2,
+                            orientation=(0.0, 0.0, 0.0),
+                            extra={**ROBOT_EXTRA, "path": dict(path)} if path else
+                            dict(ROBOT_EXTRA))]
+    return write_scene_folder(folder, polygon_room_objects(L_FOOTPRINT, furniture=furniture),
+                              devs, [("AP1", "robot1"), ("AP2", "robot1")], room=room, **kw)

@@ -40,7 +40,8 @@ from engine.phy.patterns import AntennaPatterns
 from engine.pose import DevicePose, antenna_pose
 from engine.raytrace import make_tracer
 from engine.robots import SensorOptions, build_robots
-from engine.robots.control import controller_from_spec
+from engine.robots.control import PathError, controller_from_spec
+from engine.room import ROBOT_BODY_HEIGHT_M, path_obstruction
 from engine.scene import (BOUNDS_TOLERANCE_M, TwinScene, itu_defined_at, itu_materials,
                           load_scene)
 from engine.state import Command, Edit, LinkState, RobotState, StepResult
@@ -154,9 +155,9 @@ class Twin:
         self._controllers: dict[str, object] = {}
         self._build_agents()
         for i, d in enumerate(self.config.devices):
-            if d.kind == "robot" and d.path is not None:
+            if d.kind == "robot" and d.path is not None:  # checked in free space at load
                 try:
-                    self.set_path(d.name, d.path)
+                    self.set_path(d.name, d.path, check_free_space=False)
                 except ValueError as exc:  # e.g. a path leaving the room: the file's fault
                     raise ConfigError(f"{self.config.path}: devices[{i}] ({d.name}).path: "
                                       f"{exc}") from None
@@ -229,14 +230,27 @@ class Twin:
         else:
             self.state_sources[robot] = source
 
-    def set_path(self, robot: str, spec: dict) -> None:
+    def set_path(self, robot: str, spec: dict, *, check_free_space: bool = True) -> None:
         """Follow a path given as a spec dict, e.g. ``{"kind": "circle", "centre": [4, 3],
-        "radius": 1.5}``; the path must lie inside the room."""
+        "radius": 1.5}``; the path must lie inside the room and in free space (not
+        through a wall or furniture as the room is now: :mod:`engine.room`).
+
+        Raises:
+            KeyError: unknown robot. PathError: the path leaves the room or free space,
+                or the robot cannot follow it.
+        """
         agent = self.agents.get(robot)
         if agent is None:
             raise KeyError(f"no robot named {robot!r} (robots: {', '.join(self.agents)})")
         bounds = (self.scene.bounds_min[:2], self.scene.bounds_max[:2])
-        self.set_controller(robot, controller_from_spec(spec, agent.spec, bounds=bounds))
+        ctl = controller_from_spec(spec, agent.spec, bounds=bounds)
+        st = agent.state
+        msg = None if not check_free_space else path_obstruction(
+            self.scene, spec, (st.x, st.y),
+            self.config.device(robot).position[2] + ROBOT_BODY_HEIGHT_M)
+        if msg is not None:
+            raise PathError(f"set_path({robot}): {msg}")
+        self.set_controller(robot, ctl)
 
     # ------------------------------------------------------------------ edits
 

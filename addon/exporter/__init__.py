@@ -22,6 +22,7 @@ from types import SimpleNamespace
 import bpy
 
 from .. import materials, schema
+from ..devices import curve_waypoints
 from .geometry import WorldMesh, world_mesh, write_ply
 from .interchange import write_dae, write_stl, write_usd
 from .mitsuba_xml import material_id, write_scene_xml
@@ -135,6 +136,23 @@ def validate_device(obj) -> list[str]:
                        "(use 0, 0 for the whole grid)")
     if p.device_kind == "ROBOT" and p.path_kind == "circle" and not p.path_radius > 0:
         out.append(f"Device '{obj.name}': path radius must be > 0 m, got {p.path_radius}")
+    if p.device_kind == "ROBOT" and p.path_kind == "figure_eight" and not p.path_size > 0:
+        out.append(f"Device '{obj.name}': figure-eight size must be > 0 m, got {p.path_size}")
+    if p.device_kind == "ROBOT" and p.path_kind == "polyline":
+        if p.path_curve is None:
+            out.append(f"Device '{obj.name}': polyline path has no curve object "
+                       "(pick one, or set the path to None)")
+        else:
+            pts, closed = curve_waypoints(p.path_curve)
+            need = 3 if closed else 2
+            if len(pts) < need:
+                out.append(f"Device '{obj.name}': path curve '{p.path_curve.name}' has "
+                           f"{len(pts)} points; a{' closed' if closed else 'n open'} "
+                           f"polyline needs at least {need}")
+            elif any(math.hypot(b[0] - a[0], b[1] - a[1]) < 1e-6
+                     for a, b in zip(pts, pts[1:] + (pts[:1] if closed else []))):
+                out.append(f"Device '{obj.name}': path curve '{p.path_curve.name}' has two "
+                           "consecutive points at the same x, y")
     return out
 
 
@@ -246,13 +264,42 @@ def _device_entry(obj, depsgraph) -> dict:
             "polarization": p.polarization,
         },
     })
-    if p.device_kind == "ROBOT" and p.path_kind == "circle":
-        path = {"kind": "circle", "centre": [clean(float(x), 1e-9) for x in p.path_centre],
-                "radius": float(p.path_radius), "direction": p.path_direction}
-        if p.path_speed > 0:
-            path["speed"] = float(p.path_speed)
-        entry["path"] = path
+    if p.device_kind == "ROBOT" and p.path_kind != "NONE":
+        entry["path"] = path_entry(p)
     return entry
+
+
+def path_entry(p) -> dict:
+    """A robot's ``[devices.path]`` table from its properties (kinds: docs/config.md)."""
+    xy = lambda v: [clean(float(x), 1e-9) for x in v]  # noqa: E731
+    if p.path_kind == "circle":
+        path = {"kind": "circle", "centre": xy(p.path_centre), "radius": float(p.path_radius),
+                "direction": p.path_direction}
+    elif p.path_kind == "figure_eight":
+        path = {"kind": "figure_eight", "centre": xy(p.path_centre), "size": float(p.path_size)}
+    elif p.path_kind == "goal":
+        path = {"kind": "goal", "goal": xy(p.path_goal)}
+    else:
+        pts, closed = curve_waypoints(p.path_curve)
+        # curve points are float32 in Blender: round to a micrometre (2.6999998 -> 2.7)
+        path = {"kind": "polyline", "waypoints": [[round(x, 6) + 0.0 for x in q] for q in pts],
+                "closed": closed}
+    if p.path_speed > 0:
+        path["speed"] = float(p.path_speed)
+    return path
+
+
+def room_entry(scene) -> dict:
+    """``{"room": {"shell": [...], "furniture": [...]}}`` from the exported objects'
+    Room part tags (nothing when every object is on Auto: the engine decides)."""
+    shell, furniture = [], []
+    for obj in geometry_objects(scene):
+        if obj.isac.room_part == "SHELL":
+            shell.append(safe_name(obj.name))
+        elif obj.isac.room_part == "FURNITURE":
+            furniture.append(safe_name(obj.name))
+    room = {k: v for k, v in (("shell", shell), ("furniture", furniture)) if v}
+    return {"room": room} if room else {}
 
 
 def twin_data(scene, devices, links, depsgraph) -> dict:
@@ -269,6 +316,7 @@ def twin_data(scene, devices, links, depsgraph) -> dict:
         "devices": [_device_entry(o, depsgraph) for o in devices],
         "links": [{"tx": tx, "rx": rx} for tx, rx in links],
         **_sensing_entries(p),
+        **room_entry(scene),
     }
 
 

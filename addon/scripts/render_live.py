@@ -1,10 +1,14 @@
-"""Headless: stream a live twin into the bundled lab and render stills of it with its rays.
+"""Headless: stream a live twin into a room's .blend and render stills of it with its rays.
 
 Runs with Blender as a Python module (the PyPI ``bpy``); no GUI, no GPU::
 
     .venv/bin/python addon/scripts/render_live.py --steps 20 --every 5 --out renders/live
+    .venv/bin/python addon/scripts/render_live.py --blend blend_scenes/l_office/l_office.blend
 
-It opens ``blend_scenes/aces_lab/aces_lab.blend``, starts ``isac-twin serve``
+It opens the .blend (default the bundled lab; the engine serves the
+``scene/`` folder beside it unless ``--scene`` says otherwise, and the robot
+follows its own ``[devices.path]``), frames the camera on the room's
+geometry, starts ``isac-twin serve``
 on a free loopback port (paused), registers the add-on, connects its live
 client, then for each of ``--steps`` steps sends ``step``, ticks the client
 until that step's state, paths and metrics are applied, and every
@@ -35,7 +39,8 @@ log = logging.getLogger("render_live")
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--blend", type=Path, default=ROOT / "blend_scenes/aces_lab/aces_lab.blend")
-    p.add_argument("--scene", default="", help="scene folder the engine serves (default: bundled)")
+    p.add_argument("--scene", default="", help="scene folder the engine serves (default: the "
+                                               "scene/ folder beside the .blend, else bundled)")
     p.add_argument("--python", default="", help="engine interpreter (default: this one)")
     p.add_argument("--steps", type=int, default=20, help="twin steps to stream")
     p.add_argument("--every", type=int, default=5, help="render every this many steps")
@@ -48,27 +53,53 @@ def parse_args(argv=None):
                    help="colour rays by path power or by interaction type")
     p.add_argument("--rays-per-link", type=int, default=40,
                    help="draw the strongest N rays per link (0 = all the engine sends)")
-    p.add_argument("--robot", default="robot1", help="robot to drive")
-    p.add_argument("--no-circle", dest="circle", action="store_false",
-                   help="do not send the robot round the lab's free circle (set_path)")
+    p.add_argument("--robot", default="", help="robot to follow with the close-up "
+                                               "(default: the .blend's first robot)")
     p.add_argument("--no-closeup", dest="closeup", action="store_false",
                    help="skip the second still per step, close to the robot")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait per step")
     return p.parse_args(argv)
 
 
+def room_bounds(scene) -> tuple[Vector, Vector]:
+    """World bounding box of the exported geometry (evaluated meshes), m."""
+    from addon.exporter import geometry_objects
+
+    dg = bpy.context.evaluated_depsgraph_get()
+    pts = [o.evaluated_get(dg).matrix_world @ Vector(c) for o in geometry_objects(scene)
+           for c in o.bound_box]
+    if not pts:
+        return Vector((0.0, 0.0, 0.0)), Vector((1.0, 1.0, 1.0))
+    return (Vector([min(p[i] for p in pts) for i in range(3)]),
+            Vector([max(p[i] for p in pts) for i in range(3)]))
+
+
 def setup_camera(scene, resolution, engine: str, samples: int) -> None:
-    """Oblique view over the lab (ceiling hidden), a sun, a grey world."""
-    lo = Vector((0.0, 0.0, 0.0))
-    hi = Vector((8.0, 6.0, 3.0))
+    """Oblique view from the south over the room's geometry (ceiling and the walls along
+    the south edge hidden), a sun, a grey world."""
+    lo, hi = room_bounds(scene)
+    size = hi - lo
     target = (lo + hi) / 2
-    target.z = 0.5
+    target.z = lo.z + 0.5
     cam = bpy.data.objects.new("LiveCamera", bpy.data.cameras.new("LiveCamera"))
     scene.collection.objects.link(cam)
-    cam.location = Vector((target.x, -2.5, 10.5))
+    cam.location = Vector((target.x, lo.y - 0.4 * size.y, lo.z + 1.3 * max(size.x, size.y)))
     cam.rotation_euler = (target - cam.location).to_track_quat("-Z", "Y").to_euler()
     cam.data.lens = 22
     scene.camera = cam
+    dg = bpy.context.evaluated_depsgraph_get()
+    for obj in scene.objects:
+        if obj.type != "MESH" or obj.isac.device_kind != "NONE":
+            continue
+        if not obj.isac.export_geometry:  # helpers (boolean cutters)
+            obj.hide_render = True
+            continue
+        box = [obj.evaluated_get(dg).matrix_world @ Vector(c) for c in obj.bound_box]
+        zmin = min(p.z for p in box)
+        ymax = max(p.y for p in box)
+        # what blocks the view from the south: the ceiling and the walls along the south edge
+        if zmin >= lo.z + 0.5 * size.z or ymax <= lo.y + 0.05 * size.y:
+            obj.hide_render = True
     sun = bpy.data.objects.new("LiveSun", bpy.data.lights.new("LiveSun", "SUN"))
     sun.data.energy = 4.0
     sun.rotation_euler = (math.radians(30), 0.0, math.radians(20))
@@ -76,10 +107,6 @@ def setup_camera(scene, resolution, engine: str, samples: int) -> None:
     if scene.world is None:
         scene.world = bpy.data.worlds.new("LiveWorld")
     scene.world.color = (0.05, 0.05, 0.06)
-    for obj in scene.objects:
-        # hide what blocks the view from the south: the ceiling and the south wall
-        if any(k in obj.name for k in ("Ceiling", "Cutter", "Wall_1")):
-            obj.hide_render = True
     r = scene.render
     r.engine = engine
     r.resolution_x, r.resolution_y = resolution
@@ -121,6 +148,13 @@ def main(argv=None) -> int:
     if not hasattr(bpy.types.Scene, "isac_live"):
         addon.register()
     scene = bpy.context.scene
+    from addon.devices import device_objects
+
+    if not args.robot:
+        args.robot = next((o.name for o in device_objects(scene)
+                           if o.isac.device_kind == "ROBOT"), "robot1")
+    if not args.scene and (args.blend.parent / "scene" / "twin.toml").is_file():
+        args.scene = str(args.blend.parent / "scene")
     scene.isac_live.ray_color_mode = args.color
     scene.isac_live.max_paths_per_link = args.rays_per_link
     setup_camera(scene, args.resolution, args.engine, args.samples)
@@ -146,9 +180,6 @@ def main(argv=None) -> int:
     written = []
     try:
         wait(lambda: session.client.connected and session.applied["scene"], "connection")
-        if args.circle:  # the lab keeps a circle of radius 1.5 m around (4, 3) free
-            session.send_command("set_path", robot=args.robot, path={
-                "kind": "circle", "centre": [4.0, 3.0], "radius": 1.5})
         for k in range(args.steps):
             session.send_command("step")
             wait(lambda: p.step == k and p.paths_step == k and p.metrics_step == k,

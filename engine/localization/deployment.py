@@ -45,35 +45,37 @@ from engine.localization.measurements import (FeatureSpec, PilotSettings, observ
 from engine.phy.network import NetworkPHY
 from engine.pose import DevicePose, antenna_pose, planar_pose
 from engine.raytrace import device_poses
+from engine.room import shell_objects
 from engine.robots import SensorOptions
 from engine.scene import TwinScene, load_scene
-from engine.robots.control import controller_from_spec
+from engine.robots.control import controller_from_spec, path_from_spec
 from engine.twin import Twin
 
 log = logging.getLogger(__name__)
 
-#: Objects the perturbation never moves (the room's shell).
-SHELL_PREFIXES = ("Lab_Wall", "Lab_Floor", "Lab_Ceiling", "Lab_Window", "wall", "floor",
-                  "ceiling")
-
-
 def perturb_scene(scene: TwinScene, *, seed: int = 0, shift_std: float = 0.03,
                   yaw_std_deg: float = 2.0, material: tuple[str, str] | None = None,
-                  keep=SHELL_PREFIXES) -> dict:
+                  keep=None) -> dict:
     """Make ``scene`` a perturbed copy ("reality") of the twin's room, in place.
 
-    Every object whose name does not start with one of ``keep`` is shifted by
-    ``N(0, shift_std)`` m in x and y and turned by ``N(0, yaw_std_deg)`` deg
-    about z; one object's material is changed (``material = (object, ITU
-    type)``; default: the first table-like wooden object becomes metal).
+    Every object not in ``keep`` is shifted by ``N(0, shift_std)`` m in x and
+    y and turned by ``N(0, yaw_std_deg)`` deg about z; one object's material
+    is changed (``material = (object, ITU type)``; default: the first
+    table-like wooden object becomes metal).
+
+    Args:
+        keep: names of the objects that stay put (default: the room's shell,
+            :func:`engine.room.shell_objects`: walls, floor, ceiling, windows,
+            from ``[room]`` tags or the geometry, whatever they are called).
 
     Returns:
         What was done: ``{"moved": {name: [dx, dy, dyaw_deg]}, "material": [name, old, new]}``.
     """
+    keep = shell_objects(scene) if keep is None else frozenset(keep)
     rng = np.random.default_rng(seed)
     moved = {}
     for name in sorted(scene.objects):
-        if name.startswith(tuple(keep)):
+        if name in keep:
             continue
         obj = scene.sionna.objects[name]
         pos = np.asarray(obj.position.numpy()).reshape(3)
@@ -82,7 +84,7 @@ def perturb_scene(scene: TwinScene, *, seed: int = 0, shift_std: float = 0.03,
         scene.move_object(name, position=pos + [dx, dy, 0.0], orientation=[0.0, 0.0, dyaw])
         moved[name] = [float(dx), float(dy), float(math.degrees(dyaw))]
     if material is None:
-        cands = [n for n in sorted(scene.objects) if not n.startswith(tuple(keep))
+        cands = [n for n in sorted(scene.objects) if n not in keep
                  and scene.objects[n].material == "wood"]
         cands = [n for n in cands if "table" in n.lower()] or cands
         material = (cands[0], "metal") if cands else None
@@ -111,7 +113,8 @@ class DeploymentSettings:
         gate_m: closed loop: an estimate farther than this from the predicted
             navigation pose is treated as an outlier and ignored, m.
         calib_std: ``(m, deg)`` std of the twin's initial-point mapping error.
-        path: the path spec the robot follows.
+        path: the path spec the robot follows (``[devices.path]`` form, any kind;
+            default: the robot's own ``[devices.path]`` from twin.toml).
         robot: robot name (default: the first robot).
         method: localizer: ``"MCA"`` (the paper's), ``"PDP"`` or ``"kNN-CSI"``.
         mca: :class:`~engine.localization.baselines.MCA` keyword arguments.
@@ -126,8 +129,7 @@ class DeploymentSettings:
     alpha: float = 0.3
     gate_m: float = 0.5
     calib_std: tuple[float, float] = (0.02, 0.5)
-    path: dict = field(default_factory=lambda: {"kind": "circle", "centre": [4.0, 3.0],
-                                                "radius": 1.5})
+    path: dict | None = None
     robot: str | None = None
     method: str = "MCA"
     mca: dict = field(default_factory=dict)
@@ -214,7 +216,12 @@ class Deployment:
         self.start = np.array([st.x, st.y, st.yaw])
         agent = self.reality.agents[self.robot]
         bounds = (real_scene.bounds_min[:2], real_scene.bounds_max[:2])
-        self._ctl = controller_from_spec(s.path, agent.spec, bounds=bounds)
+        if s.path is None and self.dev.path is None:
+            raise ValueError(f"{cfg.path}: robot {self.robot!r} has no [devices.path]: give the "
+                             "case study a path (circle, polyline, figure_eight or goal)")
+        self.path_spec = dict(s.path if s.path is not None else self.dev.path)
+        self.path = path_from_spec(self.path_spec, start=self.start[:2])
+        self._ctl = controller_from_spec(self.path_spec, agent.spec, bounds=bounds)
         self.nav = self.start.copy()  # the pose the controller steers on [x, y, yaw]
         self._last_odom = self.start.copy()
         self.reality.set_controller(self.robot, self._control)
@@ -317,9 +324,11 @@ class Deployment:
         return self.records
 
     def lap_steps(self) -> int:
-        """Steps for about one lap of a circle path at the robot's cruise speed."""
-        p = self._ctl.path
-        return int(math.ceil(p.length / (0.95 * self._ctl.speed) / self.reality.dt)) + 2
+        """Steps for about one lap of the path (a closed path; to the end of an open
+        one, with its final slow-down) at the robot's cruise speed."""
+        extra = 2 if self.path.closed else 2 + int(math.ceil(2.0 / self.reality.dt))
+        return int(math.ceil(self.path.length / (0.95 * self._ctl.speed)
+                             / self.reality.dt)) + extra
 
 
 def errors(records: list[StepRecord]) -> dict[str, np.ndarray]:

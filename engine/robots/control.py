@@ -581,16 +581,32 @@ def controller_from_spec(spec: dict, model: RobotSpec | str = "burger", *, bound
     Raises:
         ValueError: unknown kind; :class:`PathError` for unreachable or out-of-room paths.
     """
-    kind = spec.get("kind")
-    if kind == "goal":
+    if spec.get("kind") == "goal":
         return GoalReacher(spec["goal"], model, bounds=bounds)
+    return PurePursuit(path_from_spec(spec), model, speed=spec.get("speed"), bounds=bounds,
+                       lookahead=lookahead)
+
+
+def path_from_spec(spec: dict, start: Sequence[float] | None = None) -> PlanarPath:
+    """The planar curve a path spec (see :func:`controller_from_spec`) describes.
+
+    A ``"goal"`` spec is the straight segment from ``start`` (``[2]`` m, the
+    robot's position; required for that kind) to the goal.
+
+    Raises:
+        ValueError: unknown kind, or a goal without ``start``; :class:`PathError`
+            for a malformed path.
+    """
+    kind = spec.get("kind")
     if kind == "circle":
-        path = CirclePath(spec["centre"], spec["radius"], spec.get("direction", "ccw"))
-    elif kind == "polyline":
-        path = PolylinePath(spec["waypoints"], closed=spec.get("closed", False))
-    elif kind == "figure_eight":
-        path = FigureEightPath(spec["centre"], spec["size"])
-    else:
-        raise ValueError(f"path spec: unknown kind {kind!r} "
-                         "(expected circle, polyline, figure_eight or goal)")
-    return PurePursuit(path, model, speed=spec.get("speed"), bounds=bounds, lookahead=lookahead)
+        return CirclePath(spec["centre"], spec["radius"], spec.get("direction", "ccw"))
+    if kind == "polyline":
+        return PolylinePath(spec["waypoints"], closed=spec.get("closed", False))
+    if kind == "figure_eight":
+        return FigureEightPath(spec["centre"], spec["size"])
+    if kind == "goal":
+        if start is None:
+            raise ValueError("path spec: a goal path needs the robot's start point")
+        return PolylinePath([list(start)[:2], list(spec["goal"])[:2]])
+    raise ValueError(f"path spec: unknown kind {kind!r} "
+                     "(expected circle, polyline, figure_eight or goal)")

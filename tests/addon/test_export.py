@@ -296,3 +296,63 @@ def test_refuses_unknown_sensing_link_end(scene, tmp_path):
 
     devices.add_sensing_link(small_scene(scene), "AP1", "ghost")
     assert "Sensing link 1 (AP1 -> ghost): rx 'ghost' is not a device" in refused(scene, tmp_path)
+
+
+def test_every_path_kind_reaches_twin_toml_and_the_engine(scene, tmp_path):
+    """Polyline from a curve object (a rectangle preset, then moved), figure eight and goal:
+    exported as [devices.path] and accepted by the engine's loader, free space included."""
+    from addon import devices
+    from addon.exporter import export_scene
+    from engine import config
+    from engine.scene import load_scene
+
+    small_scene(scene)
+    robot = scene.objects["robot1"]
+    curve = devices.set_rectangle_path(robot, (2.2, 2.2), 0.8, 0.6, speed=0.15, scene=scene)
+    curve.location = (0.1, 0.0, 0.0)  # the object's transform counts (world coordinates)
+    cases = [
+        (lambda: None, {"kind": "polyline", "closed": True, "speed": pytest.approx(0.15),
+                        "waypoints": [[1.9, 1.9], [2.7, 1.9], [2.7, 2.5], [1.9, 2.5]]}),
+        (lambda: devices.set_figure_eight_path(robot, (2.2, 2.0), 1.0),
+         {"kind": "figure_eight", "centre": [2.2, 2.0], "size": pytest.approx(1.0)}),
+        (lambda: devices.set_goal_path(robot, (2.5, 2.5)),
+         {"kind": "goal", "goal": [2.5, 2.5]}),
+    ]
+    for i, (setup, want) in enumerate(cases):
+        setup()
+        out = tmp_path / f"k{i}"
+        export_scene(scene, out, interchange=False)
+        got = tomllib.loads((out / "twin.toml").read_text())["devices"][1]["path"]
+        assert got == want
+        assert config.load_config(out).device("robot1").path["kind"] == want["kind"]
+        load_scene(out, load_sionna=False)  # free space: the paths avoid the table and chairs
+    devices.set_goal_path(robot, (1.0, 1.0))  # into the table
+    export_scene(scene, tmp_path / "bad", interchange=False)
+    with pytest.raises(config.ConfigError, match="goal .* lies in object 'Table'"):
+        load_scene(tmp_path / "bad", load_sionna=False)
+
+
+def test_room_part_tags_are_exported_and_read_by_the_engine(scene, tmp_path):
+    from addon.exporter import export_scene
+    from engine.room import room_parts
+    from engine.scene import load_scene
+
+    small_scene(scene)
+    scene.objects["Room_Wall_2"].name = "north side"  # a user's own name: the tag stays
+    export_scene(scene, tmp_path, interchange=False)
+    room = tomllib.loads((tmp_path / "twin.toml").read_text())["room"]
+    assert "north_side" in room["shell"] and "Room_Floor" in room["shell"]
+    assert room["furniture"] == ["Chair_001", "Table"]
+    parts = room_parts(load_scene(tmp_path, load_sionna=False))
+    assert "north_side" in parts.walls and set(parts.tagged) >= {"north_side", "Table"}
+
+
+def test_refuses_polyline_without_enough_points(scene, tmp_path):
+    from addon import devices
+
+    small_scene(scene)
+    robot = scene.objects["robot1"]
+    robot.isac.path_kind = "polyline"
+    assert "polyline path has no curve object" in refused(scene, tmp_path)
+    devices.set_polyline_path(robot, devices.add_path_curve("P", [(1, 1), (1, 1)], scene=scene))
+    assert "two consecutive points at the same x, y" in refused(scene, tmp_path)

@@ -93,6 +93,46 @@ def test_operator_furniture_devices_links(scene):
     assert len(scene.isac.links) == 0
 
 
+def test_operators_a_user_needs_without_scripting(scene):
+    """Floor material of a polygon room, a plain box of any material and room part, AP
+    spacing and resource set, and a path preset on the active robot."""
+    assert bpy.ops.isac.add_room_polygon(vertices="0,0; 6,0; 6,3; 4,3; 4,5; 0,5", name="L",
+                                         floor_material="wood",
+                                         ceiling_material="plasterboard") == {"FINISHED"}
+    assert scene.objects["L_Floor"].isac.itu_material == "wood"
+    assert scene.objects["L_Ceiling"].isac.itu_material == "plasterboard"
+    assert scene.objects["L_Wall_3"].isac.room_part == "SHELL"
+    assert bpy.ops.isac.add_box(name="Partition", dimensions=(0.02, 2.0, 3.0),
+                                location=(2.0, 1.0, 0.0), material="glass", thickness=0.02,
+                                room_part="SHELL") == {"FINISHED"}
+    box = scene.objects["Partition"]
+    assert box.isac.itu_material == "glass" and box.isac.room_part == "SHELL"
+    assert tuple(round(d, 6) for d in box.dimensions) == (0.02, 2.0, 3.0)
+    assert bpy.ops.isac.add_access_point(name="AP", rows=2, cols=2, vertical_spacing=0.7,
+                                         horizontal_spacing=0.6, subcarriers=(0, 512),
+                                         symbols=(7, 14)) == {"FINISHED"}
+    ap = scene.objects["AP"].isac
+    assert (ap.vertical_spacing, ap.horizontal_spacing) == pytest.approx((0.7, 0.6))
+    assert (ap.subcarrier_start, ap.subcarrier_stop, ap.symbol_start, ap.symbol_stop) == \
+        (0, 512, 7, 14)
+    bpy.ops.isac.add_robot(name="bot", location=(1.0, 1.0, 0.0))
+    bot = scene.objects["bot"]
+    with pytest.raises(RuntimeError, match="Select a robot first"):
+        with bpy.context.temp_override(active_object=scene.objects["AP"]):
+            bpy.ops.isac.robot_path_preset(preset="circle")
+    with bpy.context.temp_override(active_object=bot):
+        assert bpy.ops.isac.robot_path_preset(preset="rectangle", centre=(2.0, 2.0), width=2.0,
+                                              depth=1.0) == {"FINISHED"}
+    assert bot.isac.path_kind == "polyline" and bot.isac.path_curve.name == "bot_Path"
+    from addon.devices import curve_waypoints
+
+    assert curve_waypoints(bot.isac.path_curve) == (
+        [[1.0, 1.5], [3.0, 1.5], [3.0, 2.5], [1.0, 2.5]], True)
+    with bpy.context.temp_override(active_object=bot):
+        bpy.ops.isac.robot_path_preset(preset="figure_eight", centre=(2.0, 2.0), width=1.5)
+    assert bot.isac.path_kind == "figure_eight" and bot.isac.path_size == pytest.approx(1.5)
+
+
 def test_operator_tag_material(scene):
     bpy.ops.isac.add_furniture(kind="table")
     bpy.ops.isac.add_furniture(kind="chair")

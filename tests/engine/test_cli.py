@@ -1,11 +1,16 @@
 """engine/cli.py: info, run and fingerprints on real scene folders; bad input exits 2."""
 
 import re
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
 from engine.cli import main
 from engine.synthetic import two_ap_lab
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -159,3 +164,73 @@ def test_bad_input_files_exit_2_with_one_line(box, tmp_path, capsys, case):
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "Traceback" not in err, err
     assert err.startswith("isac-twin: error: ") and re.search(expect, err), err
+
+
+
+
+@pytest.mark.slow
+def test_localize_runs_the_case_study_on_an_l_room(tmp_path):
+    """`isac-twin localize` on a non-lab room: its own polyline path from twin.toml, every
+    output of the lab's demo, floor plan from its geometry; a bad --path exits 2."""
+    import json
+
+    from engine.synthetic import l_room
+
+    f = l_room(tmp_path / "l", robot=(1.0, 1.0, 0.0),
+               tracer={"samples_per_src": 2000, "max_depth": 1})
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "engine.cli", "localize", str(f), "--out", str(out),
+                        "--spacing", "0.6", "--steps", "3", "--table-points", "2",
+                        "--snr", "20", "--cache-dir", str(tmp_path / "cache")],
+                       cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "robot1 follows polyline of 4 waypoints" in r.stdout
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["paper_mode"]["path"]["waypoints"][1] == [3.5, 1.0]
+    assert m["closed_loop"]["steps"] == 3
+    for name in ("trajectories_paper.png", "errors_paper.png", "rates_paper.png",
+                 "trajectories_closed_loop.png"):
+        assert (out / name).stat().st_size > 10000, name
+    assert (out / "table.md").read_text().count("| PDP |") == 2
+    bad = subprocess.run([sys.executable, "-m", "engine.cli", "localize", str(f), "--out",
+                          str(out), "--path", '{kind = "circle", centre = [5, 4], radius = 0.5}'],
+                         cwd=ROOT, capture_output=True, text=True)
+    assert bad.returncode == 2
+    assert bad.stderr.count("\n") == 1 and "outside the room's footprint" in bad.stderr
+
+
+@pytest.mark.slow
+def test_cli_tools_on_the_bundled_l_office(tmp_path):
+    """The second bundled room (L-shaped, 5.8 GHz, glass): info, trace and localize (coarse
+    grid, a few steps) through the command line, on its own path from twin.toml."""
+    import json
+
+    folder = ROOT / "blend_scenes" / "l_office" / "scene"
+
+    def cli(*args):
+        return subprocess.run([sys.executable, "-m", "engine.cli", *args], cwd=ROOT,
+                              capture_output=True, text=True)
+
+    r = cli("info", str(folder))
+    assert r.returncode == 0, r.stderr
+    assert "5.8 GHz" in r.stdout and "glass (0.02 m): 1 -- Glass_Partition" in r.stdout
+    r = cli("trace", str(folder), "--out", str(tmp_path / "t.json"))
+    assert r.returncode == 0, r.stderr
+    links = json.loads((tmp_path / "t.json").read_text())["links"]
+    assert len(links) == 2 and all(lk["los"] for lk in links)
+    # the same room with a lighter tracer (2 bounces, 10^4 rays): the database in ~10 s
+    import shutil
+
+    light = tmp_path / "light"
+    shutil.copytree(folder, light)
+    with open(light / "twin.toml", "a") as f:
+        f.write("\n[tracer]\nmax_depth = 2\nsamples_per_src = 10000\n")
+    out = tmp_path / "loc"
+    r = cli("localize", str(light), "--out", str(out), "--spacing", "0.8", "--steps", "3",
+            "--table-points", "2", "--snr", "20", "--cache-dir", str(tmp_path / "cache"))
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "robot1 follows polyline of 6 waypoints" in r.stdout
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["paper_mode"]["path"]["closed"] is True
+    assert m["database"]["frequency_hz"] == 5.8e9
+    assert (out / "trajectories_closed_loop.png").stat().st_size > 10000

@@ -248,3 +248,21 @@ def test_add_edits_read_no_host_file(tmp_path, lab):
                        mesh_file=str(assets / "box.ply")))
     tw.step()
     assert {"box", "box2"} <= set(tw.scene.objects)
+
+
+def test_set_path_is_checked_against_the_room_as_it_is_now(tmp_path):
+    """A live set_path through the desk is refused by name; once the desk is moved away
+    (an edit), the same path is accepted."""
+    from engine.robots.control import PathError
+    from engine.synthetic import l_room
+
+    tw = Twin.from_scene(l_room(tmp_path / "l", robot=(1.0, 1.0, 0.0)), phy=False, seed=0)
+    through = {"kind": "polyline", "waypoints": [[1.0, 1.0], [2.0, 4.2]]}
+    with pytest.raises(PathError, match=r"set_path\(robot1\): the polyline .* lies in object "
+                                        r"'Desk'"):
+        tw.command(Command("set_path", {"robot": "robot1", "path": through}))
+    with pytest.raises(PathError, match="lies in object 'Room_Wall_4'"):  # to the cut-out
+        tw.set_path("robot1", {"kind": "goal", "goal": [5.0, 4.5]})
+    tw.apply_edit(Edit(op="move", target="Desk", position=(3.1, 4.0, 0.375)))
+    tw.step()
+    tw.set_path("robot1", through)  # free now

@@ -72,3 +72,75 @@ def test_case_study_writes_metrics(lab, lab_db, tmp_path):
     assert (tmp_path / "out" / "table.md").read_text().count("| MCA |") == 2
     assert any("paper mode" in x for x in lines)
     assert m["paper_reference"]["max_positioning_m"] == 0.16
+
+
+def test_perturbation_keeps_the_shell_of_a_room_named_by_the_addon(tmp_path):
+    """An L room with the add-on's default names (Room_Floor, Room_Wall_1 ...): only the
+    furniture moves (the name-prefix rule moved the walls, floor and ceiling too)."""
+    from engine.synthetic import l_room
+
+    s = load_scene(l_room(tmp_path / "l"))
+    before = {n: np.asarray(s.sionna.objects[n].position.numpy()).ravel().copy()
+              for n in s.objects}
+    p = perturb_scene(s, seed=1)
+    assert set(p["moved"]) == {"Desk", "Cabinet"}
+    for n in s.objects:
+        if n.startswith("Room_"):
+            after = np.asarray(s.sionna.objects[n].position.numpy()).ravel()
+            assert np.allclose(after, before[n]), n
+
+
+def test_case_study_needs_a_path_and_never_borrows_the_labs_circle(tmp_path):
+    """A robot without [devices.path]: refused by name, not driven on (4, 3) r 1.5."""
+    from engine.casestudy import robot_path
+    from engine.config import ConfigError, load_config
+    from engine.synthetic import l_room
+
+    f = l_room(tmp_path / "np", path={})  # no [devices.path]
+    with pytest.raises(ConfigError, match=r"devices \(robot1\)\.path: the case study needs"):
+        robot_path(load_config(f))
+    name, path = robot_path(load_config(f), {"kind": "goal", "goal": [3.0, 2.0]})
+    assert name == "robot1" and path["kind"] == "goal"
+
+
+@pytest.fixture(scope="module")
+def l_cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("lcache")
+
+
+@pytest.mark.parametrize("start, spec", [
+    ((1.4, 2.0), {"kind": "circle", "centre": [2.0, 2.0], "radius": 0.6}),
+    ((1.0, 1.0), {"kind": "polyline", "waypoints": [[1.0, 1.0], [3.5, 1.0], [3.5, 2.5]]}),
+    ((2.2, 1.8), {"kind": "figure_eight", "centre": [2.2, 1.8], "size": 2.0}),
+    ((1.0, 1.0), {"kind": "goal", "goal": [3.0, 2.5]}),
+], ids=lambda s: s.get("kind", "") if isinstance(s, dict) else "")
+def test_every_path_kind_drives_the_deployment(tmp_path, l_cache, start, spec):
+    """Each [devices.path] kind from twin.toml: the robot follows it (truth near the path),
+    and the static table's test points lie on it."""
+    from engine.casestudy import path_points
+    from engine.localization.fingerprints import cached_database
+    from engine.synthetic import l_room
+
+    f = l_room(tmp_path / spec["kind"], robot=(*start, 0.0), path=spec,
+               tracer={"samples_per_src": 2000, "max_depth": 1})
+    # the same room each time (only the path differs): one database, found in the cache
+    db = cached_database(load_scene(f), spacing=0.8, cache_dir=l_cache, max_paths=8, verify=0)
+    dep = Deployment(f, db, DeploymentSettings(), seed=0, dt=0.5, rate_every=100)
+    assert dep.path_spec == load_scene(f, load_sionna=False).config.device("robot1").path
+    dep.run(4)
+    truth = np.array([r.truth for r in dep.records])
+    off = [abs(dep.path.project(p).error) for p in truth]
+    assert max(off) < 0.3 and np.linalg.norm(truth[-1] - start) > 0.2  # it moved, on the path
+    pts, yaws = path_points(spec, 5, 0.25, start=start)
+    assert max(abs(dep.path.project(p).error) for p in pts[:, :2]) < 1e-6
+    assert pts.shape == (5, 3) and np.isfinite(yaws).all()
+
+
+def test_table_points_on_the_labs_circle_are_unchanged():
+    """path_points on a circle spec gives exactly the old circle_points (the lab's table)."""
+    from engine.casestudy import circle_points, path_points
+
+    a, ya = circle_points((4.0, 3.0), 1.5, 12, 0.25)
+    b, yb = path_points({"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5}, 12, 0.25)
+    assert np.allclose(a, b, atol=1e-12)
+    assert np.allclose(np.exp(1j * ya), np.exp(1j * yb), atol=1e-12)

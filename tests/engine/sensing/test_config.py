@@ -68,3 +68,23 @@ def test_topics_lists_the_labs_sensing_topic(capsys):
     out = capsys.readouterr().out
     row = next(line for line in out.splitlines() if line.startswith("/sensing/detections"))
     assert row.split()[1:3] == ["isac_twin_msgs/msg/Detections", "radar"]
+
+
+def test_demo_takes_its_link_and_robot_from_any_scene(tmp_path):
+    """engine.sensing.demo on a non-lab scene: the first [[sensing]] link (radar every step)
+    and the first robot from twin.toml; a scene without [[sensing]] is refused by name."""
+    from engine.sensing.demo import first_robot, lab_link, scene_link
+    from engine.synthetic import l_room
+
+    lab = scene_link(load_config(LAB))
+    ref = lab_link()
+    for f in ("tx", "rx", "rx_array", "rx_orientation", "power_dbm", "rho", "every"):
+        assert getattr(lab, f) == getattr(ref, f), f
+    office = load_config(LAB.parents[1] / "l_office" / "scene")
+    link = scene_link(office, rho=0.5)
+    assert (link.tx, link.rx, link.rho, link.every) == ("AP2", "AP1", 0.5, 1)
+    assert (link.rx_array.num_rows, link.rx_array.num_cols) == (4, 4)
+    assert first_robot(office) == "robot1"
+    bare = load_config(l_room(tmp_path / "l"))
+    with pytest.raises(ConfigError, match=r"twin.toml: sensing: the sensing demo needs"):
+        scene_link(bare)
