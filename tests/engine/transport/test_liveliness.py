@@ -90,7 +90,9 @@ def test_transport_sees_a_ros2_talker_and_its_departure(robot, port):
     mp = other.liveliness().declare_token(
         f"@ros2_lv/0/{zid}/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/"
         f"{STRING_HASH}/::,7:,:,:,,")
-    assert wait_until(lambda: "/talker" in robot.ros_nodes())
+    # two tokens, two liveliness samples: wait for both (under load the second one
+    # arrived after the first check)
+    assert wait_until(lambda: "/talker" in robot.ros_nodes() and "/chatter" in robot.ros_topics())
     assert robot.ros_nodes() == ["/robot1_node", "/talker"]
     assert robot.ros_topics()["/chatter"] == {"std_msgs/msg/String"}
     pub = [e for e in robot.graph(remote_only=True) if e.kind == "MP"][0]
