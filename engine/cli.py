@@ -190,6 +190,55 @@ def cmd_grid(args) -> int:
     return 0
 
 
+def _radiomap_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder: radiomap.npz and radiomap.png")
+    p.add_argument("--cell", type=float, default=0.25, help="cell size, m (default 0.25)")
+    p.add_argument("--height", type=float, default=None,
+                   help="plane height z, m (default: the first robot's antenna height)")
+    p.add_argument("--samples", type=int, default=1_000_000,
+                   help="rays launched per access point (default 1e6)")
+    p.add_argument("--tx", action="append", default=None,
+                   help="access point to map (repeatable; default: every access point)")
+
+
+@command("radiomap", "floor radio map per access point (Sionna RadioMapSolver): NPZ + PNG",
+         _radiomap_args)
+def cmd_radiomap(args) -> int:
+    import time
+
+    import numpy as np
+
+    from engine.radiomap import compute_radio_map, save_radio_map
+    from engine.radiomap_figure import cut_footprints, save_radio_map_png
+    from engine.scene import load_scene
+
+    scene = load_scene(scene_path(args))
+    t0 = time.perf_counter()
+    try:
+        rm = compute_radio_map(scene, args.tx, cell_size=args.cell, height=args.height,
+                               samples_per_tx=args.samples)
+    except ValueError as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
+    dt = time.perf_counter() - t0
+    npz = save_radio_map(rm, args.out / "radiomap.npz")
+    png = save_radio_map_png(rm, args.out / "radiomap.png",
+                             footprints=cut_footprints(scene, rm.height))
+    ny, nx = rm.shape
+    print(f"radio map {nx} x {ny} cells of {rm.cell_size:g} m at z={rm.height:.3f} m, "
+          f"{len(rm.tx_names)} access points, {dt:.2f} s")
+    for i, n in enumerate(rm.tx_names):
+        r = rm.rss_dbm[i]
+        ok = np.isfinite(r)
+        print(f"  {n}: RSS {np.median(r[ok]):.1f} dBm median, {r[ok].max():.1f} max; "
+              f"best server in {int((rm.best_server == i).sum())} cells; "
+              f"{int((~ok).sum())} cells without a ray")
+    print(f"wrote {npz} and {png}")
+    return 0
+
+
 def _run_args(p: argparse.ArgumentParser) -> None:
     _scene_arg(p)
     p.add_argument("--steps", type=int, default=100, help="steps to run (default 100)")
