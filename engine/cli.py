@@ -380,6 +380,11 @@ def _serve_args(p: argparse.ArgumentParser) -> None:
                    help="write the port listened on to this file once listening")
     p.add_argument("--step-log", type=Path, default=None,
                    help="append a JSON line per step (poses, path counts, SNR)")
+    p.add_argument("--radiomap", type=float, default=None, metavar="CELL",
+                   help="stream a floor radio map with cells of CELL m (e.g. 0.25), "
+                        "recomputed after edits")
+    p.add_argument("--radiomap-samples", type=int, default=200_000,
+                   help="rays per access point of the streamed radio map")
 
 
 def _twin_factory(spec: str | None):
@@ -414,13 +419,24 @@ def cmd_serve(args) -> int:
         return 2
     factory = _twin_factory(args.twin)
     twin = factory.from_scene(scene_path(args), seed=args.seed)
+    feed = None
     try:
+        if args.radiomap is not None:
+            from engine.live.radiomap_feed import RadioMapFeed
+
+            feed = RadioMapFeed(twin, cell_size=args.radiomap,
+                                samples_per_tx=args.radiomap_samples)
+            feed.prime()
         server = LiveServer(twin, args.host, args.port, token=args.token, rate_hz=args.rate,
                             max_steps=args.steps, running=not args.paused,
                             max_paths=args.max_paths or wire.DEFAULT_MAX_PATHS_PER_LINK,
-                            step_log=args.step_log)
+                            step_log=args.step_log, on_step=feed)
+        if feed is not None:
+            feed.publish = server.publish
         server.start()
-    except (ValueError, OSError) as exc:
+        if feed is not None:
+            server.publish(feed.last_message)
+    except (ValueError, OSError, wire.WireError) as exc:
         print(f"isac-twin: error: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()
