@@ -66,6 +66,8 @@ class LiveView:
         #: radar track id -> positions (m), for the track trails
         self.tracks: dict[int, collections.deque] = {}
         self.num_detections = 0
+        #: the last ``radiomap`` message (addon/radiomap_view.py shows its layers)
+        self.radiomap: dict | None = None
 
 
 def power_color(t: float) -> tuple[float, float, float, float]:

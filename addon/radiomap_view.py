@@ -1,0 +1,283 @@
+"""Show a ``radiomap`` message in Blender: a coloured plane on the floor and its colour scale.
+
+Plain functions (the Live panel's operators and the live session call them;
+tests call them under headless ``bpy``). Objects live in the live view's
+collection and are named ``ISAC_Live_RadioMap*``:
+
+* ``ISAC_Live_RadioMap``: one quad at the map's height covering its cells,
+  textured with the image ``ISAC_Live_RadioMap`` (one pixel per cell, nearest
+  filtering, cells without a value transparent), emissive so that Cycles,
+  EEVEE and Workbench show the same colours;
+* ``ISAC_Live_RadioMapLegend``: the colour bar (a vertical strip beside the
+  map) with text objects for the layer and unit (``..._Title``), the scale's
+  ends (``..._Min``, ``..._Max``) and its middle (``..._Mid``);
+* access points of the map marked as small cones with a name label
+  (``ISAC_Live_AP_<name>`` and ``ISAC_Live_AP_<name>_Label``).
+
+Pixel ``(ix, iy)`` of the image is cell ``(iy, ix)`` of the message (Blender's
+image rows start at the bottom, the map's rows at its smallest y).
+"""
+
+from __future__ import annotations
+
+import bpy
+
+from .live_view import COLLECTION, PREFIX, _material, _object  # noqa: F401 (one collection)
+
+MAP = PREFIX + "RadioMap"
+LEGEND = PREFIX + "RadioMapLegend"
+#: Default layer shown: the best server's RSS.
+DEFAULT_LAYER = "best"
+#: Colour-map stops (t, RGB), perceptually ordered (viridis-like): weak -> strong.
+MAP_STOPS = ((0.0, (0.267, 0.005, 0.329)), (0.25, (0.230, 0.322, 0.546)),
+             (0.5, (0.128, 0.567, 0.551)), (0.75, (0.369, 0.789, 0.383)),
+             (1.0, (0.993, 0.906, 0.144)))
+#: Legend strip: width and height, m; gap to the map's right edge, m.
+LEGEND_SIZE_M = (0.25, 2.5)
+LEGEND_GAP_M = 0.3
+#: Pixels of the legend's gradient image.
+LEGEND_PIXELS = 64
+#: Text size of the labels, m.
+TEXT_SIZE_M = 0.22
+
+
+def map_color(t: float) -> tuple[float, float, float]:
+    """RGB of ``t`` in [0, 1] on :data:`MAP_STOPS` (clipped)."""
+    t = min(1.0, max(0.0, t))
+    for (t0, c0), (t1, c1) in zip(MAP_STOPS, MAP_STOPS[1:]):
+        if t <= t1:
+            u = (t - t0) / (t1 - t0)
+            return (c0[0] + u * (c1[0] - c0[0]), c0[1] + u * (c1[1] - c0[1]),
+                    c0[2] + u * (c1[2] - c0[2]))
+    return MAP_STOPS[-1][1]
+
+
+def layer(msg: dict, name: str) -> dict:
+    """The layer ``name`` of a ``radiomap`` message.
+
+    Raises:
+        KeyError: naming the layers the message has.
+    """
+    for lay in msg["layers"]:
+        if lay["name"] == name:
+            return lay
+    raise KeyError(f"radio map has no layer {name!r} (layers: "
+                   f"{', '.join(x['name'] for x in msg['layers'])})")
+
+
+def layer_pixels(lay: dict) -> list[float]:
+    """Flat RGBA ``[ny * nx * 4]`` of a layer on its own scale (``vmin``..``vmax``);
+    cells without a value (null) are transparent."""
+    lo, hi = float(lay["vmin"]), float(lay["vmax"])
+    span = (hi - lo) or 1.0
+    out: list[float] = []
+    ext = out.extend
+    for v in lay["values"]:
+        if v is None:
+            ext((0.0, 0.0, 0.0, 0.0))
+        else:
+            ext((*map_color((v - lo) / span), 1.0))
+    return out
+
+
+def _image(name: str, width: int, height: int):
+    img = bpy.data.images.get(name)
+    if img is not None and tuple(img.size) != (width, height):
+        bpy.data.images.remove(img)
+        img = None
+    if img is None:
+        img = bpy.data.images.new(name, width=width, height=height, alpha=True)
+    return img
+
+
+def _textured_material(name: str, image):
+    """Emission from ``image`` (nearest filtering), transparent where alpha is 0."""
+    mat = bpy.data.materials.get(name)
+    if mat is None:
+        mat = bpy.data.materials.new(name)
+        if bpy.app.version < (5, 0, 0):
+            mat.use_nodes = True
+        nt = mat.node_tree
+        nt.nodes.clear()
+        out = nt.nodes.new("ShaderNodeOutputMaterial")
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.name = "map"
+        tex.interpolation = "Closest"
+        em = nt.nodes.new("ShaderNodeEmission")
+        em.inputs["Strength"].default_value = 1.0
+        tr = nt.nodes.new("ShaderNodeBsdfTransparent")
+        mix = nt.nodes.new("ShaderNodeMixShader")
+        nt.links.new(tex.outputs["Color"], em.inputs["Color"])
+        nt.links.new(tex.outputs["Alpha"], mix.inputs["Fac"])
+        nt.links.new(tr.outputs[0], mix.inputs[1])
+        nt.links.new(em.outputs[0], mix.inputs[2])
+        nt.links.new(mix.outputs[0], out.inputs["Surface"])
+        if hasattr(mat, "surface_render_method"):
+            mat.surface_render_method = "BLENDED"
+    mat.node_tree.nodes["map"].image = image
+    return mat
+
+
+def _quad(scene, name: str, x0: float, y0: float, x1: float, y1: float, z: float, mat):
+    mesh = bpy.data.meshes.get(name)
+    if mesh is None:
+        mesh = bpy.data.meshes.new(name)
+    verts = [(x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)]
+    if len(mesh.vertices) == 4:
+        mesh.vertices.foreach_set("co", [c for v in verts for c in v])
+    else:
+        mesh.clear_geometry()
+        mesh.from_pydata(verts, [], [(0, 1, 2, 3)])
+        uv = mesh.uv_layers.new(name="UVMap")
+        uv.data.foreach_set("uv", [0, 0, 1, 0, 1, 1, 0, 1])
+    mesh.update()
+    if mesh.materials:
+        mesh.materials[0] = mat
+    else:
+        mesh.materials.append(mat)
+    return _object(scene, name, mesh)
+
+
+def _text(scene, name: str, body: str, location, size: float = TEXT_SIZE_M):
+    curve = bpy.data.curves.get(name)
+    if curve is None:
+        curve = bpy.data.curves.new(name, type="FONT")
+        curve.size = size
+    if curve.body != body:
+        curve.body = body
+    obj = _object(scene, name, curve)
+    obj.location = location
+    if not curve.materials:
+        curve.materials.append(_material(PREFIX + "LabelText", (1.0, 1.0, 1.0, 1.0),
+                                         emission=True))
+    return obj
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.0f}"
+
+
+def show_layer(scene, msg: dict, name: str | None = None, *, visible: bool = True) -> str:
+    """Build or update the map plane, its image and the legend for layer ``name``
+    (default :data:`DEFAULT_LAYER`, else the first). Returns the layer shown.
+
+    Raises:
+        KeyError: the message has no layer ``name``.
+    """
+    if name is None or name == "":
+        names = [x["name"] for x in msg["layers"]]
+        name = DEFAULT_LAYER if DEFAULT_LAYER in names else names[0]
+    lay = layer(msg, name)
+    ny, nx = msg["shape"]
+    c = float(msg["cell_size"])
+    ox, oy = msg["origin"]
+    x0, y0 = ox - c / 2, oy - c / 2
+    x1, y1 = x0 + nx * c, y0 + ny * c
+    z = float(msg["height"])
+    img = _image(MAP, nx, ny)
+    img.pixels.foreach_set(layer_pixels(lay))
+    img.update()
+    plane = _quad(scene, MAP, x0, y0, x1, y1, z, _textured_material(MAP, img))
+    plane["isac_layer"] = name
+    plane["isac_scene_hash"] = msg["scene_hash"]
+    # legend: gradient strip + labels, right of the map
+    lw, lh = LEGEND_SIZE_M
+    lx0 = x1 + LEGEND_GAP_M
+    ly0 = y0
+    lh = min(lh, max(y1 - y0, 0.5))
+    grad = _image(LEGEND, 1, LEGEND_PIXELS)
+    px: list[float] = []
+    for k in range(LEGEND_PIXELS):
+        px.extend((*map_color(k / (LEGEND_PIXELS - 1)), 1.0))
+    grad.pixels.foreach_set(px)
+    grad.update()
+    legend = _quad(scene, LEGEND, lx0, ly0, lx0 + lw, ly0 + lh, z,
+                   _textured_material(LEGEND, grad))
+    lo, hi = float(lay["vmin"]), float(lay["vmax"])
+    what = {"dBm": "RSS", "dB": "SINR" if name == "sinr" else "gain"}.get(lay["unit"], "")
+    title = f"{'best server' if name == 'best' else name} {what} ({lay['unit']})"
+    tx = lx0 + lw + 0.08
+    labels = [_text(scene, LEGEND + "_Title", title, (lx0, ly0 + lh + 0.12, z)),
+              _text(scene, LEGEND + "_Max", _fmt(hi), (tx, ly0 + lh - TEXT_SIZE_M / 2, z)),
+              _text(scene, LEGEND + "_Mid", _fmt((lo + hi) / 2), (tx, ly0 + lh / 2, z)),
+              _text(scene, LEGEND + "_Min", _fmt(lo), (tx, ly0, z))]
+    for t in msg.get("tx", []):
+        labels += mark_access_point(scene, t["name"], t["position"])
+    set_visible(scene, visible)
+    return name
+
+
+def mark_access_point(scene, name: str, position) -> list:
+    """A red cone under access point ``name`` pointing at it and its name label
+    (``ISAC_Live_AP_<name>``, ``..._Label``)."""
+    oname = f"{PREFIX}AP_{name}"
+    mesh = bpy.data.meshes.get(oname)
+    if mesh is None:
+        import math
+
+        mesh = bpy.data.meshes.new(oname)
+        n, r, h = 12, 0.08, 0.16
+        verts = [(0.0, 0.0, 0.0)] + [(r * math.cos(2 * math.pi * k / n),
+                                      r * math.sin(2 * math.pi * k / n), -h) for k in range(n)]
+        faces = [(0, 1 + k, 1 + (k + 1) % n) for k in range(n)] + [tuple(range(n, 0, -1))]
+        mesh.from_pydata(verts, [], faces)
+        mesh.update()
+        mesh.materials.append(_material(PREFIX + "APMarker", (1.0, 0.15, 0.1, 1.0),
+                                        emission=True))
+    cone = _object(scene, oname, mesh)
+    cone.location = (position[0], position[1], position[2] - 0.02)
+    label = _text(scene, oname + "_Label", name,
+                  (position[0] + 0.1, position[1] + 0.1, position[2] + 0.05))
+    return [cone, label]
+
+
+def radiomap_objects(scene) -> list:
+    """The map, legend and label objects that exist now."""
+    coll = bpy.data.collections.get(COLLECTION)
+    if coll is None:
+        return []
+    return [o for o in coll.objects
+            if o.name.startswith(MAP) or o.name.startswith(PREFIX + "AP_")]
+
+
+def set_visible(scene, visible: bool) -> None:
+    """Show or hide the map, its legend and the access-point labels (viewport and render)."""
+    for o in radiomap_objects(scene):
+        if o.hide_viewport == visible or o.hide_render == visible:
+            o.hide_viewport = not visible
+            o.hide_render = not visible
+
+
+def apply_radiomap(scene, msg: dict, view) -> None:
+    """``radiomap``: keep the message on the view (layer switches need it), show the layer
+    the panel selects."""
+    view.radiomap = msg
+    p = getattr(scene, "isac_live", None)
+    want = p.radiomap_layer if p is not None else None
+    names = [x["name"] for x in msg["layers"]]
+    if want not in names:
+        want = None
+    shown = show_layer(scene, msg, want,
+                       visible=p.show_radiomap if p is not None else True)
+    if p is not None:
+        if p.radiomap_layer != shown:
+            p.radiomap_layer = shown
+        joined = ",".join(names)
+        if p.radiomap_layers != joined:
+            p.radiomap_layers = joined
+
+
+def select_layer(scene, view, name: str) -> str:
+    """Show layer ``name`` of the view's last radio map (the panel's layer buttons).
+
+    Raises:
+        KeyError: no radio map received yet, or no such layer.
+    """
+    msg = getattr(view, "radiomap", None)
+    if msg is None:
+        raise KeyError("no radio map received yet (start the engine with serve --radiomap)")
+    layer(msg, name)
+    p = getattr(scene, "isac_live", None)
+    if p is not None and p.radiomap_layer != name:
+        p.radiomap_layer = name
+    return show_layer(scene, msg, name, visible=p.show_radiomap if p is not None else True)
