@@ -8,8 +8,8 @@ collection and are named ``ISAC_Live_RadioMap*``:
   textured with the image ``ISAC_Live_RadioMap`` (one pixel per cell, nearest
   filtering, cells without a value transparent), emissive so that Cycles,
   EEVEE and Workbench show the same colours;
-* ``ISAC_Live_RadioMapLegend``: the colour bar (a vertical strip beside the
-  map) with text objects for the layer and unit (``..._Title``), the scale's
+* ``ISAC_Live_RadioMapLegend``: the colour bar (a horizontal bar in front of
+  the map's south edge) with text objects for the layer and unit (``..._Title``), the scale's
   ends (``..._Min``, ``..._Max``) and its middle (``..._Mid``);
 * access points of the map marked as small cones with a name label
   (``ISAC_Live_AP_<name>`` and ``ISAC_Live_AP_<name>_Label``).
@@ -32,9 +32,9 @@ DEFAULT_LAYER = "best"
 MAP_STOPS = ((0.0, (0.267, 0.005, 0.329)), (0.25, (0.230, 0.322, 0.546)),
              (0.5, (0.128, 0.567, 0.551)), (0.75, (0.369, 0.789, 0.383)),
              (1.0, (0.993, 0.906, 0.144)))
-#: Legend strip: width and height, m; gap to the map's right edge, m.
-LEGEND_SIZE_M = (0.25, 2.5)
-LEGEND_GAP_M = 0.3
+#: Legend bar: length and height, m; gap to the map's south edge, m.
+LEGEND_SIZE_M = (3.0, 0.25)
+LEGEND_GAP_M = 0.35
 #: Pixels of the legend's gradient image.
 LEGEND_PIXELS = 64
 #: Text size of the labels, m.
@@ -180,27 +180,28 @@ def show_layer(scene, msg: dict, name: str | None = None, *, visible: bool = Tru
     plane = _quad(scene, MAP, x0, y0, x1, y1, z, _textured_material(MAP, img))
     plane["isac_layer"] = name
     plane["isac_scene_hash"] = msg["scene_hash"]
-    # legend: gradient strip + labels, right of the map
+    # legend: a horizontal colour bar in front of the map's south edge (what an overview
+    # camera from the south sees), labels under its ends and middle, the title above it
     lw, lh = LEGEND_SIZE_M
-    lx0 = x1 + LEGEND_GAP_M
-    ly0 = y0
-    lh = min(lh, max(y1 - y0, 0.5))
-    grad = _image(LEGEND, 1, LEGEND_PIXELS)
+    lw = min(lw, max(x1 - x0, 1.0))
+    lx0 = x0
+    ly1 = y0 - LEGEND_GAP_M
+    ly0 = ly1 - lh
+    grad = _image(LEGEND, LEGEND_PIXELS, 1)
     px: list[float] = []
     for k in range(LEGEND_PIXELS):
         px.extend((*map_color(k / (LEGEND_PIXELS - 1)), 1.0))
     grad.pixels.foreach_set(px)
     grad.update()
-    legend = _quad(scene, LEGEND, lx0, ly0, lx0 + lw, ly0 + lh, z,
-                   _textured_material(LEGEND, grad))
+    _quad(scene, LEGEND, lx0, ly0, lx0 + lw, ly1, z, _textured_material(LEGEND, grad))
     lo, hi = float(lay["vmin"]), float(lay["vmax"])
     what = {"dBm": "RSS", "dB": "SINR" if name == "sinr" else "gain"}.get(lay["unit"], "")
     title = f"{'best server' if name == 'best' else name} {what} ({lay['unit']})"
-    tx = lx0 + lw + 0.08
-    labels = [_text(scene, LEGEND + "_Title", title, (lx0, ly0 + lh + 0.12, z)),
-              _text(scene, LEGEND + "_Max", _fmt(hi), (tx, ly0 + lh - TEXT_SIZE_M / 2, z)),
-              _text(scene, LEGEND + "_Mid", _fmt((lo + hi) / 2), (tx, ly0 + lh / 2, z)),
-              _text(scene, LEGEND + "_Min", _fmt(lo), (tx, ly0, z))]
+    ty = ly0 - TEXT_SIZE_M - 0.05
+    labels = [_text(scene, LEGEND + "_Title", title, (lx0 + lw + 0.15, ly0, z)),
+              _text(scene, LEGEND + "_Min", _fmt(lo), (lx0, ty, z)),
+              _text(scene, LEGEND + "_Mid", _fmt((lo + hi) / 2), (lx0 + lw / 2 - 0.15, ty, z)),
+              _text(scene, LEGEND + "_Max", _fmt(hi), (lx0 + lw - 0.3, ty, z))]
     for t in msg.get("tx", []):
         labels += mark_access_point(scene, t["name"], t["position"])
     set_visible(scene, visible)

@@ -21,7 +21,10 @@ propagation, not an array's gain or beam.
 Arrays are ``[S, ny, nx]`` (S access points, ``ny`` rows along y, ``nx``
 columns along x); cell ``(iy, ix)`` is centred at
 ``origin + (ix, iy) * cell_size`` (m) at ``z = height``. A cell no ray
-reached holds ``-inf`` dB (path gain 0).
+reached holds ``-inf`` dB (path gain 0); a cell whose centre is not in free
+space (inside a wall or a piece of furniture, or outside the room; the
+project's grid-trace test, :func:`engine.raytrace.raw.free_points`) holds NaN
+and ``free`` is False there.
 
 Sionna's scene is shared with the twin's tracer: :func:`compute_radio_map`
 adds its own transmitters and isotropic arrays only for the duration of
@@ -40,6 +43,7 @@ import numpy as np
 from engine.npzfile import NpzRecord, read_npz, write_npz
 from engine.phy.units import thermal_noise_power, watt_to_dbm
 from engine.raytrace.base import device_poses, sionna_orientation, validate_poses
+from engine.raytrace.raw import free_points
 from engine.raytrace.solver_core import load_sionna_rt
 
 log = logging.getLogger(__name__)
@@ -60,6 +64,7 @@ RADIOMAP_ARRAYS = {
     "best_rss_dbm": ("float32", "[ny, nx]", "dBm"),
     "snr_db": ("float32", "[ny, nx]", "dB, best server against thermal noise"),
     "sinr_db": ("float32", "[ny, nx]", "dB, best server, full reuse"),
+    "free": ("bool", "[ny, nx]", "cell centre in free space"),
     "tx_positions": ("float64", "[S, 3]", "m"),
     "tx_power_dbm": ("float64", "[S]", "dBm"),
 }
@@ -238,21 +243,22 @@ def compute_radio_map(scene, tx_names=None, *, cell_size: float = DEFAULT_CELL_M
             diffraction=t.diffraction, seed=seed)
         gain = np.array(rm.path_gain.numpy(), np.float64)          # [S, ny, nx]
         centres = np.array(rm.cell_centers.numpy(), np.float64)     # [ny, nx, 3]
+    free = free_points(sc, centres.reshape(-1, 3)).reshape(centres.shape[:2])
     ofdm, noise = cfg.ofdm, cfg.noise
     noise_w = thermal_noise_power(ofdm.num_subcarriers * ofdm.subcarrier_spacing_hz,
                                   noise.temperature_k, noise.noise_figure_db)
     return radio_map_from_gain(
         gain, names, origin=centres[0, 0, :2], cell_size=float(cell_size), height=h,
         tx_positions=np.array([poses[n].position for n in names], float), tx_power_dbm=power,
-        noise_dbm=float(watt_to_dbm(noise_w)),
+        noise_dbm=float(watt_to_dbm(noise_w)), free=free,
         meta={"frequency_hz": float(cfg.scene.frequency_hz), "samples_per_tx":
               int(samples_per_tx), "max_depth": depth, "seed": seed,
               "scene_hash": scene.content_hash(), "scene": cfg.scene.name})
 
 
 def radio_map_from_gain(gain: np.ndarray, tx_names, *, origin, cell_size: float, height: float,
-                        tx_positions, tx_power_dbm, noise_dbm: float, meta: dict | None = None
-                        ) -> RadioMap:
+                        tx_positions, tx_power_dbm, noise_dbm: float, free=None,
+                        meta: dict | None = None) -> RadioMap:
     """Derive RSS, best server, SNR and SINR from linear path gains.
 
     Args:
@@ -261,6 +267,7 @@ def radio_map_from_gain(gain: np.ndarray, tx_names, *, origin, cell_size: float,
         origin: ``[2]`` m, centre of cell (0, 0); cell_size, height: m.
         tx_positions: ``[S, 3]`` m; tx_power_dbm: ``[S]`` dBm.
         noise_dbm: thermal noise power over the band, dBm.
+        free: ``[ny, nx]`` bool, cells in free space (default: all); the others are NaN.
     """
     gain = np.asarray(gain, np.float64)
     if gain.ndim != 3 or gain.shape[0] != len(tx_names):
@@ -285,6 +292,13 @@ def radio_map_from_gain(gain: np.ndarray, tx_names, *, origin, cell_size: float,
               "tx_positions": np.asarray(tx_positions, np.float64).reshape(-1, 3),
               "tx_power_dbm": np.asarray(tx_power_dbm, np.float64)}
     arrays["best_rss_dbm"][~covered] = -np.inf
+    free = np.ones(gain.shape[1:], bool) if free is None else np.asarray(free, bool)
+    if free.shape != gain.shape[1:]:
+        raise ValueError(f"free: expected shape {gain.shape[1:]}, got {free.shape}")
+    arrays["free"] = free
+    for k in ("path_gain_db", "rss_dbm", "best_rss_dbm", "snr_db", "sinr_db"):
+        arrays[k][..., ~free] = np.nan
+    arrays["best_server"][~free] = -1
     m = {"format": RADIOMAP_FORMAT, "version": RADIOMAP_FORMAT_VERSION,
          "tx_names": list(tx_names), "origin": [float(x) for x in np.asarray(origin)[:2]],
          "cell_size": float(cell_size), "height": float(height),

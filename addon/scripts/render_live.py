@@ -54,6 +54,10 @@ def parse_args(argv=None):
     p.add_argument("--no-closeup", dest="closeup", action="store_false",
                    help="skip the second still per step, close to the robot")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait per step")
+    p.add_argument("--radiomap", type=float, default=None, metavar="CELL",
+                   help="show the engine's floor radio map (cells of CELL m) with its legend")
+    p.add_argument("--radiomap-layer", default="best",
+                   help="radio map layer: an access point's name, best or sinr")
     return p.parse_args(argv)
 
 
@@ -127,8 +131,12 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     step_log = args.out / "steps.jsonl"
     step_log.unlink(missing_ok=True)
+    extra = ("--radiomap", str(args.radiomap)) if args.radiomap is not None else ()
+    scene.isac_live.radiomap_layer = args.radiomap_layer
+    if args.radiomap is not None and args.engine == "BLENDER_WORKBENCH":
+        scene.display.shading.color_type = "TEXTURE"  # the map's image (rays turn grey)
     eng = live.EngineProcess(args.python, args.scene,
-                             ("--rate", "0", "--paused", "--step-log", str(step_log)))
+                             ("--rate", "0", "--paused", "--step-log", str(step_log), *extra))
     session = live.LiveSession(scene, engine=eng)
     p = scene.isac_live
 
@@ -146,6 +154,8 @@ def main(argv=None) -> int:
     written = []
     try:
         wait(lambda: session.client.connected and session.applied["scene"], "connection")
+        if args.radiomap is not None:
+            wait(lambda: session.applied["radiomap"], "radio map")
         if args.circle:  # the lab keeps a circle of radius 1.5 m around (4, 3) free
             session.send_command("set_path", robot=args.robot, path={
                 "kind": "circle", "centre": [4.0, 3.0], "radius": 1.5})

@@ -40,7 +40,12 @@ def test_los_only_map_matches_friis(lab):
     # the 20 dBm APs: RSS is path gain + power
     lit = np.isfinite(rm.path_gain_db)
     assert np.allclose(rm.rss_dbm[lit] - rm.path_gain_db[lit], 20.0, atol=1e-4)
-    assert np.array_equal(np.isneginf(rm.rss_dbm), ~lit)
+    assert np.array_equal(np.isneginf(rm.rss_dbm), np.isneginf(rm.path_gain_db))
+    # cells inside the desk (0.75 m high) and the wall slabs are not free: NaN, not -inf
+    assert np.array_equal(np.isnan(rm.rss_dbm), np.broadcast_to(~rm.free, rm.rss_dbm.shape))
+    ix, iy = rm.cell_of((2.75, 3.0))[::-1]
+    assert not rm.free[iy, ix] and rm.free[rm.cell_of((1.0, 1.0))]
+    assert rm.best_server[iy, ix] == -1
 
 
 def _pathsolver_gain(folder_scene, tx_pos, points, depth):

@@ -76,8 +76,9 @@ def test_plane_image_legend_and_labels(scene):
     texts = {n: bpy.data.objects[rv.LEGEND + n].data.body for n in
              ("_Title", "_Max", "_Mid", "_Min")}
     assert texts == {"_Title": "AP1 RSS (dBm)", "_Max": "-20", "_Mid": "-50", "_Min": "-80"}
-    legend_x = min(v.co.x for v in bpy.data.objects[rv.LEGEND].data.vertices)
-    assert legend_x > 1.5                                                # beside the map
+    legend_y = max(v.co.y for v in bpy.data.objects[rv.LEGEND].data.vertices)
+    assert legend_y < 0.0                                                # in front of the map
+    assert tuple(bpy.data.images[rv.LEGEND].size) == (rv.LEGEND_PIXELS, 1)
     assert bpy.data.objects["ISAC_Live_AP_AP1_Label"].data.body == "AP1"
     assert list(bpy.data.objects["ISAC_Live_AP_AP1"].location)[:2] == pytest.approx([0, 0.5])
 
