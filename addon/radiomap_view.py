@@ -22,7 +22,8 @@ from __future__ import annotations
 
 import bpy
 
-from .live_view import COLLECTION, PREFIX, _material, _object  # noqa: F401 (one collection)
+from . import legend
+from .live_view import COLLECTION, PREFIX, _material, _object
 
 MAP = PREFIX + "RadioMap"
 LEGEND = PREFIX + "RadioMapLegend"
@@ -32,13 +33,8 @@ DEFAULT_LAYER = "best"
 MAP_STOPS = ((0.0, (0.267, 0.005, 0.329)), (0.25, (0.230, 0.322, 0.546)),
              (0.5, (0.128, 0.567, 0.551)), (0.75, (0.369, 0.789, 0.383)),
              (1.0, (0.993, 0.906, 0.144)))
-#: Legend bar: length and height, m; gap to the map's south edge, m.
-LEGEND_SIZE_M = (3.0, 0.25)
+#: Gap between the map's south edge and its legend bar, m.
 LEGEND_GAP_M = 0.35
-#: Pixels of the legend's gradient image.
-LEGEND_PIXELS = 64
-#: Text size of the labels, m.
-TEXT_SIZE_M = 0.22
 
 
 def map_color(t: float) -> tuple[float, float, float]:
@@ -80,83 +76,6 @@ def layer_pixels(lay: dict) -> list[float]:
     return out
 
 
-def _image(name: str, width: int, height: int):
-    img = bpy.data.images.get(name)
-    if img is not None and tuple(img.size) != (width, height):
-        bpy.data.images.remove(img)
-        img = None
-    if img is None:
-        img = bpy.data.images.new(name, width=width, height=height, alpha=True)
-    return img
-
-
-def _textured_material(name: str, image):
-    """Emission from ``image`` (nearest filtering), transparent where alpha is 0."""
-    mat = bpy.data.materials.get(name)
-    if mat is None:
-        mat = bpy.data.materials.new(name)
-        if bpy.app.version < (5, 0, 0):
-            mat.use_nodes = True
-        nt = mat.node_tree
-        nt.nodes.clear()
-        out = nt.nodes.new("ShaderNodeOutputMaterial")
-        tex = nt.nodes.new("ShaderNodeTexImage")
-        tex.name = "map"
-        tex.interpolation = "Closest"
-        em = nt.nodes.new("ShaderNodeEmission")
-        em.inputs["Strength"].default_value = 1.0
-        tr = nt.nodes.new("ShaderNodeBsdfTransparent")
-        mix = nt.nodes.new("ShaderNodeMixShader")
-        nt.links.new(tex.outputs["Color"], em.inputs["Color"])
-        nt.links.new(tex.outputs["Alpha"], mix.inputs["Fac"])
-        nt.links.new(tr.outputs[0], mix.inputs[1])
-        nt.links.new(em.outputs[0], mix.inputs[2])
-        nt.links.new(mix.outputs[0], out.inputs["Surface"])
-        if hasattr(mat, "surface_render_method"):
-            mat.surface_render_method = "BLENDED"
-    mat.node_tree.nodes["map"].image = image
-    return mat
-
-
-def _quad(scene, name: str, x0: float, y0: float, x1: float, y1: float, z: float, mat):
-    mesh = bpy.data.meshes.get(name)
-    if mesh is None:
-        mesh = bpy.data.meshes.new(name)
-    verts = [(x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)]
-    if len(mesh.vertices) == 4:
-        mesh.vertices.foreach_set("co", [c for v in verts for c in v])
-    else:
-        mesh.clear_geometry()
-        mesh.from_pydata(verts, [], [(0, 1, 2, 3)])
-        uv = mesh.uv_layers.new(name="UVMap")
-        uv.data.foreach_set("uv", [0, 0, 1, 0, 1, 1, 0, 1])
-    mesh.update()
-    if mesh.materials:
-        mesh.materials[0] = mat
-    else:
-        mesh.materials.append(mat)
-    return _object(scene, name, mesh)
-
-
-def _text(scene, name: str, body: str, location, size: float = TEXT_SIZE_M):
-    curve = bpy.data.curves.get(name)
-    if curve is None:
-        curve = bpy.data.curves.new(name, type="FONT")
-        curve.size = size
-    if curve.body != body:
-        curve.body = body
-    obj = _object(scene, name, curve)
-    obj.location = location
-    if not curve.materials:
-        curve.materials.append(_material(PREFIX + "LabelText", (1.0, 1.0, 1.0, 1.0),
-                                         emission=True))
-    return obj
-
-
-def _fmt(v: float) -> str:
-    return f"{v:.0f}"
-
-
 def show_layer(scene, msg: dict, name: str | None = None, *, visible: bool = True) -> str:
     """Build or update the map plane, its image and the legend for layer ``name``
     (default :data:`DEFAULT_LAYER`, else the first). Returns the layer shown.
@@ -174,36 +93,22 @@ def show_layer(scene, msg: dict, name: str | None = None, *, visible: bool = Tru
     x0, y0 = ox - c / 2, oy - c / 2
     x1, y1 = x0 + nx * c, y0 + ny * c
     z = float(msg["height"])
-    img = _image(MAP, nx, ny)
+    img = legend.image(MAP, nx, ny)
     img.pixels.foreach_set(layer_pixels(lay))
     img.update()
-    plane = _quad(scene, MAP, x0, y0, x1, y1, z, _textured_material(MAP, img))
+    plane = legend.quad(scene, MAP, x0, y0, x1, y1, z, legend.textured_material(MAP, img))
     plane["isac_layer"] = name
     plane["isac_scene_hash"] = msg["scene_hash"]
     # legend: a horizontal colour bar in front of the map's south edge (what an overview
-    # camera from the south sees), labels under its ends and middle, the title above it
-    lw, lh = LEGEND_SIZE_M
-    lw = min(lw, max(x1 - x0, 1.0))
-    lx0 = x0
-    ly1 = y0 - LEGEND_GAP_M
-    ly0 = ly1 - lh
-    grad = _image(LEGEND, LEGEND_PIXELS, 1)
-    px: list[float] = []
-    for k in range(LEGEND_PIXELS):
-        px.extend((*map_color(k / (LEGEND_PIXELS - 1)), 1.0))
-    grad.pixels.foreach_set(px)
-    grad.update()
-    _quad(scene, LEGEND, lx0, ly0, lx0 + lw, ly1, z, _textured_material(LEGEND, grad))
+    # camera from the south sees)
     lo, hi = float(lay["vmin"]), float(lay["vmax"])
     what = {"dBm": "RSS", "dB": "SINR" if name == "sinr" else "gain"}.get(lay["unit"], "")
     title = f"{'best server' if name == 'best' else name} {what} ({lay['unit']})"
-    ty = ly0 - TEXT_SIZE_M - 0.05
-    labels = [_text(scene, LEGEND + "_Title", title, (lx0 + lw + 0.15, ly0, z)),
-              _text(scene, LEGEND + "_Min", _fmt(lo), (lx0, ty, z)),
-              _text(scene, LEGEND + "_Mid", _fmt((lo + hi) / 2), (lx0 + lw / 2 - 0.15, ty, z)),
-              _text(scene, LEGEND + "_Max", _fmt(hi), (lx0 + lw - 0.3, ty, z))]
+    legend.colour_bar(scene, LEGEND, map_color, lo, hi, title,
+                      (x0, y0 - LEGEND_GAP_M - legend.BAR_SIZE_M[1], z),
+                      length=min(legend.BAR_SIZE_M[0], max(x1 - x0, 1.0)))
     for t in msg.get("tx", []):
-        labels += mark_access_point(scene, t["name"], t["position"])
+        mark_access_point(scene, t["name"], t["position"])
     set_visible(scene, visible)
     return name
 
@@ -227,8 +132,8 @@ def mark_access_point(scene, name: str, position) -> list:
                                         emission=True))
     cone = _object(scene, oname, mesh)
     cone.location = (position[0], position[1], position[2] - 0.02)
-    label = _text(scene, oname + "_Label", name,
-                  (position[0] + 0.1, position[1] + 0.1, position[2] + 0.05))
+    label = legend.text(scene, oname + "_Label", name,
+                        (position[0] + 0.1, position[1] + 0.1, position[2] + 0.05))
     return [cone, label]
 
 

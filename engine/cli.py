@@ -234,7 +234,8 @@ def cmd_radiomap(args) -> int:
         ok = np.isfinite(r)
         print(f"  {n}: RSS {np.median(r[ok]):.1f} dBm median, {r[ok].max():.1f} max; "
               f"best server in {int((rm.best_server == i).sum())} cells; "
-              f"{int((~ok).sum())} cells without a ray")
+              f"{int(np.isneginf(r).sum())} free cells without a ray")
+    print(f"  {int((~rm.free).sum())} of {nx * ny} cells inside walls or furniture (NaN)")
     print(f"wrote {npz} and {png}")
     return 0
 

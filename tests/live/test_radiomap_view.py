@@ -53,7 +53,7 @@ def _pixel(img, ix, iy):
 
 
 def test_plane_image_legend_and_labels(scene):
-    from addon import radiomap_view as rv
+    from addon import legend, radiomap_view as rv
     from addon.live_view import LiveView
 
     view = LiveView()
@@ -78,7 +78,7 @@ def test_plane_image_legend_and_labels(scene):
     assert texts == {"_Title": "AP1 RSS (dBm)", "_Max": "-20", "_Mid": "-50", "_Min": "-80"}
     legend_y = max(v.co.y for v in bpy.data.objects[rv.LEGEND].data.vertices)
     assert legend_y < 0.0                                                # in front of the map
-    assert tuple(bpy.data.images[rv.LEGEND].size) == (rv.LEGEND_PIXELS, 1)
+    assert tuple(bpy.data.images[rv.LEGEND].size) == (legend.BAR_PIXELS, 1)
     assert bpy.data.objects["ISAC_Live_AP_AP1_Label"].data.body == "AP1"
     assert list(bpy.data.objects["ISAC_Live_AP_AP1"].location)[:2] == pytest.approx([0, 0.5])
 
