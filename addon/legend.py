@@ -31,21 +31,24 @@ def _object(scene, name: str, data):
     return obj
 
 
-def _label_material():
-    name = "ISAC_Live_LabelText"
+def _emissive(name: str, rgba):
     mat = bpy.data.materials.get(name)
     if mat is None:
         mat = bpy.data.materials.new(name)
-        mat.diffuse_color = (1.0, 1.0, 1.0, 1.0)
+        mat.diffuse_color = rgba
         if bpy.app.version < (5, 0, 0):
             mat.use_nodes = True
         nt = mat.node_tree
         nt.nodes.clear()
         out = nt.nodes.new("ShaderNodeOutputMaterial")
         em = nt.nodes.new("ShaderNodeEmission")
-        em.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+        em.inputs["Color"].default_value = rgba
         nt.links.new(em.outputs[0], out.inputs["Surface"])
     return mat
+
+
+def _label_material():
+    return _emissive("ISAC_Live_LabelText", (1.0, 1.0, 1.0, 1.0))
 
 
 def fmt(v: float) -> str:
@@ -160,3 +163,26 @@ def colour_bar(scene, name: str, color, lo: float, hi: float, title: str, corner
             text(scene, name + "_Min", fmt(lo), (x0, ty, z)),
             text(scene, name + "_Mid", fmt((lo + hi) / 2), (x0 + length / 2 - 0.15, ty, z)),
             text(scene, name + "_Max", fmt(hi), (x0 + length - 0.3, ty, z))]
+
+
+def mark_access_point(scene, name: str, position) -> list:
+    """A red cone under access point ``name`` pointing at it and its name label
+    (``ISAC_Live_AP_<name>``, ``..._Label``)."""
+    oname = f"ISAC_Live_AP_{name}"
+    mesh = bpy.data.meshes.get(oname)
+    if mesh is None:
+        import math
+
+        mesh = bpy.data.meshes.new(oname)
+        n, r, h = 12, 0.08, 0.16
+        verts = [(0.0, 0.0, 0.0)] + [(r * math.cos(2 * math.pi * k / n),
+                                      r * math.sin(2 * math.pi * k / n), -h) for k in range(n)]
+        faces = [(0, 1 + k, 1 + (k + 1) % n) for k in range(n)] + [tuple(range(n, 0, -1))]
+        mesh.from_pydata(verts, [], faces)
+        mesh.update()
+        mesh.materials.append(_emissive("ISAC_Live_APMarker", (1.0, 0.15, 0.1, 1.0)))
+    cone = _object(scene, oname, mesh)
+    cone.location = (position[0], position[1], position[2] - 0.02)
+    label = text(scene, oname + "_Label", name,
+                 (position[0] + 0.1, position[1] + 0.1, position[2] + 0.05))
+    return [cone, label]

@@ -12,7 +12,8 @@ collection and are named ``ISAC_Live_RadioMap*``:
   the map's south edge) with text objects for the layer and unit (``..._Title``), the scale's
   ends (``..._Min``, ``..._Max``) and its middle (``..._Mid``);
 * access points of the map marked as small cones with a name label
-  (``ISAC_Live_AP_<name>`` and ``ISAC_Live_AP_<name>_Label``).
+  (:func:`legend.mark_access_point`; the live view marks them from the
+  ``scene`` message too).
 
 Pixel ``(ix, iy)`` of the image is cell ``(iy, ix)`` of the message (Blender's
 image rows start at the bottom, the map's rows at its smallest y).
@@ -23,7 +24,7 @@ from __future__ import annotations
 import bpy
 
 from . import legend
-from .live_view import COLLECTION, PREFIX, _material, _object
+from .live_view import COLLECTION, PREFIX
 
 MAP = PREFIX + "RadioMap"
 LEGEND = PREFIX + "RadioMapLegend"
@@ -108,46 +109,21 @@ def show_layer(scene, msg: dict, name: str | None = None, *, visible: bool = Tru
                       (x0, y0 - LEGEND_GAP_M - legend.BAR_SIZE_M[1], z),
                       length=min(legend.BAR_SIZE_M[0], max(x1 - x0, 1.0)))
     for t in msg.get("tx", []):
-        mark_access_point(scene, t["name"], t["position"])
+        legend.mark_access_point(scene, t["name"], t["position"])
     set_visible(scene, visible)
     return name
 
 
-def mark_access_point(scene, name: str, position) -> list:
-    """A red cone under access point ``name`` pointing at it and its name label
-    (``ISAC_Live_AP_<name>``, ``..._Label``)."""
-    oname = f"{PREFIX}AP_{name}"
-    mesh = bpy.data.meshes.get(oname)
-    if mesh is None:
-        import math
-
-        mesh = bpy.data.meshes.new(oname)
-        n, r, h = 12, 0.08, 0.16
-        verts = [(0.0, 0.0, 0.0)] + [(r * math.cos(2 * math.pi * k / n),
-                                      r * math.sin(2 * math.pi * k / n), -h) for k in range(n)]
-        faces = [(0, 1 + k, 1 + (k + 1) % n) for k in range(n)] + [tuple(range(n, 0, -1))]
-        mesh.from_pydata(verts, [], faces)
-        mesh.update()
-        mesh.materials.append(_material(PREFIX + "APMarker", (1.0, 0.15, 0.1, 1.0),
-                                        emission=True))
-    cone = _object(scene, oname, mesh)
-    cone.location = (position[0], position[1], position[2] - 0.02)
-    label = legend.text(scene, oname + "_Label", name,
-                        (position[0] + 0.1, position[1] + 0.1, position[2] + 0.05))
-    return [cone, label]
-
-
 def radiomap_objects(scene) -> list:
-    """The map, legend and label objects that exist now."""
+    """The map and its legend objects that exist now."""
     coll = bpy.data.collections.get(COLLECTION)
     if coll is None:
         return []
-    return [o for o in coll.objects
-            if o.name.startswith(MAP) or o.name.startswith(PREFIX + "AP_")]
+    return [o for o in coll.objects if o.name.startswith(MAP)]
 
 
 def set_visible(scene, visible: bool) -> None:
-    """Show or hide the map, its legend and the access-point labels (viewport and render)."""
+    """Show or hide the map and its legend (viewport and render)."""
     for o in radiomap_objects(scene):
         if o.hide_viewport == visible or o.hide_render == visible:
             o.hide_viewport = not visible

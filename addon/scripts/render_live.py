@@ -89,6 +89,8 @@ def setup_camera(scene, resolution, engine: str, samples: int) -> None:
     r.resolution_x, r.resolution_y = resolution
     r.resolution_percentage = 100
     r.image_settings.file_format = "PNG"
+    # the colour maps' own colours (AgX/Filmic desaturate bright emission towards white)
+    scene.view_settings.view_transform = "Standard"
     if engine == "CYCLES":
         scene.cycles.device = "CPU"
         scene.cycles.samples = samples

@@ -92,12 +92,13 @@ def test_plane_image_legend_and_labels(scene):
     with pytest.raises(KeyError, match="no radio map received yet"):
         rv.select_layer(scene, LiveView(), "AP1")
 
-    # the panel's toggle hides map, legend and labels in viewport and render
+    # the panel's toggle hides map and legend in viewport and render (AP labels stay)
     p.show_radiomap = False
     objs = rv.radiomap_objects(scene)
-    assert len(objs) == 8 and all(o.hide_render and o.hide_viewport for o in objs)
+    assert len(objs) == 6 and all(o.hide_render and o.hide_viewport for o in objs)
     rv.apply_radiomap(scene, dict(_msg(), scene_hash="h2"), view)        # a recomputed map
     assert all(o.hide_render for o in rv.radiomap_objects(scene))        # stays hidden
+    assert not bpy.data.objects["ISAC_Live_AP_AP1_Label"].hide_render
     p.show_radiomap = True
     assert not any(o.hide_render for o in rv.radiomap_objects(scene))
     assert bpy.data.objects[rv.MAP]["isac_scene_hash"] == "h2"
