@@ -158,3 +158,23 @@ def test_cli_writes_png_and_npz(lab, tmp_path, capsys):
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
     assert main(["radiomap", str(folder), "--out", str(tmp_path), "--tx", "robot9"]) == 2
     assert "unknown device 'robot9'" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_map_matches_the_projects_grid_trace(lab):
+    """The issue's check: map path gain against the incoherent sum of the grid trace's path
+    powers at the grid points (engine.raytrace.grid, chain reuse): median within 2 dB."""
+    from engine.raytrace.grid import trace_grid
+
+    rm = compute_radio_map(lab, cell_size=0.25, samples_per_tx=1_000_000)
+    g = trace_grid(lab, rm.tx_names, spacing=0.75, height=rm.height, progress=False, verify=0,
+                   method="sbr")
+    pw = (np.abs(g.arrays["a"]) ** 2 * g.arrays["valid"]).sum(-1)        # [N, S]
+    diffs = []
+    for i in np.flatnonzero(g.arrays["free"]):
+        iy, ix = rm.cell_of(g.points[i, :2])
+        for s in range(2):
+            if rm.free[iy, ix] and np.isfinite(rm.path_gain_db[s, iy, ix]) and pw[i, s] > 0:
+                diffs.append(rm.path_gain_db[s, iy, ix] - 10 * np.log10(pw[i, s]))
+    assert len(diffs) > 40
+    assert np.median(np.abs(diffs)) < 2.0
