@@ -62,18 +62,26 @@ def layer(msg: dict, name: str) -> dict:
                    f"{', '.join(x['name'] for x in msg['layers'])})")
 
 
+#: Colour-table entries of :func:`layer_pixels` (values are quantized to 1/255 of the scale,
+#: as fine as an 8-bit image holds them).
+_LUT = [(*map_color(k / 255), 1.0) for k in range(256)]
+_NONE = (0.0, 0.0, 0.0, 0.0)
+
+
 def layer_pixels(lay: dict) -> list[float]:
     """Flat RGBA ``[ny * nx * 4]`` of a layer on its own scale (``vmin``..``vmax``);
     cells without a value (null) are transparent."""
     lo, hi = float(lay["vmin"]), float(lay["vmax"])
-    span = (hi - lo) or 1.0
+    k = 255.0 / ((hi - lo) or 1.0)
+    lut, none = _LUT, _NONE
     out: list[float] = []
     ext = out.extend
     for v in lay["values"]:
         if v is None:
-            ext((0.0, 0.0, 0.0, 0.0))
+            ext(none)
         else:
-            ext((*map_color((v - lo) / span), 1.0))
+            i = int((v - lo) * k + 0.5)
+            ext(lut[0 if i < 0 else 255 if i > 255 else i])
     return out
 
 
