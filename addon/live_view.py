@@ -42,6 +42,8 @@ RAY_RADIUS_M = 0.004
 #: same power has the same colour in every frame and every scene (the legend shows it).
 RAY_SCALE_DB = (-110.0, -40.0)
 RAYS_LEGEND = PREFIX + "RaysLegend"
+#: Text object with one line per link (SNR, Shannon and MCS rate), behind the scene's north edge.
+METRICS_TEXT = PREFIX + "Metrics"
 #: Emission strength of the rays (1: the colour map's colours, not washed out to white).
 RAY_EMISSION = 1.0
 #: Colours per interaction type (RGBA): LOS/none, specular, diffuse, refraction, diffraction.
@@ -74,6 +76,8 @@ class LiveView:
         self.radiomap: dict | None = None
         #: ``(x_min, y_min, x_max, y_max)`` m of the engine's objects (scene message)
         self.extent: tuple[float, float, float, float] | None = None
+        #: highest z of the engine's objects, m (scene message)
+        self.top_z = 0.0
 
 
 def power_color(t: float) -> tuple[float, float, float, float]:
@@ -379,6 +383,7 @@ def apply_scene(scene, msg: dict, view: LiveView) -> None:
     if lows and highs:
         view.extent = (min(q[0] for q in lows), min(q[1] for q in lows),
                        max(q[0] for q in highs), max(q[1] for q in highs))
+        view.top_z = max(q[2] for q in highs)
     for d in msg["devices"]:
         if d["kind"] == "robot":
             view.robot_models[d["name"]] = d.get("model") or schema.DEFAULT_ROBOT_MODEL
@@ -471,6 +476,34 @@ def apply_metrics(scene, msg: dict, view: LiveView) -> None:
         _set(row, "num_paths", int(m.get("num_paths", 0)))
         _set(row, "los", bool(m.get("los", False)))
     _set(p, "metrics_step", msg["step"])
+    show_metrics_text(scene, msg, view)
+
+
+def metrics_lines(msg: dict) -> list[str]:
+    """One line per link of a ``metrics`` message: SNR (dB), Shannon and MCS rate (Mbit/s)."""
+    out = []
+    for m in msg["links"]:
+        snr = "-" if m["snr_db"] is None else f"{m['snr_db']:.1f} dB"
+        rate = "-" if m["rate_bps"] is None else f"{m['rate_bps'] / 1e6:.0f} Mbit/s"
+        mcs = m.get("mcs_rate_bps")
+        line = f"{m['tx']} -> {m['rx']}: SNR {snr}, {rate}"
+        if mcs is not None:
+            line += f" (MCS {mcs / 1e6:.0f} Mbit/s)"
+        if m.get("los"):
+            line += ", LOS"
+        out.append(line)
+    return out
+
+
+def show_metrics_text(scene, msg: dict, view: LiveView):
+    """The link metrics as text in the 3-D view (``ISAC_Live_Metrics``), flat beyond the
+    scene's north edge at the height of its top (seen over the north wall from the south),
+    with the step number."""
+    x0, y1 = (view.extent[0], view.extent[3]) if view.extent else (0.0, 0.0)
+    body = "\n".join([f"step {msg['step']}"] + metrics_lines(msg))
+    lines = body.count("\n") + 1
+    return legend.text(scene, METRICS_TEXT, body,
+                       (x0, y1 + 0.3 + lines * legend.TEXT_SIZE_M * 1.2, view.top_z))
 
 
 def apply_status(scene, msg: dict, view: LiveView) -> None:

@@ -61,17 +61,36 @@ def parse_args(argv=None):
     return p.parse_args(argv)
 
 
+def scene_extent(scene) -> tuple[Vector, Vector]:
+    """World bounding box of the room's meshes (not the live view's objects), m."""
+    lo = Vector((math.inf,) * 3)
+    hi = Vector((-math.inf,) * 3)
+    for obj in scene.objects:
+        if obj.type != "MESH" or obj.name.startswith("ISAC_Live_"):
+            continue
+        for c in obj.bound_box:
+            w = obj.matrix_world @ Vector(c)
+            lo = Vector(map(min, lo, w))
+            hi = Vector(map(max, hi, w))
+    if not math.isfinite(lo.x):
+        return Vector((0.0, 0.0, 0.0)), Vector((8.0, 6.0, 3.0))
+    return lo, hi
+
+
 def setup_camera(scene, resolution, engine: str, samples: int) -> None:
-    """Oblique view over the lab (ceiling hidden), a sun, a grey world."""
-    lo = Vector((0.0, 0.0, 0.0))
-    hi = Vector((8.0, 6.0, 3.0))
+    """Oblique view over the room from its south side (framed from the meshes' extent;
+    ceiling and south wall hidden), a sun, a grey world."""
+    lo, hi = scene_extent(scene)
+    size = max(hi.x - lo.x, hi.y - lo.y)
     target = (lo + hi) / 2
     target.z = 0.5
     cam = bpy.data.objects.new("LiveCamera", bpy.data.cameras.new("LiveCamera"))
     scene.collection.objects.link(cam)
-    cam.location = Vector((target.x, -2.5, 10.5))
+    # the lab (8 x 6 m) was framed from (4, -2.5, 10.5) with a 22 mm lens: scale that
+    cam.location = Vector((target.x, lo.y - 0.31 * size, 1.31 * size))
     cam.rotation_euler = (target - cam.location).to_track_quat("-Z", "Y").to_euler()
     cam.data.lens = 22
+    cam.data.clip_end = max(100.0, 4 * size)
     scene.camera = cam
     sun = bpy.data.objects.new("LiveSun", bpy.data.lights.new("LiveSun", "SUN"))
     sun.data.energy = 4.0
@@ -82,7 +101,14 @@ def setup_camera(scene, resolution, engine: str, samples: int) -> None:
     scene.world.color = (0.05, 0.05, 0.06)
     for obj in scene.objects:
         # hide what blocks the view from the south: the ceiling and the south wall
-        if any(k in obj.name for k in ("Ceiling", "Cutter", "Wall_1")):
+        if obj.type != "MESH" or obj.name.startswith("ISAC_Live_"):
+            continue
+        b = [obj.matrix_world @ Vector(c) for c in obj.bound_box]
+        zmin = min(v.z for v in b)
+        ymax = max(v.y for v in b)
+        high = max(v.z for v in b) - zmin > 0.6 * (hi.z - lo.z)
+        if (zmin > lo.z + 0.8 * (hi.z - lo.z) or (high and ymax < lo.y + 0.4)
+                or any(k in obj.name for k in ("Ceiling", "Cutter"))):
             obj.hide_render = True
     r = scene.render
     r.engine = engine

@@ -322,3 +322,19 @@ def test_rays_legend_follows_the_colour_mode(scene):
     live_view.apply_paths(scene, _paths(), view)
     assert bar.hide_render and bpy.data.objects[live_view.RAYS_LEGEND + "_Title"].hide_render
     p.ray_color_mode = "POWER"
+
+
+def test_link_metrics_as_text_in_the_scene(scene):
+    from addon import live_view
+
+    view = live_view.LiveView()
+    view.extent = (0.0, 0.0, 8.0, 6.0)
+    live_view.apply_metrics(scene, {"type": "metrics", "step": 4, "links": [
+        {"tx": "AP1", "rx": "robot1", "snr_db": 35.24, "rate_bps": 1.34e9,
+         "mcs_rate_bps": 6.23e8, "los": True},
+        {"tx": "AP2", "rx": "robot1", "snr_db": None, "rate_bps": None}]}, view)
+    obj = bpy.data.objects[live_view.METRICS_TEXT]
+    assert obj.data.body.splitlines() == [
+        "step 4", "AP1 -> robot1: SNR 35.2 dB, 1340 Mbit/s (MCS 623 Mbit/s), LOS",
+        "AP2 -> robot1: SNR -, -"]
+    assert obj.location.y > 6.0
