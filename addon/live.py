@@ -354,7 +354,7 @@ class LiveSession:
 
     def tick(self) -> list[dict]:
         """Connect/read/apply/send once; returns the messages applied."""
-        from . import live_view
+        from . import live_view, radiomap_view
 
         t0 = time.perf_counter()
         if self.engine is not None and self.client.state == IDLE:
@@ -373,7 +373,10 @@ class LiveSession:
         if scene is None:
             return msgs
         for m in msgs:
-            live_view.apply_message(scene, m, self.view)
+            if m["type"] == "radiomap":
+                radiomap_view.apply_radiomap(scene, m, self.view)
+            else:
+                live_view.apply_message(scene, m, self.view)
             self.applied[m["type"]] += 1
             if m["type"] == "state" and m.get("scene_hash"):
                 self.engine_scene_hash = m["scene_hash"]

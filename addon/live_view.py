@@ -27,7 +27,7 @@ import time
 import bpy
 from mathutils import Matrix, Vector
 
-from . import schema
+from . import legend, schema
 from .exporter import safe_name
 from .modelling import get_collection
 
@@ -37,8 +37,14 @@ RAYS = PREFIX + "Rays"
 RAY_COLOR_ATTR = "ray_color"
 #: Ray radius in the render, m.
 RAY_RADIUS_M = 0.004
-#: Dynamic range of the power colour map, dB below the strongest path.
-POWER_RANGE_DB = 40.0
+#: Fixed colour scale of ray power, path gain ``10 log10 |a|^2`` in dB (low, high): the
+#: same power has the same colour in every frame and every scene (the legend shows it).
+RAY_SCALE_DB = (-110.0, -40.0)
+RAYS_LEGEND = PREFIX + "RaysLegend"
+#: Text object with one line per link (SNR, Shannon and MCS rate), behind the scene's north edge.
+METRICS_TEXT = PREFIX + "Metrics"
+#: Emission strength of the rays (1: the colour map's colours, not washed out to white).
+RAY_EMISSION = 1.0
 #: Colours per interaction type (RGBA): LOS/none, specular, diffuse, refraction, diffraction.
 TYPE_COLORS = {0: (1.0, 1.0, 1.0, 1.0), 1: (0.1, 0.6, 1.0, 1.0), 2: (0.9, 0.8, 0.1, 1.0),
                4: (0.2, 0.9, 0.3, 1.0), 8: (1.0, 0.2, 0.8, 1.0)}
@@ -65,6 +71,12 @@ class LiveView:
         #: radar track id -> positions (m), for the track trails
         self.tracks: dict[int, collections.deque] = {}
         self.num_detections = 0
+        #: the last ``radiomap`` message (addon/radiomap_view.py shows its layers)
+        self.radiomap: dict | None = None
+        #: ``(x_min, y_min, x_max, y_max)`` m of the engine's objects (scene message)
+        self.extent: tuple[float, float, float, float] | None = None
+        #: highest z of the engine's objects, m (scene message)
+        self.top_z = 0.0
 
 
 def power_color(t: float) -> tuple[float, float, float, float]:
@@ -271,8 +283,12 @@ def ensure_rays(scene):
     obj = bpy.data.objects.get(RAYS)
     if obj is None:
         cv = bpy.data.hair_curves.new(RAYS)
-        cv.materials.append(_material(PREFIX + "Rays", (1.0, 1.0, 1.0, 1.0), emission=True,
-                                      attribute=RAY_COLOR_ATTR))
+        mat = _material(PREFIX + "Rays", (1.0, 1.0, 1.0, 1.0), emission=True,
+                        attribute=RAY_COLOR_ATTR)
+        for node in mat.node_tree.nodes:
+            if node.type == "EMISSION":
+                node.inputs["Strength"].default_value = RAY_EMISSION
+        cv.materials.append(mat)
         obj = _object(scene, RAYS, cv)
         obj.visible_shadow = False  # light paths, not things: no shadows on the room
     return obj
@@ -283,7 +299,8 @@ def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0):
 
     Args:
         msg: a ``paths`` message.
-        mode: ``"POWER"`` (colour by path power, strongest = yellow) or ``"TYPE"``
+        mode: ``"POWER"`` (colour by path power on :data:`RAY_SCALE_DB`, strong = yellow)
+            or ``"TYPE"``
             (each point coloured by the interaction it is: specular blue,
             diffuse yellow, refraction green, diffraction magenta, ends white).
         max_paths: at most this many paths per link (0 = all that were sent).
@@ -292,7 +309,8 @@ def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0):
         ``(sizes [C], positions [3 P] flat, colours [4 P] flat)`` as lists.
     """
     links = msg["links"]
-    top = max((p["power_db"] for lk in links for p in lk["paths"]), default=0.0)
+    lo, hi = RAY_SCALE_DB
+    span = hi - lo
     sizes, pos, col = [], [], []
     tc = TYPE_COLORS
     for lk in links:
@@ -308,7 +326,7 @@ def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0):
                     col += tc.get(t, tc[0])
                 col += tc[0]
             else:
-                c = power_color(1.0 + (p["power_db"] - top) / POWER_RANGE_DB)
+                c = power_color((p["power_db"] - lo) / span)
                 col += c * len(pts)
     return sizes, pos, col
 
@@ -347,6 +365,11 @@ def _set(props, key, value):
         setattr(props, key, value)
 
 
+def _label_at(position) -> tuple[float, float, float]:
+    """Where a robot's name label sits: beside and above its base, m."""
+    return (position[0] + 0.15, position[1] + 0.15, position[2] + 0.3)
+
+
 def apply_scene(scene, msg: dict, view: LiveView) -> None:
     """``scene``: remember devices, create robot proxies at their configured poses."""
     p = _props(scene)
@@ -354,12 +377,22 @@ def apply_scene(scene, msg: dict, view: LiveView) -> None:
     _set(p, "scene_hash", msg["content_hash"][:16])
     view.trails.clear()
     view.estimates.clear()
+    lows = [o["bounds_min"] for o in msg["objects"] if "bounds_min" in o]
+    highs = [o["bounds_max"] for o in msg["objects"] if "bounds_max" in o]
+    if lows and highs:
+        view.extent = (min(q[0] for q in lows), min(q[1] for q in lows),
+                       max(q[0] for q in highs), max(q[1] for q in highs))
+        view.top_z = max(q[2] for q in highs)
     for d in msg["devices"]:
         if d["kind"] == "robot":
             view.robot_models[d["name"]] = d.get("model") or schema.DEFAULT_ROBOT_MODEL
             obj = ensure_robot(scene, d["name"], view.robot_models[d["name"]])
             obj.location = d["position"]
             obj.rotation_euler = d.get("orientation") or (0.0, 0.0, 0.0)
+            legend.text(scene, f"{PREFIX}{d['name']}_Label", d["name"],
+                        _label_at(d["position"]))
+        elif d["kind"] == "access_point":
+            legend.mark_access_point(scene, d["name"], d["position"])
 
 
 def apply_state(scene, msg: dict, view: LiveView) -> None:
@@ -373,6 +406,9 @@ def apply_state(scene, msg: dict, view: LiveView) -> None:
         pose = r["pose"]
         obj.location = pose[:3]
         obj.rotation_euler = pose[3:]
+        label = bpy.data.objects.get(f"{PREFIX}{name}_Label")
+        if label is not None:  # follows the robot, stays upright in the world
+            label.location = _label_at(pose)
         trail = view.trails.setdefault(name, collections.deque(maxlen=view.trail_length))
         trail.append((pose[0], pose[1], 0.01))
         _set_trail(scene, f"{name}_trail", trail, (0.1, 0.9, 0.9, 1.0))
@@ -397,9 +433,26 @@ def apply_paths(scene, msg: dict, view: LiveView) -> None:
     visible = p.show_rays if p is not None else True
     sizes, pos, col = ray_arrays(msg, mode, cap)
     set_rays(scene, sizes, pos, col, visible=visible)
+    show_rays_legend(scene, view, visible and mode == "POWER" and bool(sizes))
     view.rays_built += 1
     _set(p, "num_rays", len(sizes))
     _set(p, "paths_step", msg["step"])
+
+
+def show_rays_legend(scene, view: LiveView, visible: bool = True) -> list:
+    """The colour bar of the rays' power scale (:data:`RAY_SCALE_DB`), built once, in front
+    of the scene's south edge right of the radio map's bar; shown or hidden."""
+    objs = [bpy.data.objects.get(RAYS_LEGEND + k) for k in ("", "_Title", "_Min", "_Mid", "_Max")]
+    if visible and not all(objs):
+        x0, y0 = (view.extent[0], view.extent[1]) if view.extent else (0.0, 0.0)
+        lo, hi = RAY_SCALE_DB
+        objs = legend.colour_bar(scene, RAYS_LEGEND, lambda t: power_color(t)[:3], lo, hi,
+                                 "ray path gain (dB)", (x0 + 5.6, y0 - 0.6, 0.25),
+                                 length=1.8)
+    for o in objs:
+        if o is not None and o.hide_render == visible:
+            o.hide_render = o.hide_viewport = not visible
+    return [o for o in objs if o is not None]
 
 
 def apply_metrics(scene, msg: dict, view: LiveView) -> None:
@@ -422,6 +475,34 @@ def apply_metrics(scene, msg: dict, view: LiveView) -> None:
         _set(row, "num_paths", int(m.get("num_paths", 0)))
         _set(row, "los", bool(m.get("los", False)))
     _set(p, "metrics_step", msg["step"])
+    show_metrics_text(scene, msg, view)
+
+
+def metrics_lines(msg: dict) -> list[str]:
+    """One line per link of a ``metrics`` message: SNR (dB), Shannon and MCS rate (Mbit/s)."""
+    out = []
+    for m in msg["links"]:
+        snr = "-" if m["snr_db"] is None else f"{m['snr_db']:.1f} dB"
+        rate = "-" if m["rate_bps"] is None else f"{m['rate_bps'] / 1e6:.0f} Mbit/s"
+        mcs = m.get("mcs_rate_bps")
+        line = f"{m['tx']} -> {m['rx']}: SNR {snr}, {rate}"
+        if mcs is not None:
+            line += f" (MCS {mcs / 1e6:.0f} Mbit/s)"
+        if m.get("los"):
+            line += ", LOS"
+        out.append(line)
+    return out
+
+
+def show_metrics_text(scene, msg: dict, view: LiveView):
+    """The link metrics as text in the 3-D view (``ISAC_Live_Metrics``), flat beyond the
+    scene's north edge at the height of its top (seen over the north wall from the south),
+    with the step number."""
+    x0, y1 = (view.extent[0], view.extent[3]) if view.extent else (0.0, 0.0)
+    body = "\n".join([f"step {msg['step']}"] + metrics_lines(msg))
+    lines = body.count("\n") + 1
+    return legend.text(scene, METRICS_TEXT, body,
+                       (x0, y1 + 0.3 + lines * legend.TEXT_SIZE_M * 1.2, view.top_z))
 
 
 def apply_status(scene, msg: dict, view: LiveView) -> None:

@@ -8,7 +8,7 @@ import bpy
 from bpy.props import (EnumProperty, FloatProperty, FloatVectorProperty, IntProperty,
                        IntVectorProperty, StringProperty)
 
-from . import devices, live, live_view, materials, modelling, placement, schema
+from . import devices, live, live_view, materials, modelling, placement, radiomap_view, schema
 from .exporter import ExportError, export_scene
 from .properties import (PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES, ROOM_PARTS,
                          addon_preferences)
@@ -382,6 +382,23 @@ class ISAC_OT_live_command(_Reporting, bpy.types.Operator):
         live.session().send_command(self.op)
 
 
+class ISAC_OT_live_radiomap_layer(_Reporting, bpy.types.Operator):
+    """Show another layer of the radio map (an access point's RSS, best server or SINR)"""
+
+    bl_idname = "isac.live_radiomap_layer"
+    bl_label = "Radio Map Layer"
+
+    layer: StringProperty(name="Layer")
+
+    @classmethod
+    def poll(cls, context):
+        s = live.session()
+        return s is not None and getattr(s.view, "radiomap", None) is not None
+
+    def run(self, context):
+        radiomap_view.select_layer(context.scene, live.session().view, self.layer)
+
+
 class ISAC_OT_live_clear(_Reporting, bpy.types.Operator):
     """Remove the live view's robots, trails and rays from the scene"""
 
@@ -399,7 +416,7 @@ CLASSES = (ISAC_OT_add_room, ISAC_OT_add_room_polygon, ISAC_OT_add_box, ISAC_OT_
            ISAC_OT_check_placement)
 #: Live-link operators: not undoable (they talk to a process, not to the scene's data).
 LIVE_CLASSES = (ISAC_OT_live_connect, ISAC_OT_live_disconnect, ISAC_OT_live_start_engine,
-                ISAC_OT_live_command, ISAC_OT_live_clear)
+                ISAC_OT_live_command, ISAC_OT_live_radiomap_layer, ISAC_OT_live_clear)
 
 
 def register() -> None:

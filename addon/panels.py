@@ -174,6 +174,15 @@ class ISAC_PT_live(_Base, bpy.types.Panel):
                            f"{' (LOS)' if lk.los else ''}")
             if lk.mcs_rate_bps == lk.mcs_rate_bps:  # not NaN: the engine sent it
                 box.label(text=f"    MCS rate {lk.mcs_rate_bps / 1e6:.1f} Mbit/s")
+        box = layout.box()
+        box.prop(p, "show_radiomap")
+        if p.radiomap_layers:
+            row = box.row(align=True)
+            for name in p.radiomap_layers.split(","):
+                row.operator("isac.live_radiomap_layer", text=name,
+                             depress=name == p.radiomap_layer).layer = name
+        else:
+            box.label(text="no radio map (engine: serve --radiomap 0.25)")
         col = layout.column(align=True)
         col.prop(p, "show_rays")
         col.prop(p, "ray_color_mode")

@@ -166,6 +166,12 @@ RAY_COLOR_MODES = [("POWER", "Power", "Colour rays by path power (strongest yell
                    ("TYPE", "Interaction", "Colour ray points by interaction type")]
 
 
+def _radiomap_visibility(props, context) -> None:
+    from . import radiomap_view
+
+    radiomap_view.set_visible(context.scene, props.show_radiomap)
+
+
 class ISAC_LiveProps(bpy.types.PropertyGroup):
     """Live link settings and the latest engine state shown in the Live panel."""
 
@@ -178,6 +184,15 @@ class ISAC_LiveProps(bpy.types.PropertyGroup):
     max_paths_per_link: IntProperty(name="Rays per link", default=0, min=0,
                                     description="Draw at most this many rays per link "
                                                 "(strongest first; 0 = all sent)")
+    show_radiomap: BoolProperty(name="Show radio map", default=True,
+                                update=_radiomap_visibility,
+                                description="Show the floor radio map and its colour scale "
+                                            "(the engine sends one with serve --radiomap)")
+    radiomap_layer: StringProperty(name="Radio map layer", default="",
+                                   description="Layer shown: an access point's RSS, 'best' "
+                                               "(best server) or 'sinr'")
+    radiomap_layers: StringProperty(name="Radio map layers", default="",
+                                    description="Layers of the last radio map (comma-separated)")
     # state written by the live view (addon/live_view.py)
     connection: StringProperty(name="Connection", default="idle")
     last_error: StringProperty(name="Last error", default="")

@@ -40,7 +40,7 @@ from collections import Counter
 log = logging.getLogger(__name__)
 
 #: Protocol version ``(major, minor)``: bump major for incompatible changes.
-PROTOCOL_VERSION = (1, 0)
+PROTOCOL_VERSION = (1, 1)
 #: Largest frame payload a peer sends or accepts, bytes.
 MAX_FRAME_BYTES = 8 * 1024 * 1024
 #: Deepest nesting of arrays/objects a payload may have (the deepest message, ``paths``,
@@ -102,6 +102,14 @@ def _intvec(n: int):
             return None
         return f"a list of {n} integers"
     return check
+
+
+def _grid_values(v):
+    """A flat map layer: numbers, null where there is no value."""
+    nums = _NUMS
+    if type(v) is list and all(x is None or type(x) in nums for x in v):
+        return None
+    return "a list of numbers or null"
 
 
 def _ints(v):
@@ -211,6 +219,12 @@ _OBJECT = {
     "name": (_str, _R), "material": (_str, _R), "thickness": (_num, _R),
     "bounds_min": (_vec(3), _O), "bounds_max": (_vec(3), _O),
 }
+#: one quantity of a ``radiomap`` (row-major ``[ny * nx]``, null: no ray reached the cell)
+_MAP_LAYER = {
+    "name": (_str, _R), "unit": (_str, _R), "vmin": (_num, _R), "vmax": (_num, _R),
+    "values": (_grid_values, _R),
+}
+_MAP_TX = {"name": (_str, _R), "position": (_vec(3), _R)}
 _DEVICE = {
     "name": (_str, _R), "kind": (_str, _R), "role": (_str, _R), "position": (_vec(3), _R),
     "orientation": (_vec(3), _O), "model": (_opt(_str), _O),
@@ -243,6 +257,12 @@ MESSAGES: dict[str, tuple[frozenset, dict]] = {
     "metrics": (frozenset({"e2v"}), {
         "step": (_int, _R), "links": (_list_of(_record(_LINK_METRICS)), _R),
     }),
+    "radiomap": (frozenset({"e2v"}), {
+        "scene_hash": (_str, _R), "height": (_num, _R), "origin": (_vec(2), _R),
+        "cell_size": (_num, _R), "shape": (_list_of(_int), _R),
+        "layers": (_list_of(_record(_MAP_LAYER)), _R), "tx": (_list_of(_record(_MAP_TX)), _O),
+        "step": (_int, _O),
+    }),
     "status": (frozenset({"e2v"}), {
         "running": (_bool, _R), "step": (_int, _R), "rate_hz": (_num, _O),
         "edits_applied": (_int, _O), "viewers": (_int, _O), "message": (_str, _O),
@@ -260,7 +280,7 @@ MESSAGES: dict[str, tuple[frozenset, dict]] = {
 
 #: Engine -> viewer messages that only matter in their latest version (the server
 #: coalesces them per viewer: a slow viewer gets the newest, drops are counted).
-COALESCED_TYPES = ("state", "paths", "metrics", "status")
+COALESCED_TYPES = ("state", "paths", "metrics", "status", "radiomap")
 
 
 def validate(msg, direction: str | None = None) -> str | None:
@@ -289,6 +309,16 @@ def validate(msg, direction: str | None = None) -> str | None:
                 if len(p["points"]) != len(p["types"]) + 2:
                     return (f"paths: link {lk['tx']}->{lk['rx']} path {i}: {len(p['points'])} "
                             f"points for {len(p['types'])} interactions (expected n + 2)")
+    if t == "radiomap":
+        shape = msg["shape"]
+        if len(shape) != 2 or min(shape) < 1:
+            return f"radiomap: field 'shape' must be [ny, nx] with both >= 1, got {shape}"
+        if not msg["cell_size"] > 0:
+            return f"radiomap: field 'cell_size' must be > 0, got {msg['cell_size']}"
+        for lay in msg["layers"]:
+            if len(lay["values"]) != shape[0] * shape[1]:
+                return (f"radiomap: layer {lay['name']!r}: {len(lay['values'])} values for "
+                        f"shape {shape} (expected {shape[0] * shape[1]})")
     return None
 
 

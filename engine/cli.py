@@ -199,6 +199,56 @@ def cmd_grid(args) -> int:
     return 0
 
 
+def _radiomap_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder: radiomap.npz and radiomap.png")
+    p.add_argument("--cell", type=float, default=0.25, help="cell size, m (default 0.25)")
+    p.add_argument("--height", type=float, default=None,
+                   help="plane height z, m (default: the first robot's antenna height)")
+    p.add_argument("--samples", type=int, default=1_000_000,
+                   help="rays launched per access point (default 1e6)")
+    p.add_argument("--tx", action="append", default=None,
+                   help="access point to map (repeatable; default: every access point)")
+
+
+@command("radiomap", "floor radio map per access point (Sionna RadioMapSolver): NPZ + PNG",
+         _radiomap_args)
+def cmd_radiomap(args) -> int:
+    import time
+
+    import numpy as np
+
+    from engine.radiomap import compute_radio_map, save_radio_map
+    from engine.radiomap_figure import cut_footprints, save_radio_map_png
+    from engine.scene import load_scene
+
+    scene = load_scene(scene_path(args))
+    t0 = time.perf_counter()
+    try:
+        rm = compute_radio_map(scene, args.tx, cell_size=args.cell, height=args.height,
+                               samples_per_tx=args.samples)
+    except ValueError as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
+    dt = time.perf_counter() - t0
+    npz = save_radio_map(rm, args.out / "radiomap.npz")
+    png = save_radio_map_png(rm, args.out / "radiomap.png",
+                             footprints=cut_footprints(scene, rm.height))
+    ny, nx = rm.shape
+    print(f"radio map {nx} x {ny} cells of {rm.cell_size:g} m at z={rm.height:.3f} m, "
+          f"{len(rm.tx_names)} access points, {dt:.2f} s")
+    for i, n in enumerate(rm.tx_names):
+        r = rm.rss_dbm[i]
+        ok = np.isfinite(r)
+        print(f"  {n}: RSS {np.median(r[ok]):.1f} dBm median, {r[ok].max():.1f} max; "
+              f"best server in {int((rm.best_server == i).sum())} cells; "
+              f"{int(np.isneginf(r).sum())} free cells without a ray")
+    print(f"  {int((~rm.free).sum())} of {nx * ny} cells inside walls or furniture (NaN)")
+    print(f"wrote {npz} and {png}")
+    return 0
+
+
 def _run_args(p: argparse.ArgumentParser) -> None:
     _scene_arg(p)
     p.add_argument("--steps", type=int, default=100, help="steps to run (default 100)")
@@ -417,6 +467,11 @@ def _serve_args(p: argparse.ArgumentParser) -> None:
                    help="write the port listened on to this file once listening")
     p.add_argument("--step-log", type=Path, default=None,
                    help="append a JSON line per step (poses, path counts, SNR)")
+    p.add_argument("--radiomap", type=float, default=None, metavar="CELL",
+                   help="stream a floor radio map with cells of CELL m (e.g. 0.25), "
+                        "recomputed after edits")
+    p.add_argument("--radiomap-samples", type=int, default=200_000,
+                   help="rays per access point of the streamed radio map")
 
 
 def _twin_factory(spec: str | None):
@@ -476,13 +531,24 @@ def cmd_serve(args) -> int:
     factory = _twin_factory(args.twin)
     kw = {"asset_dirs": args.asset_dir} if args.asset_dir else {}
     twin = factory.from_scene(scene_path(args), seed=args.seed, **kw)
+    feed = None
     try:
+        if args.radiomap is not None:
+            from engine.live.radiomap_feed import RadioMapFeed
+
+            feed = RadioMapFeed(twin, cell_size=args.radiomap,
+                                samples_per_tx=args.radiomap_samples)
+            feed.prime()
         server = LiveServer(twin, args.host, args.port, token=token, rate_hz=args.rate,
                             max_steps=args.steps, running=not args.paused,
                             max_paths=args.max_paths or wire.DEFAULT_MAX_PATHS_PER_LINK,
-                            step_log=args.step_log)
+                            step_log=args.step_log, on_step=feed)
+        if feed is not None:
+            feed.publish = server.publish
         server.start()
-    except (ValueError, OSError) as exc:
+        if feed is not None:
+            server.publish(feed.last_message)
+    except (ValueError, OSError, wire.WireError) as exc:
         print(f"isac-twin: error: {exc}", file=sys.stderr)
         return 2
     stop = threading.Event()

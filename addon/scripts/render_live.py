@@ -58,6 +58,10 @@ def parse_args(argv=None):
     p.add_argument("--no-closeup", dest="closeup", action="store_false",
                    help="skip the second still per step, close to the robot")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait per step")
+    p.add_argument("--radiomap", type=float, default=None, metavar="CELL",
+                   help="show the engine's floor radio map (cells of CELL m) with its legend")
+    p.add_argument("--radiomap-layer", default="best",
+                   help="radio map layer: an access point's name, best or sinr")
     return p.parse_args(argv)
 
 
@@ -86,6 +90,7 @@ def setup_camera(scene, resolution, engine: str, samples: int) -> None:
     cam.location = Vector((target.x, lo.y - 0.4 * size.y, lo.z + 1.3 * max(size.x, size.y)))
     cam.rotation_euler = (target - cam.location).to_track_quat("-Z", "Y").to_euler()
     cam.data.lens = 22
+    cam.data.clip_end = max(100.0, 4 * size)
     scene.camera = cam
     dg = bpy.context.evaluated_depsgraph_get()
     for obj in scene.objects:
@@ -112,6 +117,8 @@ def setup_camera(scene, resolution, engine: str, samples: int) -> None:
     r.resolution_x, r.resolution_y = resolution
     r.resolution_percentage = 100
     r.image_settings.file_format = "PNG"
+    # the colour maps' own colours (AgX/Filmic desaturate bright emission towards white)
+    scene.view_settings.view_transform = "Standard"
     if engine == "CYCLES":
         scene.cycles.device = "CPU"
         scene.cycles.samples = samples
@@ -161,8 +168,12 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     step_log = args.out / "steps.jsonl"
     step_log.unlink(missing_ok=True)
+    extra = ("--radiomap", str(args.radiomap)) if args.radiomap is not None else ()
+    scene.isac_live.radiomap_layer = args.radiomap_layer
+    if args.radiomap is not None and args.engine == "BLENDER_WORKBENCH":
+        scene.display.shading.color_type = "TEXTURE"  # the map's image (rays turn grey)
     eng = live.EngineProcess(args.python, args.scene,
-                             ("--rate", "0", "--paused", "--step-log", str(step_log)))
+                             ("--rate", "0", "--paused", "--step-log", str(step_log), *extra))
     session = live.LiveSession(scene, engine=eng)
     p = scene.isac_live
 
@@ -180,6 +191,8 @@ def main(argv=None) -> int:
     written = []
     try:
         wait(lambda: session.client.connected and session.applied["scene"], "connection")
+        if args.radiomap is not None:
+            wait(lambda: session.applied["radiomap"], "radio map")
         for k in range(args.steps):
             session.send_command("step")
             wait(lambda: p.step == k and p.paths_step == k and p.metrics_step == k,

@@ -4,6 +4,9 @@
 :class:`~engine.state.StepResult` records into messages; ``server`` runs a
 real :class:`~engine.twin.Twin` in a loop thread and the viewers' sockets in
 an I/O thread. See ``docs/wire.md`` (and its security model).
+
+``radiomap_feed`` streams floor radio maps (``engine.radiomap``) as the
+server's ``on_step`` hook (``isac-twin serve --radiomap CELL``).
 """
 
 from engine.live.server import LiveServer, LiveTwin, is_loopback

@@ -50,7 +50,8 @@ def test_ray_arrays_colour_modes(addon_module):
 
     sizes, pos, col = live_view.ray_arrays(_paths(), "POWER")
     assert sizes == [2, 3, 3] * 2 and len(pos) == 3 * 16 and len(col) == 4 * 16
-    assert tuple(col[:4]) == live_view.power_color(1.0)  # strongest path: top of the map
+    lo, hi = live_view.RAY_SCALE_DB                     # -50 dB on the fixed scale
+    assert tuple(col[:4]) == live_view.power_color((-50.0 - lo) / (hi - lo))
     sizes, pos, col = live_view.ray_arrays(_paths(), "TYPE", max_paths=2)
     assert sizes == [2, 3] * 2
     # second path: tx (white), specular vertex (blue), rx (white)
@@ -320,3 +321,70 @@ def test_edit_tracker_resends_every_edit_since_the_baseline(scene):
     assert {(e["op"], e["target"]) for e in again} == first
     assert next(e for e in again if e["op"] == "add")["mesh_ply"]
     assert tr.poll(scene) == []
+
+
+def test_ray_colour_is_a_fixed_db_scale(addon_module):
+    """The same path power gets the same colour whatever the strongest path of the message
+    (failed before: colours were relative to the strongest path)."""
+    from addon import live_view
+
+    a = _paths(1, 3)                                  # powers -50, -60, -70 dB
+    b = _paths(1, 3)
+    b["links"][0]["paths"][0]["power_db"] = -80.0     # strongest is now -60 dB
+    _, _, ca = live_view.ray_arrays(a, "POWER")
+    _, _, cb = live_view.ray_arrays(b, "POWER")
+    # path 1 (-60 dB) starts at point 2 in both
+    assert tuple(ca[8:12]) == tuple(cb[8:12])
+    lo, hi = live_view.RAY_SCALE_DB
+    assert tuple(ca[8:12]) == live_view.power_color((-60.0 - lo) / (hi - lo))
+
+
+def test_rays_legend_follows_the_colour_mode(scene):
+    from addon import live_view
+
+    view = live_view.LiveView()
+    live_view.apply_scene(scene, {"type": "scene", "name": "s", "content_hash": "h",
+                                  "frequency_hz": 2.4e9, "links": [],
+                                  "devices": [{"name": "AP1", "kind": "access_point",
+                                               "role": "tx", "position": [0, 3, 2]},
+                                              {"name": "robot1", "kind": "robot", "role": "rx",
+                                               "position": [4, 3, 0]}],
+                                  "objects": [{"name": "W", "material": "concrete",
+                                               "thickness": 0.2, "bounds_min": [-0.2, -0.3, 0],
+                                               "bounds_max": [8, 6, 3]}]}, view)
+    assert view.extent == (-0.2, -0.3, 8, 6)
+    assert bpy.data.objects["ISAC_Live_AP_AP1_Label"].data.body == "AP1"
+    assert list(bpy.data.objects["ISAC_Live_AP_AP1"].location)[:2] == [0, 3]
+    lab = bpy.data.objects["ISAC_Live_robot1_Label"]
+    assert lab.data.body == "robot1" and list(lab.location)[:2] == pytest.approx([4.15, 3.15])
+    live_view.apply_state(scene, {"type": "state", "step": 0, "time_s": 0.0, "robots": [
+        {"name": "robot1", "pose": [5, 2, 0, 0, 0, 1], "velocity": [0, 0]}]}, view)
+    assert list(lab.location)[:2] == pytest.approx([5.15, 2.15])      # follows the robot
+    p = scene.isac_live
+    p.ray_color_mode = "POWER"
+    live_view.apply_paths(scene, _paths(), view)
+    bar = bpy.data.objects[live_view.RAYS_LEGEND]
+    texts = {k: bpy.data.objects[live_view.RAYS_LEGEND + k].data.body
+             for k in ("_Title", "_Min", "_Max")}
+    assert texts == {"_Title": "ray path gain (dB)", "_Min": "-110", "_Max": "-40"}
+    assert max(v.co.y for v in bar.data.vertices) < -0.3 and not bar.hide_render
+    p.ray_color_mode = "TYPE"
+    live_view.apply_paths(scene, _paths(), view)
+    assert bar.hide_render and bpy.data.objects[live_view.RAYS_LEGEND + "_Title"].hide_render
+    p.ray_color_mode = "POWER"
+
+
+def test_link_metrics_as_text_in_the_scene(scene):
+    from addon import live_view
+
+    view = live_view.LiveView()
+    view.extent = (0.0, 0.0, 8.0, 6.0)
+    live_view.apply_metrics(scene, {"type": "metrics", "step": 4, "links": [
+        {"tx": "AP1", "rx": "robot1", "snr_db": 35.24, "rate_bps": 1.34e9,
+         "mcs_rate_bps": 6.23e8, "los": True},
+        {"tx": "AP2", "rx": "robot1", "snr_db": None, "rate_bps": None}]}, view)
+    obj = bpy.data.objects[live_view.METRICS_TEXT]
+    assert obj.data.body.splitlines() == [
+        "step 4", "AP1 -> robot1: SNR 35.2 dB, 1340 Mbit/s (MCS 623 Mbit/s), LOS",
+        "AP2 -> robot1: SNR -, -"]
+    assert obj.location.y > 6.0

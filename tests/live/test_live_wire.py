@@ -16,6 +16,14 @@ def _paths_msg():
              "tau_s": 2e-8}]}]}
 
 
+def _radiomap_msg():
+    return {"type": "radiomap", "scene_hash": "ab" * 32, "height": 0.25, "origin": [0.1, 0.1],
+            "cell_size": 0.25, "shape": [2, 3], "step": 4,
+            "layers": [{"name": "AP1", "unit": "dBm", "vmin": -80.0, "vmax": -20.0,
+                        "values": [-30.5, -40, None, -50.0, -60.0, -70.0]}],
+            "tx": [{"name": "AP1", "position": [0, 0, 2]}]}
+
+
 def _all_messages(wire):
     return [
         wire.hello("engine", "isac-twin", capabilities=["state"]),
@@ -34,6 +42,7 @@ def _all_messages(wire):
         {"type": "metrics", "step": 3, "links": [{"tx": "AP1", "rx": "robot1", "snr_db": 20.5,
                                                   "rate_bps": 1e8, "num_paths": 2}]},
         {"type": "status", "running": True, "step": 4, "rate_hz": 10.0, "viewers": 1},
+        _radiomap_msg(),
         wire.edit("move", "Table_1", position=(1, 2, 0.4), orientation=(0, 0, 0.5)),
         wire.edit("material", "Table_1", material="metal", thickness=0.01),
         wire.edit("remove", "Chair_1"),
@@ -208,3 +217,18 @@ def test_the_engine_stream_is_parsed_fast_but_still_totally(wire):
         dec.direction = None  # accept the v2e command that follows
         assert dec.feed(wire.frame_raw(payload) + wire.encode(good)) == [good]
         assert sum(dec.rejections.values()) == 1 and dec.buffered == 0
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"shape": [2, 2]}, r"layer 'AP1': 6 values for shape \[2, 2\] \(expected 4\)"),
+    ({"shape": [0, 3]}, r"'shape' must be \[ny, nx\] with both >= 1"),
+    ({"cell_size": 0}, r"'cell_size' must be > 0"),
+    ({"layers": [{"name": "AP1", "unit": "dBm", "vmin": 0, "vmax": 1,
+                  "values": ["x"] * 6}]}, r"a list of numbers or null"),
+])
+def test_radiomap_faults_are_named(wire, change, match):
+    why = wire.validate(dict(_radiomap_msg(), **change))
+    assert why is not None and why.startswith("radiomap") and __import__("re").search(match, why)
+    dec = wire.Decoder("e2v")
+    assert dec.feed(wire.frame_raw(json.dumps(dict(_radiomap_msg(), **change)).encode())) == []
+    assert dec.rejections["invalid"] == 1

@@ -1,0 +1,188 @@
+"""Colour bars and labels in the 3-D scene: what makes a colour readable in a render.
+
+Plain ``bpy`` helpers shared by the radio map (``radiomap_view``) and the rays
+(``live_view``): an emissive textured rectangle, a flat text label, and
+:func:`colour_bar` (a gradient bar with its title and the values at its ends
+and middle). Everything lies flat at a given height, so an overview camera
+from above reads it; emission makes Cycles, EEVEE and Workbench agree.
+"""
+
+from __future__ import annotations
+
+import bpy
+
+from .modelling import get_collection
+
+#: Bar length and height, m.
+BAR_SIZE_M = (3.0, 0.25)
+#: Pixels along a bar's gradient image.
+BAR_PIXELS = 64
+#: Text size of labels, m.
+TEXT_SIZE_M = 0.22
+#: The live view's collection (``live_view.COLLECTION``, repeated: legend must not import it).
+COLLECTION = "ISAC Live"
+
+
+def _object(scene, name: str, data):
+    obj = bpy.data.objects.get(name)
+    if obj is None:
+        obj = bpy.data.objects.new(name, data)
+        get_collection(scene, COLLECTION).objects.link(obj)
+    return obj
+
+
+def _emissive(name: str, rgba):
+    mat = bpy.data.materials.get(name)
+    if mat is None:
+        mat = bpy.data.materials.new(name)
+        mat.diffuse_color = rgba
+        if bpy.app.version < (5, 0, 0):
+            mat.use_nodes = True
+        nt = mat.node_tree
+        nt.nodes.clear()
+        out = nt.nodes.new("ShaderNodeOutputMaterial")
+        em = nt.nodes.new("ShaderNodeEmission")
+        em.inputs["Color"].default_value = rgba
+        nt.links.new(em.outputs[0], out.inputs["Surface"])
+    return mat
+
+
+def _label_material():
+    return _emissive("ISAC_Live_LabelText", (1.0, 1.0, 1.0, 1.0))
+
+
+def fmt(v: float) -> str:
+    """A scale value as a label (whole dB)."""
+    return f"{v:.0f}"
+
+
+def image(name: str, width: int, height: int):
+    """The image ``name`` of ``width`` x ``height`` pixels (replaced when the size changed)."""
+    img = bpy.data.images.get(name)
+    if img is not None and tuple(img.size) != (width, height):
+        bpy.data.images.remove(img)
+        img = None
+    if img is None:
+        img = bpy.data.images.new(name, width=width, height=height, alpha=True)
+    return img
+
+
+def textured_material(name: str, image):
+    """Emission from ``image`` (nearest filtering), transparent where alpha is 0."""
+    mat = bpy.data.materials.get(name)
+    if mat is None:
+        mat = bpy.data.materials.new(name)
+        if bpy.app.version < (5, 0, 0):
+            mat.use_nodes = True
+        nt = mat.node_tree
+        nt.nodes.clear()
+        out = nt.nodes.new("ShaderNodeOutputMaterial")
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.name = "map"
+        tex.interpolation = "Closest"
+        em = nt.nodes.new("ShaderNodeEmission")
+        em.inputs["Strength"].default_value = 1.0
+        tr = nt.nodes.new("ShaderNodeBsdfTransparent")
+        mix = nt.nodes.new("ShaderNodeMixShader")
+        nt.links.new(tex.outputs["Color"], em.inputs["Color"])
+        nt.links.new(tex.outputs["Alpha"], mix.inputs["Fac"])
+        nt.links.new(tr.outputs[0], mix.inputs[1])
+        nt.links.new(em.outputs[0], mix.inputs[2])
+        nt.links.new(mix.outputs[0], out.inputs["Surface"])
+        if hasattr(mat, "surface_render_method"):
+            mat.surface_render_method = "BLENDED"
+    mat.node_tree.nodes["map"].image = image
+    return mat
+
+
+def quad(scene, name: str, x0: float, y0: float, x1: float, y1: float, z: float, mat):
+    """A horizontal rectangle ``[x0, x1] x [y0, y1]`` at height ``z`` (m), UV 0..1, with
+    material ``mat`` (object and mesh named ``name``)."""
+    mesh = bpy.data.meshes.get(name)
+    if mesh is None:
+        mesh = bpy.data.meshes.new(name)
+    verts = [(x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)]
+    if len(mesh.vertices) == 4:
+        mesh.vertices.foreach_set("co", [c for v in verts for c in v])
+    else:
+        mesh.clear_geometry()
+        mesh.from_pydata(verts, [], [(0, 1, 2, 3)])
+        uv = mesh.uv_layers.new(name="UVMap")
+        uv.data.foreach_set("uv", [0, 0, 1, 0, 1, 1, 0, 1])
+    mesh.update()
+    if mesh.materials:
+        mesh.materials[0] = mat
+    else:
+        mesh.materials.append(mat)
+    return _object(scene, name, mesh)
+
+
+def text(scene, name: str, body: str, location, size: float = TEXT_SIZE_M):
+    """A flat white text object ``name`` reading ``body`` at ``location`` (m)."""
+    curve = bpy.data.curves.get(name)
+    if curve is None:
+        curve = bpy.data.curves.new(name, type="FONT")
+        curve.size = size
+    if curve.body != body:
+        curve.body = body
+    obj = _object(scene, name, curve)
+    obj.location = location
+    if not curve.materials:
+        curve.materials.append(_label_material())
+    return obj
+
+
+
+def colour_bar(scene, name: str, color, lo: float, hi: float, title: str, corner,
+               *, length: float = BAR_SIZE_M[0], height: float = BAR_SIZE_M[1]) -> list:
+    """A horizontal colour bar from ``lo`` (left) to ``hi`` (right) with labels.
+
+    Args:
+        name: object name of the bar; labels are ``name + "_Title"``, ``"_Min"``,
+            ``"_Mid"``, ``"_Max"``.
+        color: ``t in [0, 1] -> (r, g, b)``, the colour map the bar shows.
+        lo, hi: the values at the ends (the labels).
+        title: what the colours mean, with the unit (right of the bar).
+        corner: ``(x, y, z)`` m of the bar's lower-left corner.
+        length, height: m.
+
+    Returns:
+        the bar and its four labels.
+    """
+    x0, y0, z = (float(c) for c in corner)
+    grad = image(name, BAR_PIXELS, 1)
+    px: list[float] = []
+    for k in range(BAR_PIXELS):
+        px.extend((*color(k / (BAR_PIXELS - 1)), 1.0))
+    grad.pixels.foreach_set(px)
+    grad.update()
+    bar = quad(scene, name, x0, y0, x0 + length, y0 + height, z, textured_material(name, grad))
+    ty = y0 - TEXT_SIZE_M - 0.05
+    return [bar,
+            text(scene, name + "_Title", title, (x0 + length + 0.15, y0, z)),
+            text(scene, name + "_Min", fmt(lo), (x0, ty, z)),
+            text(scene, name + "_Mid", fmt((lo + hi) / 2), (x0 + length / 2 - 0.15, ty, z)),
+            text(scene, name + "_Max", fmt(hi), (x0 + length - 0.3, ty, z))]
+
+
+def mark_access_point(scene, name: str, position) -> list:
+    """A red cone under access point ``name`` pointing at it and its name label
+    (``ISAC_Live_AP_<name>``, ``..._Label``)."""
+    oname = f"ISAC_Live_AP_{name}"
+    mesh = bpy.data.meshes.get(oname)
+    if mesh is None:
+        import math
+
+        mesh = bpy.data.meshes.new(oname)
+        n, r, h = 12, 0.08, 0.16
+        verts = [(0.0, 0.0, 0.0)] + [(r * math.cos(2 * math.pi * k / n),
+                                      r * math.sin(2 * math.pi * k / n), -h) for k in range(n)]
+        faces = [(0, 1 + k, 1 + (k + 1) % n) for k in range(n)] + [tuple(range(n, 0, -1))]
+        mesh.from_pydata(verts, [], faces)
+        mesh.update()
+        mesh.materials.append(_emissive("ISAC_Live_APMarker", (1.0, 0.15, 0.1, 1.0)))
+    cone = _object(scene, oname, mesh)
+    cone.location = (position[0], position[1], position[2] - 0.02)
+    label = text(scene, oname + "_Label", name,
+                 (position[0] + 0.1, position[1] + 0.1, position[2] + 0.05))
+    return [cone, label]
