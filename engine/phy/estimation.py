@@ -258,7 +258,10 @@ class MdpEstimator:
         subband: Smoothing window length M [subcarriers]; default ``N // 2``
             (largest aperture). Smaller is faster and less accurate.
         forward_backward: Forward-backward averaging of the covariance.
-        refine: Run the least-squares refinement (step 3).
+        refine: Run the least-squares refinement (step 3) at every order
+            (``True``), only on the order the criterion chose from the
+            ESPRIT fits (``"final"``: about 6x faster, for per-fix budgets),
+            or never (``False``).
         max_distance_m: Drop estimates beyond this path length (aliases).
         min_separation: Near-coincidence threshold [resolution cells
             ``c / (N delta_f)``]; 0.1 = 37.5 cm at 80 MHz.
@@ -277,7 +280,7 @@ class MdpEstimator:
 
     def __init__(self, subcarrier_spacing_hz: float, max_paths: int = 9,
                  order: str | int = "mdl", subband: int | None = None,
-                 forward_backward: bool = True, refine: bool = True,
+                 forward_backward: bool = True, refine: bool | str = True,
                  max_distance_m: float | None = None, min_separation: float = 0.1,
                  max_power_ratio: float = 4.0,
                  dynamic_range_db: float | None = 25.0) -> None:
@@ -289,7 +292,9 @@ class MdpEstimator:
         self.order = order
         self.subband = None if subband is None else positive_int("subband", subband)
         self.forward_backward = bool(forward_backward)
-        self.refine = bool(refine)
+        if refine not in (True, False, "final"):
+            raise ValueError(f"refine must be True, False or 'final', got {refine!r}")
+        self.refine = refine
         self.max_distance_m = (None if max_distance_m is None
                                else positive_float("max_distance_m", max_distance_m))
         if not (np.isfinite(min_separation) and 0 <= min_separation < 1):
@@ -429,7 +434,7 @@ class MdpEstimator:
                 break
             tau = self._esprit(es[:, :k])
             amp, rss = self._fit_amplitudes(h, f, tau)
-            if self.refine:
+            if self.refine is True:
                 tau_r, amp_r, rss_r = self._refine(h, f, tau, h_fit)
                 if np.all(self._circular_m(tau_r - tau) <= cell) and rss_r <= rss:
                     tau, amp, rss = tau_r, amp_r, rss_r
@@ -451,6 +456,12 @@ class MdpEstimator:
             if rss <= _RSS_FLOOR * n * s:
                 break
         _, tau, amp = best
+        if self.refine == "final":
+            _, rss0 = self._fit_amplitudes(h, f, tau)
+            tau_r, amp_r, rss_r = self._refine(h, f, tau, h_fit)
+            if (np.all(self._circular_m(tau_r - tau) <= cell) and rss_r <= rss0
+                    and self._plausible(tau_r, amp_r, cell)):
+                tau, amp = tau_r, amp_r
         power = np.mean(np.abs(amp) ** 2, axis=1) * scale ** 2
         dist = SPEED_OF_LIGHT * tau
         if self.max_distance_m is not None:
