@@ -5,6 +5,9 @@ with a ``name``:
 
 * :class:`MCA`: multipath component analysis on the MDP (the paper's method;
   :class:`~engine.localization.mca.MCALocalizer` underneath).
+* :class:`MCAAngles`: MCA whose matching distance adds the departure
+  direction at multi-antenna APs (joint delay-direction estimation); single
+  antennas fall back to length.
 * :class:`KnnCsi`: weighted kNN on CSI amplitude: ``|H|^2`` in dB averaged
   over the robot's antennas, at a decimated set of subcarriers and every AP
   antenna; the database CSI is synthesized from the database paths with
@@ -26,8 +29,11 @@ import numpy as np
 
 from engine.localization.fingerprints import FingerprintDB
 from engine.localization.mca import MCALocalizer
-from engine.localization.measurements import FeatureSpec, Observation, csi_from_paths
+from engine.localization.measurements import (FeatureSpec, Observation, csi_from_paths,
+                                              front_directions)
 from engine.localization.measurements import db as to_db
+from engine.phy.arrays import r_hat
+from engine.phy.directions import DelayDirectionProfile
 from engine.localization.measurements import pdp_from_paths
 
 log = logging.getLogger(__name__)
@@ -66,6 +72,97 @@ class MCA:
 
     def __call__(self, obs: Observation) -> np.ndarray:
         return self.loc(obs.lengths[:, :self.num_measured]).position
+
+
+class MCAAngles(MCA):
+    """MCA whose matching distance combines path length and departure direction.
+
+    The database fingerprint of every AP with more than one antenna is its
+    ``num_paths`` strongest traced paths with their departure directions
+    ``r_hat(theta_t, phi_t)`` folded into the array's front half-space
+    (:func:`~engine.localization.measurements.front_directions`: the array
+    cannot tell a path leaving backwards from its mirror image); a measured path with a direction (from
+    :attr:`Observation.paths`, i.e. joint delay-direction estimation at that
+    AP) is matched by ``sqrt(dd^2 + (angle_weight_m |k - k_db|)^2)``
+    (:class:`~engine.localization.mca.MCALocalizer`). Single-antenna APs, and
+    observations without directions, fall back to the delay-only MDP.
+
+    Each measured path's score is weighted by its power relative to the
+    strongest path of its AP (estimated clusters that match no single traced
+    path are weak; the line of sight, strong and exact, dominates), and by
+    ``length_only_weight`` at APs without directions (a length is one
+    constraint, a length with a direction three; a delay-only MDP also holds
+    the spurious cluster components the directions would have separated).
+
+    Args:
+        db: the database.
+        spec: the :class:`FeatureSpec` (which APs have arrays, their orientations).
+        angle_weight_m: metres per unit of direction chord.
+        length_only_weight: score weight of APs matched by length only, in [0, 1].
+        power_weighted: weight scores by relative path power (``False``: all 1).
+        eps, k, num_paths, num_measured: as :class:`MCA` (no clustering: the
+            directions separate what the band merges in length).
+    """
+
+    name = "MCA-angles"
+
+    def __init__(self, db: FingerprintDB, spec: FeatureSpec, *, eps: float = 0.5, k: int = 4,
+                 num_paths: int = 9, num_measured: int | None = None,
+                 angle_weight_m: float = 3.0, length_only_weight: float = 0.3,
+                 power_weighted: bool = True) -> None:
+        if not 0 <= length_only_weight <= 1:
+            raise ValueError(f"length_only_weight: expected a value in [0, 1], "
+                             f"got {length_only_weight}")
+        self.length_only_weight = float(length_only_weight)
+        self.power_weighted = bool(power_weighted)
+        free = db.free_indices
+        self.db, self.free, self.spec = db, free, spec
+        self.num_paths = int(num_paths)
+        self.num_measured = int(num_measured or num_paths)
+        self.multi = np.array([spec.arrays[ap].num_ant > 1 for ap in db.ap_names])
+        lengths = db.lengths[free][:, :, :self.num_paths]
+        dirs = r_hat(db.theta_t[free][:, :, :self.num_paths],
+                     db.phi_t[free][:, :, :self.num_paths])  # [P, A, L, 3]
+        for a, ap in enumerate(db.ap_names):
+            dirs[:, a] = front_directions(dirs[:, a], self._orientation(ap))
+        dirs[:, ~self.multi] = np.nan
+        dirs[~np.isfinite(lengths)] = np.nan
+        self.loc = MCALocalizer(db.points[free], lengths, eps=eps, k=k, directions=dirs,
+                                angle_weight_m=angle_weight_m)
+
+    def _orientation(self, ap: str):
+        return self.spec.orientations.get(ap, (0.0, 0.0, 0.0))
+
+    def measured(self, obs: Observation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``[A, J]`` lengths (m), ``[A, J, 3]`` directions (NaN: none) and
+        ``[A, J]`` score weights of ``obs``."""
+        J = self.num_measured
+        A = len(self.db.ap_names)
+        lengths = np.full((A, J), np.nan)
+        dirs = np.full((A, J, 3), np.nan)
+        wts = np.zeros((A, J))
+        for a, ap in enumerate(self.db.ap_names):
+            prof = obs.paths[a] if a < len(obs.paths) else None
+            if self.multi[a] and prof is not None:
+                j = min(len(prof), J)
+                lengths[a, :j] = prof.distances_m[:j]
+                dirs[a, :j] = front_directions(prof.directions[:j], self._orientation(ap))
+                power, scale = np.asarray(prof.powers[:j], float), 1.0
+            else:
+                j = min(obs.lengths.shape[1], J)
+                lengths[a, :j] = obs.lengths[a, :j]
+                power, scale = np.asarray(obs.powers[a, :j], float), self.length_only_weight
+            ok = np.isfinite(lengths[a, :j])
+            if self.power_weighted and ok.any() and power[ok].max() > 0:
+                wts[a, :j] = np.where(ok, np.clip(power / power[ok].max(), 0.0, 1.0), 0.0)
+            else:
+                wts[a, :j] = ok
+            wts[a] *= scale
+        return lengths, dirs, wts
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        lengths, dirs, wts = self.measured(obs)
+        return self.loc(lengths, dirs, wts).position
 
 
 def cluster_lengths(lengths, power, cluster_m: float, keep: int) -> np.ndarray:
@@ -178,9 +275,14 @@ def _robot_name(db: FingerprintDB, spec: FeatureSpec) -> str:
 
 def make_localizers(db: FingerprintDB, spec: FeatureSpec, *, mca: dict | None = None,
                     knn_k: int = 4, pdp_k: int = 4) -> dict:
-    """``{"MCA": MCA, "kNN-CSI": KnnCsi, "PDP": PdpMatch}`` over ``db``."""
-    return {"MCA": MCA(db, **(mca or {})), "kNN-CSI": KnnCsi(db, spec, k=knn_k),
-            "PDP": PdpMatch(db, spec, k=pdp_k)}
+    """``{"MCA": MCA, "MCA-angles": MCAAngles, "kNN-CSI": KnnCsi, "PDP": PdpMatch}``
+    over ``db`` (``mca`` options go to both MCAs; ``cluster_m`` to delay-only MCA only)."""
+    opts = dict(mca or {})
+    ang = {k: v for k, v in opts.items() if k in ("eps", "k", "num_paths", "num_measured",
+                                                   "angle_weight_m")}
+    opts.pop("angle_weight_m", None)
+    return {"MCA": MCA(db, **opts), "MCA-angles": MCAAngles(db, spec, **ang),
+            "kNN-CSI": KnnCsi(db, spec, k=knn_k), "PDP": PdpMatch(db, spec, k=pdp_k)}
 
 
 def observe_database_point(db: FingerprintDB, i: int, spec: FeatureSpec,
@@ -191,7 +293,7 @@ def observe_database_point(db: FingerprintDB, i: int, spec: FeatureSpec,
     rx = _robot_name(db, spec)
     lengths = np.full((A, num_paths), np.nan)
     powers = np.zeros((A, num_paths))
-    csi, pdp = [], []
+    csi, pdp, paths = [], [], []
     for a, ap in enumerate(db.ap_names):
         n = int(db.num_paths[i, a])
         j = min(n, num_paths)
@@ -204,4 +306,8 @@ def observe_database_point(db: FingerprintDB, i: int, spec: FeatureSpec,
         csi.append(to_db(np.mean(np.abs(h) ** 2, axis=1)))
         pdp.append(to_db(pdp_from_paths(db.lengths[i, a, :n], db.power[i, a, :n],
                                         spec.pdp_bins_m, spec.grid)))
-    return Observation(lengths, powers, csi, np.array(pdp))
+        paths.append(DelayDirectionProfile(db.lengths[i, a, :j].astype(float),
+                                           r_hat(db.theta_t[i, a, :j], db.phi_t[i, a, :j]),
+                                           db.power[i, a, :j].astype(float))
+                     if spec.arrays[ap].num_ant > 1 else None)
+    return Observation(lengths, powers, csi, np.array(pdp), paths)
