@@ -17,7 +17,8 @@ Modules, one concept each:
   (perturbed) real room localizing against the twin's database, step by step.
 """
 
-from engine.localization.baselines import MCA, KnnCsi, MCAAngles, PdpMatch, make_localizers
+from engine.localization.baselines import (MCA, KnnCsi, LosFix, MCAAngles, PdpMatch,
+                                           make_localizers)
 from engine.localization.deployment import (Deployment, DeploymentSettings, StepRecord,
                                             errors, perturb_scene, summarize)
 from engine.localization.fingerprints import (DatabaseMismatchError, FingerprintDB, attach,
@@ -32,7 +33,7 @@ __all__ = [
     "from_grid", "load_database", "save_database", "attach",
     "FeatureSpec", "Observation", "PilotSettings", "observe_tracer", "observe_pilots",
     "MCALocalizer", "LocationEstimate",
-    "MCA", "MCAAngles", "KnnCsi", "PdpMatch", "make_localizers",
+    "MCA", "MCAAngles", "LosFix", "KnnCsi", "PdpMatch", "make_localizers",
     "Deployment", "DeploymentSettings", "StepRecord", "errors", "summarize",
     "perturb_scene",
 ]

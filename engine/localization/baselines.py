@@ -8,6 +8,8 @@ with a ``name``:
 * :class:`MCAAngles`: MCA whose matching distance adds the departure
   direction at multi-antenna APs (joint delay-direction estimation); single
   antennas fall back to length.
+* :class:`LosFix`: geometric fix from a multi-antenna AP's line-of-sight
+  path (range + azimuth), no database look-up.
 * :class:`KnnCsi`: weighted kNN on CSI amplitude: ``|H|^2`` in dB averaged
   over the robot's antennas, at a decimated set of subcarriers and every AP
   antenna; the database CSI is synthesized from the database paths with
@@ -165,6 +167,59 @@ class MCAAngles(MCA):
         return self.loc(lengths, dirs, wts).position
 
 
+class LosFix:
+    """Geometric fix from one multi-antenna AP's line-of-sight path: range + azimuth.
+
+    The line-of-sight component is the shortest estimated path within
+    ``los_window_db`` of the strongest (:attr:`Observation.paths` of the AP);
+    with the AP position ``a`` and the robot antenna height ``h`` (the
+    database's), the horizontal range is ``r = sqrt(d^2 - (a_z - h)^2)`` and the
+    fix ``a_xy + r k_xy / |k_xy|`` (``k`` the departure direction): range and
+    azimuth only, the elevation of a few-row array being the weakest of the
+    three measurements. No database look-up; the fix is off the floor grid.
+
+    Args:
+        db: the database (AP positions and names, antenna height).
+        spec: the :class:`FeatureSpec` (which APs have arrays).
+        ap: the AP used (default: the first with more than one antenna).
+        los_window_db: power window for the line-of-sight choice, dB.
+
+    Raises:
+        ValueError: no multi-antenna AP.
+    """
+
+    name = "LOS-fix"
+
+    def __init__(self, db: FingerprintDB, spec: FeatureSpec, *, ap: str | None = None,
+                 los_window_db: float = 10.0) -> None:
+        multi = [n for n in db.ap_names if spec.arrays[n].num_ant > 1]
+        if ap is None and not multi:
+            raise ValueError("LOS-fix needs an access point with more than one antenna; "
+                             f"{db.ap_names} are all single antennas")
+        self.ap = ap or multi[0]
+        if self.ap not in multi:
+            raise ValueError(f"ap: {self.ap!r} is not a multi-antenna AP of the database "
+                             f"({multi})")
+        self.index = db.ap_names.index(self.ap)
+        self.position = np.asarray(db.meta["ap_positions"][self.index], float)
+        self.height = db.height
+        self.window = 10 ** (-abs(los_window_db) / 10)
+        self.fallback = db.points[db.free_indices].mean(axis=0)
+
+    def __call__(self, obs: Observation) -> np.ndarray:
+        prof = obs.paths[self.index] if self.index < len(obs.paths) else None
+        if prof is None or len(prof) == 0:
+            return self.fallback.copy()  # nothing measured: the database's centre
+        strong = prof.powers >= prof.powers.max() * self.window
+        j = np.flatnonzero(strong)[np.argmin(prof.distances_m[strong])]
+        d, k = float(prof.distances_m[j]), prof.directions[j]
+        dz = self.position[2] - self.height
+        r = np.sqrt(max(d * d - dz * dz, 0.0))
+        kh = np.hypot(k[0], k[1])
+        u = k[:2] / kh if kh > 0 else np.zeros(2)
+        return np.array([self.position[0] + r * u[0], self.position[1] + r * u[1], self.height])
+
+
 def cluster_lengths(lengths, power, cluster_m: float, keep: int) -> np.ndarray:
     """Merge paths closer than ``cluster_m`` (m) in length, per point and AP.
 
@@ -275,14 +330,18 @@ def _robot_name(db: FingerprintDB, spec: FeatureSpec) -> str:
 
 def make_localizers(db: FingerprintDB, spec: FeatureSpec, *, mca: dict | None = None,
                     knn_k: int = 4, pdp_k: int = 4) -> dict:
-    """``{"MCA": MCA, "MCA-angles": MCAAngles, "kNN-CSI": KnnCsi, "PDP": PdpMatch}``
-    over ``db`` (``mca`` options go to both MCAs; ``cluster_m`` to delay-only MCA only)."""
+    """``{"MCA": MCA, "MCA-angles": MCAAngles, "LOS-fix": LosFix, "kNN-CSI": KnnCsi,
+    "PDP": PdpMatch}`` over ``db`` (``mca`` options go to both MCAs, ``cluster_m``
+    to delay-only MCA only; ``LOS-fix`` only if an AP has more than one antenna)."""
     opts = dict(mca or {})
     ang = {k: v for k, v in opts.items() if k in ("eps", "k", "num_paths", "num_measured",
                                                    "angle_weight_m")}
     opts.pop("angle_weight_m", None)
-    return {"MCA": MCA(db, **opts), "MCA-angles": MCAAngles(db, spec, **ang),
-            "kNN-CSI": KnnCsi(db, spec, k=knn_k), "PDP": PdpMatch(db, spec, k=pdp_k)}
+    locs = {"MCA": MCA(db, **opts), "MCA-angles": MCAAngles(db, spec, **ang)}
+    if any(spec.arrays[n].num_ant > 1 for n in db.ap_names):
+        locs["LOS-fix"] = LosFix(db, spec)
+    locs.update({"kNN-CSI": KnnCsi(db, spec, k=knn_k), "PDP": PdpMatch(db, spec, k=pdp_k)})
+    return locs
 
 
 def observe_database_point(db: FingerprintDB, i: int, spec: FeatureSpec,

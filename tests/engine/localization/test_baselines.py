@@ -150,3 +150,49 @@ def test_mca_angles_on_pilots_beats_delay_only_mca_off_the_tuned_path(lab, fine_
     assert np.median(err_a) < 0.25, err_a
     assert max(err_a) < 0.7, err_a
     assert np.median(err_a) < 0.5 * np.median(err_d), (err_a, err_d)
+
+
+def _tiny_db(ap1_pos=(0.05, 3.0, 2.0), height=0.25):
+    """A 2-point database (real FingerprintDB) carrying only what LosFix reads."""
+    from engine.localization.fingerprints import FingerprintDB
+
+    meta = {"ap_names": ["AP1", "AP2"], "ap_positions": [list(ap1_pos), [4.0, 0.05, 2.0]],
+            "height": height}
+    arrays = {"points": np.array([[1.0, 1.0, height], [3.0, 5.0, height]]),
+              "free": np.array([True, True])}
+    return FingerprintDB(meta=meta, arrays=arrays)
+
+
+def test_los_fix_is_range_and_azimuth_from_the_shortest_strong_path():
+    from engine.localization.baselines import LosFix
+    from engine.localization.measurements import Observation
+    from engine.phy.arrays import PlanarArray
+    from engine.phy.directions import DelayDirectionProfile
+
+    db = _tiny_db()
+    spec = FeatureSpec(None, 2.4e9, {"AP1": PlanarArray(4, 8), "AP2": PlanarArray(1, 1),
+                                     "robot1": PlanarArray(1, 2)}, np.arange(2))
+    ap = np.array([0.05, 3.0, 2.0])
+    p = np.array([2.7, 1.9, 0.25])
+    los = p - ap
+    d = np.linalg.norm(los)
+    refl = np.array([0.2, 0.9, -0.3]) / np.linalg.norm([0.2, 0.9, -0.3])
+    prof = DelayDirectionProfile(np.array([d + 2.0, d, d + 5.0]),
+                                 np.stack([refl, los / d, refl]), np.array([2.0, 1.0, 0.01]))
+    obs = Observation(np.full((2, 1), np.nan), np.zeros((2, 1)), [], np.zeros((2, 1)),
+                      [prof, None])
+    np.testing.assert_allclose(LosFix(db, spec)(obs), p, atol=1e-12)
+    # an elevation error does not move the fix (range + azimuth only)
+    k = los / d + [0.0, 0.0, 0.05]
+    prof2 = DelayDirectionProfile(np.array([d]), (k / np.linalg.norm(k))[None], np.ones(1))
+    obs.paths = [prof2, None]
+    np.testing.assert_allclose(LosFix(db, spec)(obs), p, atol=1e-12)
+    # nothing measured -> the database's centre, not a crash
+    obs.paths = [None, None]
+    np.testing.assert_allclose(LosFix(db, spec)(obs), [2.0, 3.0, 0.25])
+    single = FeatureSpec(None, 2.4e9, {"AP1": PlanarArray(1, 1), "AP2": PlanarArray(1, 1)},
+                         np.arange(2))
+    with pytest.raises(ValueError, match="more than one antenna"):
+        LosFix(db, single)
+    with pytest.raises(ValueError, match="'AP2' is not a multi-antenna AP"):
+        LosFix(db, spec, ap="AP2")

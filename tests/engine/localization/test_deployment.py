@@ -65,7 +65,8 @@ def test_case_study_writes_metrics(lab, lab_db, tmp_path):
     for run in ("paper_mode",):
         for k in ("positioning", "modelling", "estimate_vs_truth", "odometry_vs_truth"):
             assert set(data[run]["errors"][k]) == {"rmse", "median", "p90", "max"}
-    assert {r["method"] for r in data["table"]} == {"MCA", "MCA-angles", "kNN-CSI", "PDP"}
+    assert {r["method"] for r in data["table"]} == {"MCA", "MCA-angles", "LOS-fix", "kNN-CSI",
+                                                   "PDP"}
     assert {r["room"] for r in data["table"]} == {"twin", "perturbed"}
     for f in data["figures"]:
         assert Path(f).exists()
