@@ -24,6 +24,7 @@ from engine.localization.deployment import (Deployment, DeploymentSettings, Step
 from engine.localization.fingerprints import (DatabaseMismatchError, FingerprintDB, attach,
                                               build_database, cached_database, from_grid,
                                               load_database, save_database)
+from engine.localization.fusion import PoseEKF
 from engine.localization.mca import LocationEstimate, MCALocalizer
 from engine.localization.measurements import (FeatureSpec, Observation, PilotSettings,
                                               observe_pilots, observe_tracer)
@@ -32,7 +33,7 @@ __all__ = [
     "FingerprintDB", "DatabaseMismatchError", "build_database", "cached_database",
     "from_grid", "load_database", "save_database", "attach",
     "FeatureSpec", "Observation", "PilotSettings", "observe_tracer", "observe_pilots",
-    "MCALocalizer", "LocationEstimate",
+    "MCALocalizer", "LocationEstimate", "PoseEKF",
     "MCA", "MCAAngles", "LosFix", "KnnCsi", "PdpMatch", "make_localizers",
     "Deployment", "DeploymentSettings", "StepRecord", "errors", "summarize",
     "perturb_scene",
