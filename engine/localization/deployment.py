@@ -26,8 +26,10 @@ either straight from the tracer's delays (``mode="tracer"``) or estimated
 from received pilots at ``snr_db`` (``mode="pilots"``); the robot localizes
 with it (**estimate**). Open loop: the controller steers on odometry.
 Closed loop: it steers on a complementary filter of the estimate and the
-odometry increments (``alpha`` weight of the estimate; estimates farther
-than ``gate_m`` from the prediction are ignored as outliers).
+odometry increments (``fusion="blend"``: ``alpha`` weight of the estimate;
+estimates farther than ``gate_m`` from the prediction are ignored as
+outliers), or on an EKF over the odometry with the estimates as
+Mahalanobis-gated fixes (``fusion="ekf"``, :mod:`engine.localization.fusion`).
 """
 
 from __future__ import annotations
@@ -38,8 +40,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.localization.baselines import MCA, KnnCsi, PdpMatch
+from engine.localization.baselines import MCA, KnnCsi, LosFix, MCAAngles, PdpMatch
 from engine.localization.fingerprints import FingerprintDB, attach
+from engine.localization.fusion import PoseEKF
 from engine.localization.measurements import (FeatureSpec, PilotSettings, observe_pilots,
                                               observe_tracer)
 from engine.phy.network import NetworkPHY
@@ -97,6 +100,11 @@ def perturb_scene(scene: TwinScene, *, seed: int = 0, shift_std: float = 0.03,
     return {"moved": moved, "material": changed}
 
 
+#: Localizers a deployment can run, with the observation features each needs.
+METHODS = {"MCA": ("mdp",), "MCA-angles": ("mdp", "dirs"), "LOS-fix": ("dirs",),
+           "PDP": ("pdp",), "kNN-CSI": ("csi",)}
+
+
 @dataclass
 class DeploymentSettings:
     """How the deployment loop runs.
@@ -113,7 +121,13 @@ class DeploymentSettings:
         calib_std: ``(m, deg)`` std of the twin's initial-point mapping error.
         path: the path spec the robot follows.
         robot: robot name (default: the first robot).
-        method: localizer: ``"MCA"`` (the paper's), ``"PDP"`` or ``"kNN-CSI"``.
+        method: localizer: ``"MCA"`` (the paper's), ``"MCA-angles"``,
+            ``"LOS-fix"``, ``"PDP"`` or ``"kNN-CSI"``.
+        fusion: closed loop: ``"blend"`` (odometry-predicted pose blended with
+            gated estimates, weight ``alpha``) or ``"ekf"``
+            (:class:`~engine.localization.fusion.PoseEKF` over odometry with
+            the estimates as gated fixes; the recorded estimate is then the
+            fused antenna position).
         mca: :class:`~engine.localization.baselines.MCA` keyword arguments.
         num_paths: measured MDP entries (J).
     """
@@ -132,14 +146,18 @@ class DeploymentSettings:
     method: str = "MCA"
     mca: dict = field(default_factory=dict)
     num_paths: int = 9
+    fusion: str = "blend"
 
     def __post_init__(self):
         if self.source not in ("twin", "real"):
             raise ValueError(f"source: expected 'twin' or 'real', got {self.source!r}")
         if self.mode not in ("tracer", "pilots"):
             raise ValueError(f"mode: expected 'tracer' or 'pilots', got {self.mode!r}")
-        if self.method not in ("MCA", "PDP", "kNN-CSI"):
-            raise ValueError(f"method: expected 'MCA', 'PDP' or 'kNN-CSI', got {self.method!r}")
+        if self.method not in METHODS:
+            raise ValueError(f"method: expected one of {', '.join(map(repr, METHODS))}, "
+                             f"got {self.method!r}")
+        if self.fusion not in ("blend", "ekf"):
+            raise ValueError(f"fusion: expected 'blend' or 'ekf', got {self.fusion!r}")
         if not 0 < self.alpha <= 1:
             raise ValueError(f"alpha: expected 0 < alpha <= 1, got {self.alpha}")
 
@@ -200,6 +218,10 @@ class Deployment:
         if localizer is None:
             if s.method == "MCA":
                 localizer = MCA(db, **{"num_paths": s.num_paths, **s.mca})
+            elif s.method == "MCA-angles":
+                localizer = MCAAngles(db, self.spec, num_paths=s.num_paths)
+            elif s.method == "LOS-fix":
+                localizer = LosFix(db, self.spec)
             elif s.method == "PDP":
                 localizer = PdpMatch(db, self.spec)
             else:
@@ -216,6 +238,9 @@ class Deployment:
         bounds = (real_scene.bounds_min[:2], real_scene.bounds_max[:2])
         self._ctl = controller_from_spec(s.path, agent.spec, bounds=bounds)
         self.nav = self.start.copy()  # the pose the controller steers on [x, y, yaw]
+        self.ekf = (PoseEKF(self.start, self.start,
+                            antenna_offset=tuple(self.dev.antenna_offset[:2]))
+                    if s.closed_loop and s.fusion == "ekf" else None)
         self._last_odom = self.start.copy()
         self.reality.set_controller(self.robot, self._control)
         # In the paper's mode the real room's links serve only the rates: trace
@@ -256,8 +281,7 @@ class Deployment:
         if self.settings.mode == "tracer":
             return observe_tracer(links, self.spec, self.settings.num_paths)
         chans = [self.phy.channel(lp) for lp in links]
-        need = {"MCA": ("mdp",), "PDP": ("pdp",), "kNN-CSI": ("csi",)}.get(
-            self.settings.method, ("mdp", "csi", "pdp"))
+        need = METHODS.get(self.settings.method, ("mdp", "csi", "pdp", "dirs"))
         return observe_pilots(links, chans, self.spec, self.pilots, self.settings.num_paths,
                               rng=self.rng, features=need)
 
@@ -279,7 +303,14 @@ class Deployment:
         # navigation pose for the next control
         d_odom = odom - self._last_odom
         self._last_odom = odom
-        if s.closed_loop:
+        if self.ekf is not None:
+            self.ekf.predict(odom)
+            if not self.ekf.update(est[:2]):
+                self.rejected += 1
+            self.nav = self.ekf.pose
+            est = np.array([*self.ekf.antenna_xy, est[2]])
+            rs.estimate = est
+        elif s.closed_loop:
             pred = self.nav + d_odom
             if np.linalg.norm(est[:2] - pred[:2]) <= s.gate_m:
                 pred[:2] = (1 - s.alpha) * pred[:2] + s.alpha * est[:2]

@@ -19,7 +19,9 @@ PATH = {"kind": "circle", "centre": [2.5, 2.0], "radius": 0.8}
     DeploymentSettings(source="twin", mode="tracer", path=PATH),
     DeploymentSettings(source="real", mode="pilots", snr_db=20.0, closed_loop=True,
                        method="PDP", path=PATH),
-], ids=["paper", "closed-loop-pilots"])
+    DeploymentSettings(source="real", mode="pilots", snr_db=20.0, closed_loop=True,
+                       method="MCA-angles", fusion="ekf", path=PATH),
+], ids=["paper", "closed-loop-pilots", "closed-loop-ekf-angles"])
 def test_loop_produces_four_positions_and_finite_errors(lab, lab_db, settings):
     dep = Deployment(lab, lab_db, settings, seed=1, dt=0.25, rate_every=2)
     recs = dep.run(3)
@@ -73,3 +75,10 @@ def test_case_study_writes_metrics(lab, lab_db, tmp_path):
     assert (tmp_path / "out" / "table.md").read_text().count("| MCA |") == 2
     assert any("paper mode" in x for x in lines)
     assert m["paper_reference"]["max_positioning_m"] == 0.16
+
+
+def test_deployment_settings_refuse_unknown_method_and_fusion():
+    with pytest.raises(ValueError, match="method: expected one of 'MCA', 'MCA-angles'"):
+        DeploymentSettings(method="MCA+")
+    with pytest.raises(ValueError, match="fusion: expected 'blend' or 'ekf'"):
+        DeploymentSettings(fusion="ukf")
