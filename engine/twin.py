@@ -89,6 +89,9 @@ class Twin:
         estimators: stage-5 callables, run in order.
         sensing: run the config's ``[[sensing]]`` radar links (stage "sense",
             before the estimators; see :meth:`_build_sensing`).
+        localize: run the config's ``[localization]`` (a
+            :class:`~engine.localization.estimator.TwinLocalizer` appended to
+            the estimators; it fills ``robots[r].estimate`` every step).
 
     Hooks (the supported way to change how a twin steps; never replace a method
     of a live twin or agent):
@@ -103,7 +106,8 @@ class Twin:
 
     def __init__(self, scene: TwinScene, *, seed: int = 0, dt: float = 0.05,
                  sensors: SensorOptions | None = None, tracer=None, phy: bool = True,
-                 estimators: list[Estimator] | None = None, sensing: bool = True) -> None:
+                 estimators: list[Estimator] | None = None, sensing: bool = True,
+                 localize: bool = True) -> None:
         if not dt > 0:
             raise ValueError(f"dt: expected a positive step in s, got {dt}")
         self.scene = scene
@@ -115,6 +119,9 @@ class Twin:
         #: the devices' element patterns, applied to every traced link (stage 2)
         self.patterns = AntennaPatterns.from_config(self.config)
         self.estimators: list[Estimator] = list(estimators or [])
+        #: the ``[localization]`` estimator (a TwinLocalizer, last of the
+        #: estimators), or None without that table or with ``localize=False``
+        self.localizer = None
         self.sensing_enabled = bool(sensing) and bool(self.config.sensing)
         #: the ``[[sensing]]`` radar (a RadarEstimator), rebuilt by reset(); None without
         self.radar = None
@@ -137,6 +144,8 @@ class Twin:
         for d in self.config.devices:
             if d.kind == "robot" and d.path is not None:
                 self.set_path(d.name, d.path)
+        if localize and self.config.localization is not None:
+            self._build_localizer()
 
     @classmethod
     def from_scene(cls, path: str | Path, **kw) -> Twin:
@@ -178,6 +187,14 @@ class Twin:
 
         self.radar = RadarEstimator(parse_sensing(self.config), seed=self.seed)
         self.radar.attach(self.bus)
+
+    def _build_localizer(self) -> None:
+        """The ``[localization]`` estimator, appended to :attr:`estimators` once
+        (its fingerprint database is loaded or built now)."""
+        from engine.localization.estimator import TwinLocalizer
+
+        self.localizer = TwinLocalizer.for_twin(self)
+        self.estimators.append(self.localizer)
 
     def reset(self) -> None:
         """Back to the initial state (same seed: the same run again). Room edits and

@@ -344,6 +344,33 @@ def make_localizers(db: FingerprintDB, spec: FeatureSpec, *, mca: dict | None = 
     return locs
 
 
+#: Localizers by name, with the observation features each needs
+#: (:func:`~engine.localization.measurements.observe_pilots` ``features``).
+METHODS = {"MCA": ("mdp",), "MCA-angles": ("mdp", "dirs"), "LOS-fix": ("dirs",),
+           "PDP": ("pdp",), "kNN-CSI": ("csi",)}
+
+
+def make_localizer(method: str, db: FingerprintDB, spec: FeatureSpec, *,
+                   num_paths: int = 9, mca: dict | None = None):
+    """One localizer by name (a key of :data:`METHODS`) over ``db``.
+
+    Raises:
+        ValueError: unknown method (the message lists the known ones).
+    """
+    if method == "MCA":
+        return MCA(db, **{"num_paths": num_paths, **(mca or {})})
+    if method == "MCA-angles":
+        return MCAAngles(db, spec, num_paths=num_paths)
+    if method == "LOS-fix":
+        return LosFix(db, spec)
+    if method == "PDP":
+        return PdpMatch(db, spec)
+    if method == "kNN-CSI":
+        return KnnCsi(db, spec)
+    raise ValueError(f"method: expected one of {', '.join(map(repr, METHODS))}, "
+                     f"got {method!r}")
+
+
 def observe_database_point(db: FingerprintDB, i: int, spec: FeatureSpec,
                            num_paths: int = 9) -> Observation:
     """The tracer-mode observation of database point ``i`` from its stored paths

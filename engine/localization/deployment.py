@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.localization.baselines import MCA, KnnCsi, LosFix, MCAAngles, PdpMatch
+from engine.localization.baselines import METHODS, make_localizer
 from engine.localization.fingerprints import FingerprintDB, attach
 from engine.localization.fusion import PoseEKF
 from engine.localization.measurements import (FeatureSpec, PilotSettings, observe_pilots,
@@ -98,11 +98,6 @@ def perturb_scene(scene: TwinScene, *, seed: int = 0, shift_std: float = 0.03,
     log.info("perturbed room: %d objects moved (shift std %.3f m, yaw std %.1f deg), "
              "material %s", len(moved), shift_std, yaw_std_deg, changed)
     return {"moved": moved, "material": changed}
-
-
-#: Localizers a deployment can run, with the observation features each needs.
-METHODS = {"MCA": ("mdp",), "MCA-angles": ("mdp", "dirs"), "LOS-fix": ("dirs",),
-           "PDP": ("pdp",), "kNN-CSI": ("csi",)}
 
 
 @dataclass
@@ -216,16 +211,8 @@ class Deployment:
         self.dev = cfg.device(self.robot)
         self.spec = FeatureSpec.from_config(cfg)
         if localizer is None:
-            if s.method == "MCA":
-                localizer = MCA(db, **{"num_paths": s.num_paths, **s.mca})
-            elif s.method == "MCA-angles":
-                localizer = MCAAngles(db, self.spec, num_paths=s.num_paths)
-            elif s.method == "LOS-fix":
-                localizer = LosFix(db, self.spec)
-            elif s.method == "PDP":
-                localizer = PdpMatch(db, self.spec)
-            else:
-                localizer = KnnCsi(db, self.spec)
+            localizer = make_localizer(s.method, db, self.spec, num_paths=s.num_paths,
+                                       mca=s.mca)
         self.localizer = localizer
         self.pilots = PilotSettings(snr_db=s.snr_db, seed=seed)
         self.rng = np.random.default_rng([seed, 7])
