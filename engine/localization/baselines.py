@@ -83,9 +83,9 @@ class MCAAngles(MCA):
     ``num_paths`` strongest traced paths with their departure directions
     ``r_hat(theta_t, phi_t)`` folded into the array's front half-space
     (:func:`~engine.localization.measurements.front_directions`: the array
-    cannot tell a path leaving backwards from its mirror image); a measured path with a direction (from
-    :attr:`Observation.paths`, i.e. joint delay-direction estimation at that
-    AP) is matched by ``sqrt(dd^2 + (angle_weight_m |k - k_db|)^2)``
+    cannot tell a path leaving backwards from its mirror image); a measured
+    path with a direction (from :attr:`Observation.paths`, i.e. joint
+    delay-direction estimation at that AP) is matched by ``sqrt(dd^2 + (angle_weight_m |k - k_db|)^2)``
     (:class:`~engine.localization.mca.MCALocalizer`). Single-antenna APs, and
     observations without directions, fall back to the delay-only MDP.
 

@@ -131,7 +131,8 @@ class PoseEKF:
         h = self.antenna_xy
         H = np.zeros((2, 3))
         H[:, :2] = np.eye(2)
-        H[:, 2] = np.array([[-math.sin(t), -math.cos(t)], [math.cos(t), -math.sin(t)]]) @ self.offset
+        dr = np.array([[-math.sin(t), -math.cos(t)], [math.cos(t), -math.sin(t)]])  # dR/dyaw
+        H[:, 2] = dr @ self.offset
         nu = z - h
         S = H @ self.P @ H.T + self.R
         if float(nu @ np.linalg.solve(S, nu)) > self.gate:

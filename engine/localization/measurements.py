@@ -13,7 +13,11 @@ Two measurement modes (``docs/casestudy.md``):
   CSI; the MDP comes from :class:`~engine.phy.estimation.MdpEstimator`
   (TLS-ESPRIT + least squares) on the raw LS values at each port's pilot
   comb, averaged over the 14 symbols, with every (port, receive antenna) as a
-  snapshot. The APs' pilots are assumed orthogonal to each other.
+  snapshot. The APs' pilots are assumed orthogonal to each other. At APs
+  with more than one antenna, :class:`~engine.phy.directions.DelayDirectionEstimator`
+  also estimates each path's departure direction from the same combs
+  (feature ``"dirs"``, :attr:`Observation.paths`; in tracer mode the traced
+  ``theta_t, phi_t``).
 
 SNR in pilot mode is the mean pilot SNR per resource element and receive
 antenna: ``mean |H|^2 |x|^2 / sigma^2`` over the link's antenna pairs.
@@ -25,8 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.phy.arrays import PlanarArray
-from engine.phy.arrays import r_hat, rotation_matrix
+from engine.phy.arrays import PlanarArray, r_hat, rotation_matrix
 from engine.phy.channel import baseband_gains, cfr_at
 from engine.phy.directions import DelayDirectionEstimator, DelayDirectionProfile
 from engine.phy.estimation import LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp

@@ -36,7 +36,8 @@ def test_fused_pose_beats_both_odometry_and_raw_fixes_and_gates_outliers():
     odo = _odometry(truth)
     fixes = truth[:, :2] + rng.normal(0, 0.06, (len(truth), 2))
     outlier = rng.uniform(size=len(truth)) < 0.1
-    fixes[outlier] += rng.choice([-1, 1], (outlier.sum(), 2)) * rng.uniform(0.8, 2.0, (outlier.sum(), 2))
+    n_out = int(outlier.sum())
+    fixes[outlier] += rng.choice([-1, 1], (n_out, 2)) * rng.uniform(0.8, 2.0, (n_out, 2))
     ekf = PoseEKF(truth[0], odo[0], fix_std_m=0.06)
     est = [ekf.antenna_xy]
     for k in range(1, len(truth)):

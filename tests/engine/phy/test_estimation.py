@@ -257,7 +257,8 @@ def _dense(seed, snr_db, n=128, df=8 * DF, num=40, s=2):
     rng = np.random.default_rng(seed)
     f = (np.arange(n) - n // 2) * df
     d = np.concatenate([[3.5], np.sort(rng.uniform(5.0, 30.0, num - 1))])
-    amps = np.sqrt(10 ** (-(d - 3.5) / 5))[:, None] * np.exp(2j * np.pi * rng.uniform(size=(num, s)))
+    phase = np.exp(2j * np.pi * rng.uniform(size=(num, s)))
+    amps = np.sqrt(10 ** (-(d - 3.5) / 5))[:, None] * phase
     h = np.exp(-2j * np.pi * np.outer(f, d / C)) @ amps
     n0 = np.mean(np.abs(h) ** 2) / 10 ** (snr_db / 10)
     return f, h + np.sqrt(n0) * _crandn(rng, *h.shape)
