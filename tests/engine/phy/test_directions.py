@@ -113,3 +113,20 @@ def test_bad_inputs_are_refused():
     with pytest.raises(ValueError, match="port_offsets_hz must have shape"):
         est(np.ones((32, 2, 32)), np.zeros(4))
     assert len(est(np.zeros((32, 2, 32)), np.zeros(32))) == 0
+
+
+def test_a_single_row_array_resolves_azimuth_only():
+    """A 1 x 8 array sees only the direction cosine along its row (local y):
+    that one comes back; the unresolved one is reported as 0."""
+    ula = PlanarArray(1, 8)
+    d, th, ph = [4.0, 9.0], [np.pi / 2, np.pi / 2], [0.3, -0.5]  # horizontal paths
+    h = cfr_at(np.array([1.0, 0.5j]), np.asarray(d) / C, [1.0, 2.0], [0.0, 1.0], th, ph, F,
+               ROBOT, ula)
+    csi = np.stack([h[p::STRIDE][:N // STRIDE, :, p] for p in range(8)], axis=2)
+    est = DelayDirectionEstimator(ula, STRIDE * DF)(csi, np.arange(8) * DF)
+    k = r_hat(th, ph)
+    for di, ki in zip(d, k):
+        j = np.argmin(np.abs(est.distances_m - di))
+        assert abs(est.distances_m[j] - di) < 1e-3
+        assert est.directions[j, 1] == pytest.approx(ki[1], abs=1e-4)  # u = sin(phi)
+        assert est.directions[j, 2] == pytest.approx(0.0, abs=1e-12)

@@ -320,3 +320,18 @@ def test_mdp_robustness_settings_are_checked():
         MdpEstimator(DF, max_power_ratio=0.0)
     with pytest.raises(ValueError, match="dynamic_range_db"):
         MdpEstimator(DF, dynamic_range_db=-3.0)
+    with pytest.raises(ValueError, match="refine must be True, False or 'final'"):
+        MdpEstimator(DF, refine="always")
+
+
+def test_mdp_refine_final_matches_refine_every_order():
+    """refine='final' (least squares on the chosen order only, the per-fix budget
+    setting) finds the same paths as refining every order."""
+    rng = np.random.default_rng(8)
+    d = np.array([4.1, 6.6, 9.0, 15.2])
+    amps = np.exp(2j * np.pi * rng.uniform(size=(4, 2)))
+    clean = np.exp(-2j * np.pi * np.outer(F, d / C)) @ amps
+    h = clean + np.sqrt(np.mean(np.abs(clean) ** 2) / 100) * _crandn(rng, *clean.shape)
+    every, final = MdpEstimator(DF)(h), MdpEstimator(DF, refine="final")(h)
+    assert len(final) == len(every) == 4
+    np.testing.assert_allclose(np.sort(final.distances_m), np.sort(every.distances_m), atol=1e-3)
