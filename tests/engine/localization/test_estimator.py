@@ -55,3 +55,22 @@ def test_a_twin_with_localization_fills_the_estimate_every_step(lab, tmp_path):
     assert next(iter(twin.run(1))).robots["robot1"].estimate is not None
     plain = Twin(load_scene(folder), seed=3, localize=False)
     assert plain.localizer is None and plain.estimators == []
+
+
+@pytest.mark.slow
+def test_record_stores_the_twins_fixes(lab, tmp_path):
+    """`record` writes every topic of the twin's bus: with [localization] that
+    includes /robot1/fingerprint, one per step, decodable from the MCAP file."""
+    from engine.record import read_messages, record_twin
+
+    folder = _with_localization(lab, tmp_path, 'method = "LOS-fix"\nspacing_m = 0.4\n'
+                                'fusion = "none"\ncache_dir = "cache"\n')
+    twin = Twin(load_scene(folder), seed=1, dt=0.25)
+    record_twin(twin, 3, tmp_path / "run.mcap")
+    fixes = [m for m in read_messages(tmp_path / "run.mcap", ["/robot1/fingerprint"])]
+    assert len(fixes) == 3
+    est = twin.last.robots["robot1"].estimate
+    last = fixes[-1].decode()
+    np.testing.assert_allclose(last.estimate, est)
+    assert last.source == "LOS-fix/pilots" and last.robot == "robot1"
+    assert last.mdp.size > 0
