@@ -21,7 +21,7 @@ returns, per component, the path length ``c tau`` [m], the departure direction
 2. per delay, the amplitudes over the ports, with the comb offset
    ``exp(-j 2 pi o_p tau_l)`` removed, form a spatial snapshot of the array;
    its direction is the peak of a zero-padded 2-D DFT over columns x rows,
-   refined by Newton steps on ``(u, v)`` (the direction cosines along the
+   refined by Newton steps (analytic derivatives) on ``(u, v)`` (the direction cosines along the
    array's local y and z axes);
 3. a delay whose spatial snapshot keeps more than ``split_fraction`` of its
    energy outside the first direction holds a second path (a cluster the
@@ -156,32 +156,25 @@ class DelayDirectionEstimator:
         uv = np.array([u0, v0])
         free = [i for i, m in enumerate((self._cols, self._rows)) if m > 1]
 
-        def beam(w):  # beam power sum_r |a(u, v)^H x_r|^2
-            return float(np.sum(np.abs(np.conj(self._steer(w[None])[0]) @ x) ** 2))
-
-        step_h = 1e-3
-        for _ in range(5):  # Newton on the beam power, central differences
-            f0 = beam(uv)
-            grad = np.zeros(2)
-            hess = np.eye(2)
-            for i in free:
-                ei = np.eye(2)[i] * step_h
-                fp, fm_ = beam(uv + ei), beam(uv - ei)
-                grad[i] = (fp - fm_) / (2 * step_h)
-                hess[i, i] = (fp - 2 * f0 + fm_) / step_h ** 2
-            if len(free) == 2:
-                e0, e1 = np.eye(2) * step_h
-                hess[0, 1] = hess[1, 0] = (beam(uv + e0 + e1) - beam(uv + e0 - e1)
-                                           - beam(uv - e0 + e1) + beam(uv - e0 - e1)) / (
-                                               4 * step_h ** 2)
+        coords = np.stack([self._y, self._z])  # [2, P] wavelengths
+        for _ in range(8):  # Newton on the beam power f = sum_r |a(u, v)^H x_r|^2
+            w = np.conj(self._steer(uv[None])[0])[:, None] * x  # [P, Nr]: conj(a_p) x_pr
+            b = w.sum(axis=0)  # [Nr]
+            b1 = -2j * np.pi * (coords @ w)  # [2, Nr]: d b / d(u, v)
+            b2 = -4 * np.pi ** 2 * np.einsum("ip,kp,pr->ikr", coords, coords, w)  # [2, 2, Nr]
+            grad = 2 * np.real(np.conj(b)[None] * b1).sum(axis=1)
+            hess = 2 * np.real(np.einsum("kr,ir->ik", np.conj(b1), b1)
+                               + (np.conj(b)[None, None] * b2).sum(axis=2))
+            idx = np.ix_(free, free)
             try:
-                step = -np.linalg.solve(hess, grad)
+                step = np.zeros(2)
+                step[free] = -np.linalg.solve(hess[idx], grad[free])
             except np.linalg.LinAlgError:
                 break
             if not np.all(np.isfinite(step)) or np.max(np.abs(step)) > 0.05:
                 break  # not in the concave basin of the peak: keep what we have
             uv = uv + step
-            if np.max(np.abs(step)) < 1e-6:
+            if np.max(np.abs(step)) < 1e-7:
                 break
         return uv
 
