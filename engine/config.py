@@ -199,6 +199,27 @@ class RoomConfig:
 
 
 @dataclass(frozen=True)
+class LocalizationConfig:
+    """``[localization]``: the twin localizes its robots every step (docs/config.md).
+
+    ``method``: ``"MCA"``, ``"MCA-angles"``, ``"LOS-fix"``, ``"PDP"`` or
+    ``"kNN-CSI"``; ``mode``: ``"pilots"`` (from the links' received pilots at
+    ``snr_db``) or ``"tracer"`` (the traced delays); ``spacing_m``: the
+    fingerprint database's grid (cached under ``cache_dir``, relative to the
+    scene folder); ``fusion``: ``"ekf"`` (odometry + gated fixes) or
+    ``"none"`` (the raw fix); ``fix_std_m``: the EKF's fix standard deviation.
+    """
+
+    method: str = "MCA-angles"
+    mode: str = "pilots"
+    snr_db: float = 20.0
+    spacing_m: float = 0.05
+    fusion: str = "ekf"
+    fix_std_m: float = 0.05
+    cache_dir: str = "out/cache"
+
+
+@dataclass(frozen=True)
 class TwinConfig:
     """The whole ``twin.toml``, validated."""
 
@@ -213,6 +234,7 @@ class TwinConfig:
     sensing: tuple[SensingConfig, ...] = ()
     link_adaptation: LinkAdaptationConfig = field(default_factory=LinkAdaptationConfig)
     room: RoomConfig = field(default_factory=RoomConfig)
+    localization: LocalizationConfig | None = None
     raw: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -341,7 +363,11 @@ MAX_SAMPLES_PER_SRC = 100_000_000
 POWER_DBM_RANGE = (-150.0, 100.0)
 
 _TOP_KEYS = ("schema", "scene", "ofdm", "noise", "tracer", "devices", "links", "sensing",
-             "link_adaptation", "room")
+             "link_adaptation", "room", "localization")
+#: ``[localization] method`` values (engine/localization/baselines.py METHODS)
+LOCALIZATION_METHODS = ("MCA", "MCA-angles", "LOS-fix", "PDP", "kNN-CSI")
+LOCALIZATION_KEYS = ("method", "mode", "snr_db", "spacing_m", "fusion", "fix_std_m",
+                     "cache_dir")
 SENSING_KEYS = ("tx", "rx", "rho", "subcarriers", "symbols", "power_dbm", "noise_figure_db",
                 "estimate_angles", "target_height_m", "every", "range_method")
 RANGE_METHODS = ("first_arrival", "nls")  #: see engine/sensing/radar.py
@@ -592,7 +618,8 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
                              f"{dev.array.pattern!r}; sensing links model iso elements only")
     return TwinConfig(path=path, scene=scene, ofdm=ofdm, noise=noise, tracer=tracer,
                       devices=devices, links=tuple(links), schema=schema, raw=data,
-                      sensing=sensing, link_adaptation=link_adaptation, room=room)
+                      sensing=sensing, link_adaptation=link_adaptation, room=room,
+                      localization=_parse_localization(r, data, devices))
 
 
 def _parse_room(r: _Reader, data: dict) -> RoomConfig:
@@ -608,6 +635,30 @@ def _parse_room(r: _Reader, data: dict) -> RoomConfig:
     if both:
         raise r.fail("room", f"{', '.join(map(repr, both))} listed as both shell and furniture")
     return RoomConfig(**lists)
+
+
+def _parse_localization(r: _Reader, data: dict, devices) -> LocalizationConfig | None:
+    if "localization" not in data:
+        return None
+    t = r.table(data, "localization", "")
+    pre = "localization."
+    r.check_keys(t, LOCALIZATION_KEYS, pre)
+    d = LocalizationConfig()
+    cfg = LocalizationConfig(
+        method=r.string(t, "method", pre, d.method, choices=LOCALIZATION_METHODS),
+        mode=r.string(t, "mode", pre, d.mode, choices=("pilots", "tracer")),
+        snr_db=r.number(t, "snr_db", pre, d.snr_db),
+        spacing_m=r.number(t, "spacing_m", pre, d.spacing_m, positive=True),
+        fusion=r.string(t, "fusion", pre, d.fusion, choices=("ekf", "none")),
+        fix_std_m=r.number(t, "fix_std_m", pre, d.fix_std_m, positive=True),
+        cache_dir=r.string(t, "cache_dir", pre, d.cache_dir))
+    if not any(dv.kind == "robot" for dv in devices):
+        raise r.fail("localization", "no robot to localize (no device of kind 'robot')")
+    if cfg.method in ("MCA-angles", "LOS-fix") and not any(
+            dv.kind == "access_point" and dv.array.rows * dv.array.cols > 1 for dv in devices):
+        raise r.fail("localization.method", f"{cfg.method!r} needs an access point with more "
+                     "than one antenna; every access point here has one")
+    return cfg
 
 
 def _parse_sensing(r: _Reader, data: dict, devices, noise: NoiseConfig,

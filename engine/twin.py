@@ -103,6 +103,9 @@ class Twin:
             before the estimators; see :meth:`_build_sensing`).
         asset_dirs: folders an ``add`` edit may name a mesh in by absolute path
             (besides the scene folder, where paths are relative).
+        localize: run the config's ``[localization]`` (a
+            :class:`~engine.localization.estimator.TwinLocalizer` appended to
+            the estimators; it fills ``robots[r].estimate`` every step).
 
     Hooks (the supported way to change how a twin steps; never replace a method
     of a live twin or agent):
@@ -118,7 +121,8 @@ class Twin:
     def __init__(self, scene: TwinScene, *, seed: int = 0, dt: float = 0.05,
                  sensors: SensorOptions | None = None, tracer=None, phy: bool = True,
                  estimators: list[Estimator] | None = None, sensing: bool = True,
-                 asset_dirs: list[str | Path] | tuple = ()) -> None:
+                 asset_dirs: list[str | Path] | tuple = (),
+                 localize: bool = True) -> None:
         if not dt > 0:
             raise ValueError(f"dt: expected a positive step in s, got {dt}")
         self.scene = scene
@@ -130,6 +134,9 @@ class Twin:
         #: the devices' element patterns, applied to every traced link (stage 2)
         self.patterns = AntennaPatterns.from_config(self.config)
         self.estimators: list[Estimator] = list(estimators or [])
+        #: the ``[localization]`` estimator (a TwinLocalizer, last of the
+        #: estimators), or None without that table or with ``localize=False``
+        self.localizer = None
         self.sensing_enabled = bool(sensing) and bool(self.config.sensing)
         #: the ``[[sensing]]`` radar (a RadarEstimator), rebuilt by reset(); None without
         self.radar = None
@@ -161,6 +168,8 @@ class Twin:
                 except ValueError as exc:  # e.g. a path leaving the room: the file's fault
                     raise ConfigError(f"{self.config.path}: devices[{i}] ({d.name}).path: "
                                       f"{exc}") from None
+        if localize and self.config.localization is not None:
+            self._build_localizer()
 
     @classmethod
     def from_scene(cls, path: str | Path, **kw) -> Twin:
@@ -202,6 +211,14 @@ class Twin:
 
         self.radar = RadarEstimator(parse_sensing(self.config), seed=self.seed)
         self.radar.attach(self.bus)
+
+    def _build_localizer(self) -> None:
+        """The ``[localization]`` estimator, appended to :attr:`estimators` once
+        (its fingerprint database is loaded or built now)."""
+        from engine.localization.estimator import TwinLocalizer
+
+        self.localizer = TwinLocalizer.for_twin(self)
+        self.estimators.append(self.localizer)
 
     def reset(self) -> None:
         """Back to the initial state (same seed: the same run again). Room edits and

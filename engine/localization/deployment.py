@@ -26,8 +26,10 @@ either straight from the tracer's delays (``mode="tracer"``) or estimated
 from received pilots at ``snr_db`` (``mode="pilots"``); the robot localizes
 with it (**estimate**). Open loop: the controller steers on odometry.
 Closed loop: it steers on a complementary filter of the estimate and the
-odometry increments (``alpha`` weight of the estimate; estimates farther
-than ``gate_m`` from the prediction are ignored as outliers).
+odometry increments (``fusion="blend"``: ``alpha`` weight of the estimate;
+estimates farther than ``gate_m`` from the prediction are ignored as
+outliers), or on an EKF over the odometry with the estimates as
+Mahalanobis-gated fixes (``fusion="ekf"``, :mod:`engine.localization.fusion`).
 """
 
 from __future__ import annotations
@@ -38,8 +40,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.localization.baselines import MCA, KnnCsi, PdpMatch
+from engine.localization.baselines import METHODS, make_localizer
 from engine.localization.fingerprints import FingerprintDB, attach
+from engine.localization.fusion import PoseEKF
 from engine.localization.measurements import (FeatureSpec, PilotSettings, observe_pilots,
                                               observe_tracer)
 from engine.phy.network import NetworkPHY
@@ -116,7 +119,13 @@ class DeploymentSettings:
         path: the path spec the robot follows (``[devices.path]`` form, any kind;
             default: the robot's own ``[devices.path]`` from twin.toml).
         robot: robot name (default: the first robot).
-        method: localizer: ``"MCA"`` (the paper's), ``"PDP"`` or ``"kNN-CSI"``.
+        method: localizer: ``"MCA"`` (the paper's), ``"MCA-angles"``,
+            ``"LOS-fix"``, ``"PDP"`` or ``"kNN-CSI"``.
+        fusion: closed loop: ``"blend"`` (odometry-predicted pose blended with
+            gated estimates, weight ``alpha``) or ``"ekf"``
+            (:class:`~engine.localization.fusion.PoseEKF` over odometry with
+            the estimates as gated fixes; the recorded estimate is then the
+            fused antenna position).
         mca: :class:`~engine.localization.baselines.MCA` keyword arguments.
         num_paths: measured MDP entries (J).
     """
@@ -134,14 +143,18 @@ class DeploymentSettings:
     method: str = "MCA"
     mca: dict = field(default_factory=dict)
     num_paths: int = 9
+    fusion: str = "blend"
 
     def __post_init__(self):
         if self.source not in ("twin", "real"):
             raise ValueError(f"source: expected 'twin' or 'real', got {self.source!r}")
         if self.mode not in ("tracer", "pilots"):
             raise ValueError(f"mode: expected 'tracer' or 'pilots', got {self.mode!r}")
-        if self.method not in ("MCA", "PDP", "kNN-CSI"):
-            raise ValueError(f"method: expected 'MCA', 'PDP' or 'kNN-CSI', got {self.method!r}")
+        if self.method not in METHODS:
+            raise ValueError(f"method: expected one of {', '.join(map(repr, METHODS))}, "
+                             f"got {self.method!r}")
+        if self.fusion not in ("blend", "ekf"):
+            raise ValueError(f"fusion: expected 'blend' or 'ekf', got {self.fusion!r}")
         if not 0 < self.alpha <= 1:
             raise ValueError(f"alpha: expected 0 < alpha <= 1, got {self.alpha}")
 
@@ -200,12 +213,8 @@ class Deployment:
         self.dev = cfg.device(self.robot)
         self.spec = FeatureSpec.from_config(cfg)
         if localizer is None:
-            if s.method == "MCA":
-                localizer = MCA(db, **{"num_paths": s.num_paths, **s.mca})
-            elif s.method == "PDP":
-                localizer = PdpMatch(db, self.spec)
-            else:
-                localizer = KnnCsi(db, self.spec)
+            localizer = make_localizer(s.method, db, self.spec, num_paths=s.num_paths,
+                                       mca=s.mca)
         self.localizer = localizer
         self.pilots = PilotSettings(snr_db=s.snr_db, seed=seed)
         self.rng = np.random.default_rng([seed, 7])
@@ -223,6 +232,9 @@ class Deployment:
         self.path = path_from_spec(self.path_spec, start=self.start[:2])
         self._ctl = controller_from_spec(self.path_spec, agent.spec, bounds=bounds)
         self.nav = self.start.copy()  # the pose the controller steers on [x, y, yaw]
+        self.ekf = (PoseEKF(self.start, self.start,
+                            antenna_offset=tuple(self.dev.antenna_offset[:2]))
+                    if s.closed_loop and s.fusion == "ekf" else None)
         self._last_odom = self.start.copy()
         self.reality.set_controller(self.robot, self._control)
         # In the paper's mode the real room's links serve only the rates: trace
@@ -263,8 +275,7 @@ class Deployment:
         if self.settings.mode == "tracer":
             return observe_tracer(links, self.spec, self.settings.num_paths)
         chans = [self.phy.channel(lp) for lp in links]
-        need = {"MCA": ("mdp",), "PDP": ("pdp",), "kNN-CSI": ("csi",)}.get(
-            self.settings.method, ("mdp", "csi", "pdp"))
+        need = METHODS.get(self.settings.method, ("mdp", "csi", "pdp", "dirs"))
         return observe_pilots(links, chans, self.spec, self.pilots, self.settings.num_paths,
                               rng=self.rng, features=need)
 
@@ -286,7 +297,14 @@ class Deployment:
         # navigation pose for the next control
         d_odom = odom - self._last_odom
         self._last_odom = odom
-        if s.closed_loop:
+        if self.ekf is not None:
+            self.ekf.predict(odom)
+            if not self.ekf.update(est[:2]):
+                self.rejected += 1
+            self.nav = self.ekf.pose
+            est = np.array([*self.ekf.antenna_xy, est[2]])
+            rs.estimate = est
+        elif s.closed_loop:
             pred = self.nav + d_odom
             if np.linalg.norm(est[:2] - pred[:2]) <= s.gate_m:
                 pred[:2] = (1 - s.alpha) * pred[:2] + s.alpha * est[:2]

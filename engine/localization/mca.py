@@ -48,6 +48,12 @@ def _pad_sorted(db: np.ndarray) -> np.ndarray:
     return np.sort(np.where(np.isfinite(db), db, np.inf), axis=-1)
 
 
+def _sort_order(db: np.ndarray) -> np.ndarray:
+    """The permutation ``[P, A, L]`` :func:`_pad_sorted` applies."""
+    db = np.asarray(db, dtype=np.float64)
+    return np.argsort(np.where(np.isfinite(db), db, np.inf), axis=-1, kind="stable")
+
+
 class MCALocalizer:
     """MCA over a whole fingerprint database, vectorised.
 
@@ -58,15 +64,37 @@ class MCALocalizer:
         eps: matching radius, m (0.5 in the published comparison).
         k: number of best points averaged (k = 1 is nearest neighbour).
         bin_m: width of the upper-bound table's length bins, m.
+        directions: optional ``[P, A, L, 3]`` departure directions at the APs
+            (unit vectors, world axes; NaN where unknown). With them, a
+            measured path that carries a direction is matched by the distance
+            ``sqrt(dd^2 + (angle_weight_m |k - k_db|)^2)`` (``dd`` the length
+            difference, ``|k - k_db|`` the chord between the unit vectors)
+            instead of ``|dd|``; paths or APs without a direction (single
+            antennas) keep ``|dd|``. The length-only bound table stays an
+            upper bound (the combined distance is never shorter).
+        angle_weight_m: metres per unit of direction chord (about the
+            AP-robot distance turns an angle error into a lateral offset).
 
     Raises:
         ValueError: inconsistent shapes, non-finite positions, eps or k out of range.
     """
 
     def __init__(self, positions, lengths, *, eps: float = 0.5, k: int = 4,
-                 bin_m: float = 0.05) -> None:
+                 bin_m: float = 0.05, directions=None, angle_weight_m: float = 3.0) -> None:
         positions = np.asarray(positions, dtype=np.float64)
-        lengths = _pad_sorted(lengths)
+        raw = np.asarray(lengths, dtype=np.float64)
+        lengths = _pad_sorted(raw)
+        self.directions = None
+        if directions is not None:
+            directions = np.asarray(directions, dtype=np.float64)
+            if directions.shape != raw.shape + (3,):
+                raise ValueError(f"directions: expected shape {list(raw.shape) + [3]} "
+                                 f"([P, A, L, 3] unit vectors), got {list(directions.shape)}")
+            order = _sort_order(raw)
+            self.directions = np.take_along_axis(directions, order[..., None], axis=2)
+        if not angle_weight_m > 0:
+            raise ValueError(f"angle_weight_m: expected > 0 m, got {angle_weight_m}")
+        self.angle_weight_m = float(angle_weight_m)
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise ValueError(f"positions: expected shape [P, 3], got {positions.shape}")
         if lengths.ndim != 3 or lengths.shape[0] != positions.shape[0]:
@@ -113,15 +141,28 @@ class MCALocalizer:
                     np.maximum.at(table[a], (bb, pp), s)
         self._table, self._nbins = table, nb
 
-    def exact_scores(self, measured: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    def exact_scores(self, measured: np.ndarray, idx: np.ndarray,
+                     measured_directions: np.ndarray | None = None,
+                     weights: np.ndarray | None = None) -> np.ndarray:
         """Exact MCA scores of database points ``idx`` ``[M]`` -> ``[M]`` (m^2).
 
-        ``measured`` is ``[A, J]`` lengths in m, NaN-padded.
+        ``measured`` is ``[A, J]`` lengths in m, NaN-padded;
+        ``measured_directions`` optional ``[A, J, 3]`` unit vectors (NaN: none);
+        ``weights`` optional ``[A, J]`` per measured path.
         """
         db = self.lengths[idx]  # [M, A, L]
         diff = np.abs(measured[None, :, :, None] - db[:, :, None, :])  # [M, A, J, L]
+        if measured_directions is not None and self.directions is not None:
+            kd = self.directions[idx]  # [M, A, L, 3]
+            chord = np.linalg.norm(measured_directions[None, :, :, None, :]
+                                   - kd[:, :, None, :, :], axis=-1)  # [M, A, J, L]
+            # no direction on either side -> length only
+            chord = np.where(np.isfinite(chord), chord, 0.0)
+            diff = np.hypot(diff, self.angle_weight_m * chord)
         near = np.min(diff, axis=-1)  # [M, A, J]
         s = np.where(near < self.eps, (self.eps - near) ** 2, 0.0)
+        if weights is not None:
+            s = s * weights[None]
         return np.nansum(s, axis=(1, 2))
 
     def _check_measured(self, measured) -> np.ndarray:
@@ -135,24 +176,41 @@ class MCALocalizer:
             raise ValueError("measured: path lengths must be finite and >= 0 (NaN pads)")
         return m
 
-    def __call__(self, measured) -> LocationEstimate:
+    def __call__(self, measured, directions=None, weights=None) -> LocationEstimate:
         """Localize one measurement.
 
         Args:
             measured: ``[A, J]`` measured path lengths per AP, m (NaN pads).
+            directions: optional ``[A, J, 3]`` departure directions of the
+                measured paths (unit vectors, world axes; NaN: unknown).
+            weights: optional ``[A, J]`` weights in ``[0, 1]`` of the measured
+                paths' scores (default 1, the published MCA).
 
         Returns:
             The k-best weighted estimate (all-zero scores fall back to an
             unweighted mean of the k candidates with the highest bound).
         """
         m = self._check_measured(measured)
+        kdir = None
+        if directions is not None:
+            kdir = np.asarray(directions, dtype=np.float64)
+            if kdir.shape != m.shape + (3,):
+                raise ValueError(f"directions: expected shape {list(m.shape) + [3]} "
+                                 f"([A, J, 3] unit vectors), got {list(kdir.shape)}")
+        wts = None
+        if weights is not None:
+            wts = np.asarray(weights, dtype=np.float64)
+            if wts.shape != m.shape or not np.all((wts >= 0) & (wts <= 1)):
+                raise ValueError(f"weights: expected shape {list(m.shape)} with values in "
+                                 f"[0, 1], got shape {list(wts.shape)}")
         ub = np.zeros(self._table.shape[2], dtype=np.float32)
         for a in range(self.num_aps):
-            dj = m[a][np.isfinite(m[a])]
-            bins = np.floor(dj / self.bin_m).astype(np.int64)
-            bins = bins[(bins >= 0) & (bins < self._nbins)]
-            if bins.size:
-                ub += self._table[a, bins].sum(axis=0)
+            ok = np.isfinite(m[a])
+            bins = np.floor(m[a][ok] / self.bin_m).astype(np.int64)
+            w = np.ones(bins.size, np.float32) if wts is None else wts[a][ok].astype(np.float32)
+            inb = (bins >= 0) & (bins < self._nbins)
+            if inb.any():
+                ub += w[inb] @ self._table[a, bins[inb]]
         k = self.k
         chunk = max(64, 4 * k)
         n = len(ub)
@@ -161,7 +219,7 @@ class MCALocalizer:
             # usually the k-th exact score already beats every other bound.
             part = np.argpartition(-ub, chunk)
             first = part[:chunk]
-            s = self.exact_scores(m, first)
+            s = self.exact_scores(m, first, kdir, wts)
             keep = np.argsort(-s, kind="stable")[:k]
             if ub[part[chunk]] <= s[keep[-1]] - 1e-6:
                 return self._estimate(first[keep], s[keep], chunk)
@@ -171,7 +229,7 @@ class MCALocalizer:
         start = 0
         while start < len(order):
             idx = order[start:start + chunk]
-            s = self.exact_scores(m, idx)
+            s = self.exact_scores(m, idx, kdir, wts)
             best_i = np.concatenate([best_i, idx])
             best_s = np.concatenate([best_s, s])
             keep = np.argsort(-best_s, kind="stable")[:k]

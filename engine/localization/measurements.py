@@ -13,7 +13,11 @@ Two measurement modes (``docs/casestudy.md``):
   CSI; the MDP comes from :class:`~engine.phy.estimation.MdpEstimator`
   (TLS-ESPRIT + least squares) on the raw LS values at each port's pilot
   comb, averaged over the 14 symbols, with every (port, receive antenna) as a
-  snapshot. The APs' pilots are assumed orthogonal to each other.
+  snapshot. The APs' pilots are assumed orthogonal to each other. At APs
+  with more than one antenna, :class:`~engine.phy.directions.DelayDirectionEstimator`
+  also estimates each path's departure direction from the same combs
+  (feature ``"dirs"``, :attr:`Observation.paths`; in tracer mode the traced
+  ``theta_t, phi_t``).
 
 SNR in pilot mode is the mean pilot SNR per resource element and receive
 antenna: ``mean |H|^2 |x|^2 / sigma^2`` over the link's antenna pairs.
@@ -25,8 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.phy.arrays import PlanarArray
+from engine.phy.arrays import PlanarArray, r_hat, rotation_matrix
 from engine.phy.channel import baseband_gains, cfr_at
+from engine.phy.directions import DelayDirectionEstimator, DelayDirectionProfile
 from engine.phy.estimation import LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp
 from engine.phy.ofdm import ResourceGrid, ResourceSet
 from engine.pose import sionna_orientation
@@ -50,6 +55,8 @@ class FeatureSpec:
         arrays: device name -> :class:`PlanarArray`.
         knn_subcarriers: subcarrier indices of the kNN features ``[S]``.
         pdp_bins_m: path-length bins of the PDP ``[B]``, m.
+        orientations: device name -> array orientation ``[yaw, pitch, roll]``
+            rad (Sionna order; missing: ``(0, 0, 0)``).
     """
 
     grid: ResourceGrid
@@ -57,6 +64,7 @@ class FeatureSpec:
     arrays: dict
     knn_subcarriers: np.ndarray
     pdp_bins_m: np.ndarray = field(default_factory=lambda: PDP_BINS_M.copy())
+    orientations: dict = field(default_factory=dict)
 
     @classmethod
     def from_config(cls, config, knn_step: int = KNN_SUBCARRIER_STEP) -> FeatureSpec:
@@ -66,7 +74,8 @@ class FeatureSpec:
         arrays = {d.name: PlanarArray(d.array.rows, d.array.cols, d.array.vertical_spacing,
                                       d.array.horizontal_spacing) for d in config.devices}
         sc = np.arange(knn_step // 2, o.num_subcarriers, knn_step)
-        return cls(grid, config.scene.frequency_hz, arrays, sc)
+        orient = {d.name: sionna_orientation(d.orientation) for d in config.devices}
+        return cls(grid, config.scene.frequency_hz, arrays, sc, orientations=orient)
 
     @property
     def knn_frequencies(self) -> np.ndarray:
@@ -84,12 +93,17 @@ class Observation:
         csi_db: per AP ``[S, Nt]``: ``10 log10`` of ``|H|^2`` averaged over the
             receive antennas at the kNN subcarriers.
         pdp_db: ``[A, B]`` power-delay profile in dB at :attr:`FeatureSpec.pdp_bins_m`.
+        paths: per AP a :class:`~engine.phy.directions.DelayDirectionProfile`
+            (path lengths, departure directions at the AP, powers) for APs
+            with more than one antenna, ``None`` for single-antenna APs; empty
+            when directions were not measured.
     """
 
     lengths: np.ndarray
     powers: np.ndarray
     csi_db: list
     pdp_db: np.ndarray
+    paths: list = field(default_factory=list)
 
 
 # --------------------------------------------------------------------------- features
@@ -168,10 +182,12 @@ def observe_tracer(links: list, spec: FeatureSpec, num_paths: int = 9) -> Observ
     A = len(links)
     lengths = np.full((A, num_paths), np.nan)
     powers = np.zeros((A, num_paths))
-    csi, pdp = [], []
+    csi, pdp, paths = [], [], []
     for i, lp in enumerate(links):
         m = ideal_mdp(lp.tau, lp.a, max_paths=num_paths)
         lengths[i, :len(m)], powers[i, :len(m)] = m.distances_m, m.powers
+        paths.append(traced_directions(lp, num_paths) if spec.arrays[lp.tx].num_ant > 1
+                     else None)
         h = csi_from_paths(lp.a, lp.tau, lp.frequency_hz, spec.knn_frequencies,
                            spec.arrays[lp.rx], spec.arrays[lp.tx], theta_r=lp.theta_r,
                            phi_r=lp.phi_r, theta_t=lp.theta_t, phi_t=lp.phi_t,
@@ -180,7 +196,33 @@ def observe_tracer(links: list, spec: FeatureSpec, num_paths: int = 9) -> Observ
         csi.append(db(np.mean(np.abs(h) ** 2, axis=1)))
         pdp.append(db(pdp_from_paths(SPEED_OF_LIGHT * lp.tau, np.abs(lp.a) ** 2,
                                      spec.pdp_bins_m, spec.grid)))
-    return Observation(lengths, powers, csi, np.array(pdp))
+    return Observation(lengths, powers, csi, np.array(pdp), paths)
+
+
+def front_directions(directions, orientation=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Directions ``[..., 3]`` (world axes) folded into a planar array's front
+    half-space: the local boresight component (local +x) made non-negative.
+
+    A planar array's phases see only the local y and z components, so a path
+    leaving backwards (e.g. off the wall a wall-mounted AP hangs on) looks
+    like its mirror image in front; compare directions after this fold.
+    """
+    k = np.asarray(directions, float)
+    rot = rotation_matrix(orientation)
+    loc = k @ rot  # world -> local (R^T k as rows)
+    loc[..., 0] = np.abs(loc[..., 0])
+    return loc @ rot.T
+
+
+def traced_directions(lp, num_paths: int = 9) -> DelayDirectionProfile:
+    """The ``num_paths`` strongest traced paths of a link as a
+    :class:`DelayDirectionProfile`: lengths ``c tau`` [m], departure directions
+    ``r_hat(theta_t, phi_t)`` (world axes), powers ``|a|^2``."""
+    power = np.abs(np.asarray(lp.a)) ** 2
+    order = np.argsort(-power, kind="stable")[:num_paths]
+    return DelayDirectionProfile(SPEED_OF_LIGHT * np.asarray(lp.tau)[order],
+                                 r_hat(np.asarray(lp.theta_t)[order],
+                                       np.asarray(lp.phi_t)[order]), power[order])
 
 
 @dataclass
@@ -203,7 +245,7 @@ class PilotSettings:
 
 def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: PilotSettings,
                    num_paths: int = 9, rng: np.random.Generator | None = None,
-                   features=("mdp", "csi", "pdp")) -> Observation:
+                   features=("mdp", "csi", "pdp", "dirs")) -> Observation:
     """Realistic mode: features estimated from noisy received pilots.
 
     Args:
@@ -212,15 +254,18 @@ def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: Pil
         settings: :class:`PilotSettings`.
         num_paths: MDP entries kept (J).
         rng: noise generator (default from ``settings.seed``).
-        features: which of ``"mdp"``, ``"csi"``, ``"pdp"`` to estimate (the MDP's
-            super-resolution is the costly one); the others stay NaN / empty.
+        features: which of ``"mdp"``, ``"csi"``, ``"pdp"``, ``"dirs"`` to
+            estimate (the MDP's super-resolution is the costly one); the others
+            stay NaN / empty. ``"dirs"``: joint delay-direction estimation
+            (:class:`~engine.phy.directions.DelayDirectionEstimator`) at every
+            AP with more than one antenna, into :attr:`Observation.paths`.
     """
     rng = rng if rng is not None else np.random.default_rng(settings.seed)
     grid = spec.grid
     A = len(links)
     lengths = np.full((A, num_paths), np.nan)
     powers = np.zeros((A, num_paths))
-    csi, pdp = [], []
+    csi, pdp, paths = [], [], []
     for i, (lp, h) in enumerate(zip(links, channels)):
         k_, n_, nr, nt = h.shape
         rs = ResourceSet(grid, None, None, name=lp.tx)
@@ -238,6 +283,10 @@ def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: Pil
                    if "csi" in features else np.full((len(spec.knn_subcarriers), nt), np.nan))
         pdp.append(db(pdp_from_csi(hmean.reshape(n_, -1), spec.pdp_bins_m, grid))
                    if "pdp" in features else np.full(len(spec.pdp_bins_m), np.nan))
+        stride = max(settings.min_stride, nt)
+        if "dirs" in features:
+            paths.append(None if nt == 1 else _pilot_directions(hmean, pat, spec, lp,
+                                                                 settings, stride))
         if "mdp" not in features:
             continue
         # MDP: raw LS at each port's comb, snapshots = (rx, port).
@@ -250,7 +299,6 @@ def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: Pil
             snaps.append(hmean[sc[:m], :, p])
         ncomb = min(s.shape[0] for s in snaps)
         snap = np.concatenate([s[:ncomb] for s in snaps], axis=1)  # [Nc, Nr*P]
-        stride = max(settings.min_stride, nt)
         # ESPRIT needs 2k <= M - 1 (window M): widen the window for short combs.
         sub = min(ncomb - 2, max(ncomb // 2, 2 * settings.max_paths + 2))
         est = MdpEstimator(stride * grid.subcarrier_spacing_hz, max_paths=settings.max_paths,
@@ -260,4 +308,21 @@ def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: Pil
         mdp = est(snap)
         j = min(len(mdp), num_paths)
         lengths[i, :j], powers[i, :j] = mdp.distances_m[:j], mdp.powers[:j]
-    return Observation(lengths, powers, csi, np.array(pdp))
+    return Observation(lengths, powers, csi, np.array(pdp), paths)
+
+
+def _pilot_directions(hmean, pat: PilotPattern, spec: FeatureSpec, lp, settings: PilotSettings,
+                      stride: int) -> DelayDirectionProfile:
+    """Joint delay-direction estimate of one AP from its LS values at each
+    port's comb (``hmean [N, Nr, P]``)."""
+    nt = hmean.shape[2]
+    combs = [pat.positions(p)[1] for p in range(nt)]
+    m = min(len(c) for c in combs)
+    csi = np.stack([hmean[c[:m], :, p] for p, c in enumerate(combs)], axis=2)  # [M, Nr, P]
+    df = spec.grid.subcarrier_spacing_hz
+    off = np.array([(c[0] - combs[0][0]) * df for c in combs])
+    est = DelayDirectionEstimator(spec.arrays[lp.tx], stride * df,
+                                  orientation=sionna_orientation(lp.tx_orientation),
+                                  max_paths=settings.max_paths,
+                                  max_distance_m=SPEED_OF_LIGHT / (stride * df) * 0.9)
+    return est(csi, off)

@@ -6,6 +6,7 @@ concept each: :mod:`~engine.phy.ofdm` (grid, resource sets),
 :mod:`~engine.phy.channel` (eq. 4), :mod:`~engine.phy.link` (eqs. 1-2,
 precoding, power allocation, rates), :mod:`~engine.phy.estimation`
 (pilots, LS estimation, multipath delay profiles),
+:mod:`~engine.phy.directions` (joint delay-direction estimation at an AP),
 :mod:`~engine.phy.network` (:class:`NetworkPHY`: every link of a step, with
 interference -- the twin's stage 3), :mod:`~engine.phy.units` (dBm/W, kTB).
 
@@ -16,6 +17,7 @@ a channel is ``[K, N, Nr, Nt]``.
 
 from engine.phy.arrays import PlanarArray
 from engine.phy.channel import OFDMChannel, baseband_gains, cfr_at, cfr_from_antenna_gains
+from engine.phy.directions import DelayDirectionEstimator, DelayDirectionProfile
 from engine.phy.estimation import (LSChannelEstimator, MdpEstimator,
                                    MultipathDelayProfile, PilotPattern, ideal_mdp)
 from engine.phy.link import (AchievableRate, EqualPower, Interferer, LinkRate,
@@ -34,6 +36,6 @@ __all__ = [
     "NetworkPHY", "LinkSignal",
     "transmit", "receive", "Interferer", "LinkRate", "AchievableRate",
     "PilotPattern", "LSChannelEstimator", "MultipathDelayProfile",
-    "ideal_mdp", "MdpEstimator",
+    "ideal_mdp", "MdpEstimator", "DelayDirectionEstimator", "DelayDirectionProfile",
     "dbm_to_watt", "watt_to_dbm", "thermal_noise_power",
 ]

@@ -19,7 +19,9 @@ PATH = {"kind": "circle", "centre": [2.5, 2.0], "radius": 0.8}
     DeploymentSettings(source="twin", mode="tracer", path=PATH),
     DeploymentSettings(source="real", mode="pilots", snr_db=20.0, closed_loop=True,
                        method="PDP", path=PATH),
-], ids=["paper", "closed-loop-pilots"])
+    DeploymentSettings(source="real", mode="pilots", snr_db=20.0, closed_loop=True,
+                       method="MCA-angles", fusion="ekf", path=PATH),
+], ids=["paper", "closed-loop-pilots", "closed-loop-ekf-angles"])
 def test_loop_produces_four_positions_and_finite_errors(lab, lab_db, settings):
     dep = Deployment(lab, lab_db, settings, seed=1, dt=0.25, rate_every=2)
     recs = dep.run(3)
@@ -65,7 +67,8 @@ def test_case_study_writes_metrics(lab, lab_db, tmp_path):
     for run in ("paper_mode",):
         for k in ("positioning", "modelling", "estimate_vs_truth", "odometry_vs_truth"):
             assert set(data[run]["errors"][k]) == {"rmse", "median", "p90", "max"}
-    assert {r["method"] for r in data["table"]} == {"MCA", "kNN-CSI", "PDP"}
+    assert {r["method"] for r in data["table"]} == {"MCA", "MCA-angles", "LOS-fix", "kNN-CSI",
+                                                   "PDP"}
     assert {r["room"] for r in data["table"]} == {"twin", "perturbed"}
     for f in data["figures"]:
         assert Path(f).exists()
@@ -144,3 +147,10 @@ def test_table_points_on_the_labs_circle_are_unchanged():
     b, yb = path_points({"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5}, 12, 0.25)
     assert np.allclose(a, b, atol=1e-12)
     assert np.allclose(np.exp(1j * ya), np.exp(1j * yb), atol=1e-12)
+
+
+def test_deployment_settings_refuse_unknown_method_and_fusion():
+    with pytest.raises(ValueError, match="method: expected one of 'MCA', 'MCA-angles'"):
+        DeploymentSettings(method="MCA+")
+    with pytest.raises(ValueError, match="fusion: expected 'blend' or 'ekf'"):
+        DeploymentSettings(fusion="ukf")

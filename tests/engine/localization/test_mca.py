@@ -75,3 +75,66 @@ def test_bad_database():
         MCALocalizer(np.zeros((2, 3)), np.zeros((3, 1, 2)))
     with pytest.raises(ValueError, match="k: expected 1..2"):
         MCALocalizer(np.zeros((2, 3)), np.zeros((2, 1, 2)), k=5)
+
+
+# ---------------------------------------------------------------- with directions (issue 13)
+
+
+def _mirror_db():
+    """One AP on the room's symmetry line y = 3: points mirrored about it have the
+    same path lengths; directions (unit vectors from each image to the point)
+    differ."""
+    pos, lengths = _room_db(None, aps=((0.1, 3.0, 2.0),), L=7)
+    ap = np.array([0.1, 3.0, 2.0])
+    images = np.array([ap, ap * [-1, 1, 1], [16 - ap[0], ap[1], ap[2]], ap * [1, -1, 1],
+                       [ap[0], 12 - ap[1], ap[2]], ap * [1, 1, -1], [ap[0], ap[1], 6 - ap[2]]])
+    v = pos[:, None, :] - images[None]  # [P, 7, 3]
+    dirs = (v / np.linalg.norm(v, axis=2, keepdims=True))[:, None]  # [P, 1, 7, 3]
+    return pos, lengths, dirs
+
+
+def test_directions_break_ties_that_lengths_cannot():
+    pos, lengths, dirs = _mirror_db()
+    # a point and its mirror image about y = 3 have equal lengths (grid i = ix * 30 + iy)
+    i, mirror = 10 * 30 + 20, 10 * 30 + 9
+    np.testing.assert_allclose(pos[mirror, 1], 6.0 - pos[i, 1])
+    np.testing.assert_allclose(np.sort(lengths[mirror]), np.sort(lengths[i]), atol=1e-9)
+    by_length = MCALocalizer(pos, lengths, eps=0.5, k=2)(lengths[i])
+    assert set(by_length.best_indices) == {i, mirror}  # a tie: half-way between them
+    assert by_length.best_scores[0] == pytest.approx(by_length.best_scores[1])
+    loc = MCALocalizer(pos, lengths, eps=0.5, k=1, directions=dirs, angle_weight_m=3.0)
+    assert loc(lengths[i], dirs[i]).best_indices[0] == i
+    assert loc(lengths[mirror], dirs[mirror]).best_indices[0] == mirror
+    # without measured directions the localizer is the length-only one
+    assert loc(lengths[i]).best_scores[0] == pytest.approx(by_length.best_scores[0])
+
+
+def test_query_with_directions_and_weights_equals_brute_force():
+    """The length-only bound table stays an upper bound with directions and
+    weights: the branch and bound returns the exact top k."""
+    rng = np.random.default_rng(4)
+    pos, lengths, dirs = _mirror_db()
+    loc = MCALocalizer(pos, lengths, eps=0.5, k=4, directions=dirs, angle_weight_m=2.0)
+    all_idx = np.arange(len(pos))
+    for _ in range(10):
+        t = rng.integers(len(pos))
+        meas = lengths[t] + rng.normal(0, 0.05, lengths[t].shape)
+        k = dirs[t] + rng.normal(0, 0.02, dirs[t].shape)
+        k[0, 3] = np.nan  # a path without a direction
+        w = rng.uniform(0, 1, meas.shape)
+        est = loc(meas, k, w)
+        brute = loc.exact_scores(meas, all_idx, k, w)
+        np.testing.assert_allclose(est.best_scores, np.sort(brute)[::-1][:4], rtol=1e-9)
+
+
+def test_direction_inputs_are_checked():
+    pos, lengths, dirs = _mirror_db()
+    with pytest.raises(ValueError, match=r"directions: expected shape \[1200, 1, 7, 3\]"):
+        MCALocalizer(pos, lengths, directions=dirs[:, :, :3])
+    with pytest.raises(ValueError, match="angle_weight_m"):
+        MCALocalizer(pos, lengths, directions=dirs, angle_weight_m=0.0)
+    loc = MCALocalizer(pos, lengths, directions=dirs)
+    with pytest.raises(ValueError, match=r"directions: expected shape \[1, 7, 3\]"):
+        loc(lengths[0], dirs[0, :, :2])
+    with pytest.raises(ValueError, match="weights"):
+        loc(lengths[0], dirs[0], np.full((1, 7), 2.0))

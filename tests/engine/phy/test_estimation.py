@@ -244,3 +244,94 @@ def test_mdp_small_subband_is_widened_not_crashed():
     h = np.exp(-2j * np.pi * np.outer(f, d_true / 299792458.0)).sum(axis=1)
     mdp = MdpEstimator(df, max_paths=6, subband=8)(h)
     assert np.min(np.abs(mdp.distances_m[:, None] - d_true), axis=0).max() < 0.5
+
+
+# ---------------------------------------------------------------- robust MDP (issue 13)
+
+
+def _dense(seed, snr_db, n=128, df=8 * DF, num=40, s=2):
+    """Dense multipath (line of sight at 3.5 m, ``num - 1`` paths at 5-30 m, power
+    falling 10 dB per 5 m)
+    on a comb of ``n`` subcarriers at ``df``, like AP2's pilots: more paths than
+    any model order, so the estimator fits clusters. Returns (f, csi [n, s])."""
+    rng = np.random.default_rng(seed)
+    f = (np.arange(n) - n // 2) * df
+    d = np.concatenate([[3.5], np.sort(rng.uniform(5.0, 30.0, num - 1))])
+    phase = np.exp(2j * np.pi * rng.uniform(size=(num, s)))
+    amps = np.sqrt(10 ** (-(d - 3.5) / 5))[:, None] * phase
+    h = np.exp(-2j * np.pi * np.outer(f, d / C)) @ amps
+    n0 = np.mean(np.abs(h) ** 2) / 10 ** (snr_db / 10)
+    return f, h + np.sqrt(n0) * _crandn(rng, *h.shape)
+
+
+@pytest.mark.parametrize("snr_db", [20, 30])
+def test_mdp_dense_multipath_has_no_degenerate_cancelling_pairs(snr_db):
+    """Failed before the fix: on 7 of these 8 seeds the estimator returned two
+    (or three) equal lengths with powers 40-120 dB above the measured mean
+    power, cancelling each other, ranked first."""
+    cell = C / (128 * 8 * DF)
+    for seed in range(8):
+        f, h = _dense(seed, snr_db)
+        mdp = MdpEstimator(8 * DF, subband=64)(h, frequencies_hz=f)
+        total = np.mean(np.abs(h) ** 2)
+        assert 1 <= len(mdp) <= 9
+        assert mdp.powers.max() <= 4 * total, (seed, 10 * np.log10(mdp.powers.max() / total))
+        gaps = np.diff(np.sort(mdp.distances_m))
+        assert gaps.size == 0 or gaps.min() > 0.01 * cell, (seed, mdp.distances_m)
+        # the line-of-sight cluster is found where it is
+        assert np.min(np.abs(mdp.distances_m - 3.5)) < 0.8  # a fifth of the cell
+
+
+def test_mdp_order_does_not_grow_with_snr_into_the_diffuse_tail():
+    """Four specular paths plus 30 diffuse ones 35-45 dB below: from 20 to 60 dB
+    the estimate keeps the four (the tail has no fingerprint counterpart).
+    Failed before: the order grew to the cap with SNR."""
+    rng = np.random.default_rng(5)
+    d = np.array([4.1, 6.6, 9.0, 15.2])
+    p_db = np.array([0.0, -3.0, -6.0, -2.0])
+    tail = rng.uniform(3.0, 30.0, 30)
+    dd = np.concatenate([d, tail])
+    pp = np.concatenate([p_db, rng.uniform(-45.0, -35.0, 30)])
+    amps = np.sqrt(10 ** (pp / 10))[:, None] * np.exp(2j * np.pi * rng.uniform(size=(dd.size, 2)))
+    clean = np.exp(-2j * np.pi * np.outer(F, dd / C)) @ amps
+    for snr_db in (20, 40, 60):
+        n0 = np.mean(np.abs(clean) ** 2) / 10 ** (snr_db / 10)
+        mdp = MdpEstimator(DF)(clean + np.sqrt(n0) * _crandn(rng, *clean.shape))
+        assert len(mdp) == 4, (snr_db, mdp.distances_m)
+        # the tail's 30 unmodelled paths bias the fit by up to ~0.3 m (6.6 -> 6.9)
+        np.testing.assert_allclose(np.sort(mdp.distances_m), d, atol=0.35)
+
+
+def test_mdp_noiseless_close_pair_is_resolved_not_merged():
+    """Noise-free, two paths 30 cm apart (0.08 of the 3.75 m cell) that do not
+    cancel: both come back exactly (merging is for cancelling roots only)."""
+    d = np.array([6.0, 6.3, 11.0])
+    amps = np.array([[1.0], [0.7 * np.exp(1j)], [0.4j]])
+    mdp = MdpEstimator(DF)(_csi(d, amps, 0.0, np.random.default_rng(0)))
+    assert len(mdp) == 3
+    np.testing.assert_allclose(np.sort(mdp.distances_m), d, atol=1e-4)
+    np.testing.assert_allclose(np.sort(mdp.powers), [0.16, 0.49, 1.0], rtol=1e-3)
+
+
+def test_mdp_robustness_settings_are_checked():
+    with pytest.raises(ValueError, match="min_separation"):
+        MdpEstimator(DF, min_separation=1.5)
+    with pytest.raises(ValueError, match="max_power_ratio"):
+        MdpEstimator(DF, max_power_ratio=0.0)
+    with pytest.raises(ValueError, match="dynamic_range_db"):
+        MdpEstimator(DF, dynamic_range_db=-3.0)
+    with pytest.raises(ValueError, match="refine must be True, False or 'final'"):
+        MdpEstimator(DF, refine="always")
+
+
+def test_mdp_refine_final_matches_refine_every_order():
+    """refine='final' (least squares on the chosen order only, the per-fix budget
+    setting) finds the same paths as refining every order."""
+    rng = np.random.default_rng(8)
+    d = np.array([4.1, 6.6, 9.0, 15.2])
+    amps = np.exp(2j * np.pi * rng.uniform(size=(4, 2)))
+    clean = np.exp(-2j * np.pi * np.outer(F, d / C)) @ amps
+    h = clean + np.sqrt(np.mean(np.abs(clean) ** 2) / 100) * _crandn(rng, *clean.shape)
+    every, final = MdpEstimator(DF)(h), MdpEstimator(DF, refine="final")(h)
+    assert len(final) == len(every) == 4
+    np.testing.assert_allclose(np.sort(final.distances_m), np.sort(every.distances_m), atol=1e-3)

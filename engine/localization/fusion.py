@@ -1,0 +1,152 @@
+"""Fused robot pose: an EKF over odometry with gated RF position fixes.
+
+State ``x = [x, y, yaw]`` (m, m, rad) of the robot base in the map frame,
+covariance ``P [3, 3]``. The way a robot runs it:
+
+* **predict** with each new odometry pose: the increment in the previous
+  odometry body frame, ``ds = R(-yaw_odo) (p_odo - p_odo_prev)`` and
+  ``dyaw``, is applied in the filter's frame,
+  ``x_xy += R(yaw) ds``, ``yaw += dyaw``; process noise grows with the motion
+  (``odom_std``: metres per metre travelled, radians per radian turned, plus
+  radians per metre for the heading drift of driving straight);
+* **update** with an RF fix of the antenna position ``z = [x, y]`` (m): the
+  antenna sits at the body offset ``o`` (m), so ``h(x) = x_xy + R(yaw) o_xy``;
+  the fix is accepted only if its squared Mahalanobis distance
+  ``nu^T S^-1 nu`` is at most ``gate_chi2`` (chi-square, 2 degrees of freedom:
+  9.21 keeps 99 % of good fixes), else it is counted in ``rejected``;
+* **re-acquisition**: after ``reacquire_after`` consecutive rejections the
+  filter is taken to have drifted (an overconfident state would gate out
+  every good fix from then on): the position covariance is grown by the
+  innovation ``nu nu^T`` and the fix is used.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["PoseEKF"]
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _rot(t: float) -> np.ndarray:
+    c, s = math.cos(t), math.sin(t)
+    return np.array([[c, -s], [s, c]])
+
+
+class PoseEKF:
+    """EKF over ``[x, y, yaw]`` with odometry prediction and gated position fixes.
+
+    Args:
+        pose: initial ``[x, y, yaw]`` (m, m, rad), e.g. the calibrated start.
+        odometry: the odometry pose ``[x, y, yaw]`` at the same instant.
+        initial_std: ``(m, rad)`` standard deviation of the initial pose.
+        odom_std: ``(m/m, rad/rad, rad/m)``: translation noise per metre
+            travelled, heading noise per radian turned, heading noise per metre.
+        fix_std_m: standard deviation of one RF fix per axis, m.
+        antenna_offset: ``[x, y]`` of the antenna in the body frame, m.
+        gate_chi2: gate on the squared Mahalanobis distance of a fix.
+        reacquire_after: consecutive rejections after which a fix is used anyway.
+
+    Raises:
+        ValueError: non-finite poses, non-positive standard deviations or gate.
+    """
+
+    def __init__(self, pose, odometry, *, initial_std=(0.05, math.radians(2.0)),
+                 odom_std=(0.05, 0.05, math.radians(1.0)), fix_std_m: float = 0.05,
+                 antenna_offset=(0.0, 0.0), gate_chi2: float = 9.21,
+                 reacquire_after: int = 5) -> None:
+        self.x = self._pose("pose", pose)
+        self._odo = self._pose("odometry", odometry)
+        vals = {"initial_std": initial_std, "odom_std": odom_std, "fix_std_m": [fix_std_m],
+                "gate_chi2": [gate_chi2]}
+        for k, v in vals.items():
+            if not np.all(np.isfinite(v)) or not np.all(np.asarray(v, float) > 0):
+                raise ValueError(f"{k}: expected positive finite values, got {v!r}")
+        self.P = np.diag([initial_std[0] ** 2, initial_std[0] ** 2, initial_std[1] ** 2])
+        self.odom_std = tuple(float(v) for v in odom_std)
+        self.R = np.eye(2) * float(fix_std_m) ** 2
+        self.offset = np.asarray(antenna_offset, float).reshape(2)
+        self.gate = float(gate_chi2)
+        if int(reacquire_after) < 1:
+            raise ValueError(f"reacquire_after: expected >= 1, got {reacquire_after!r}")
+        self.reacquire_after = int(reacquire_after)
+        self._streak = 0
+        self.accepted = 0  #: fixes used
+        self.rejected = 0  #: fixes refused by the gate
+
+    @staticmethod
+    def _pose(name, v) -> np.ndarray:
+        v = np.asarray(v, float).reshape(-1)
+        if v.shape != (3,) or not np.isfinite(v).all():
+            raise ValueError(f"{name}: expected [x, y, yaw] (3 finite numbers), got {v!r}")
+        return v.copy()
+
+    @property
+    def pose(self) -> np.ndarray:
+        """``[x, y, yaw]`` estimate (m, m, rad)."""
+        return self.x.copy()
+
+    @property
+    def antenna_xy(self) -> np.ndarray:
+        """``[x, y]`` estimate of the antenna, m."""
+        return self.x[:2] + _rot(self.x[2]) @ self.offset
+
+    def predict(self, odometry) -> None:
+        """Propagate with a new odometry pose ``[x, y, yaw]``."""
+        odo = self._pose("odometry", odometry)
+        ds = _rot(-self._odo[2]) @ (odo[:2] - self._odo[:2])  # body-frame increment
+        dyaw = _wrap(odo[2] - self._odo[2])
+        self._odo = odo
+        t = self.x[2]
+        step = _rot(t) @ ds
+        # d(step)/d(yaw)
+        dstep = np.array([-math.sin(t) * ds[0] - math.cos(t) * ds[1],
+                          math.cos(t) * ds[0] - math.sin(t) * ds[1]])
+        F = np.eye(3)
+        F[:2, 2] = dstep
+        self.x[:2] += step
+        self.x[2] = _wrap(t + dyaw)
+        dist = float(np.hypot(*ds))
+        a_t, a_r, a_d = self.odom_std
+        var_t = (a_t * dist) ** 2 + 1e-8
+        var_r = (a_r * abs(dyaw)) ** 2 + (a_d * dist) ** 2 + 1e-10
+        G = _rot(t)
+        Q = np.zeros((3, 3))
+        Q[:2, :2] = G @ (np.eye(2) * var_t) @ G.T
+        Q[2, 2] = var_r
+        self.P = F @ self.P @ F.T + Q
+
+    def update(self, fix_xy) -> bool:
+        """Use an RF fix ``[x, y]`` (m) of the antenna; returns whether the gate
+        accepted it."""
+        z = np.asarray(fix_xy, float).reshape(-1)[:2]
+        if z.shape != (2,) or not np.isfinite(z).all():
+            raise ValueError(f"fix: expected [x, y] (2 finite numbers, m), got {fix_xy!r}")
+        t = self.x[2]
+        h = self.antenna_xy
+        H = np.zeros((2, 3))
+        H[:, :2] = np.eye(2)
+        dr = np.array([[-math.sin(t), -math.cos(t)], [math.cos(t), -math.sin(t)]])  # dR/dyaw
+        H[:, 2] = dr @ self.offset
+        nu = z - h
+        S = H @ self.P @ H.T + self.R
+        if float(nu @ np.linalg.solve(S, nu)) > self.gate:
+            self._streak += 1
+            if self._streak < self.reacquire_after:
+                self.rejected += 1
+                return False
+            self.P[:2, :2] += np.outer(nu, nu)  # drifted: re-acquire on this fix
+            S = H @ self.P @ H.T + self.R
+        self._streak = 0
+        K = self.P @ H.T @ np.linalg.inv(S)
+        self.x = self.x + K @ nu
+        self.x[2] = _wrap(self.x[2])
+        ikh = np.eye(3) - K @ H
+        self.P = ikh @ self.P @ ikh.T + K @ self.R @ K.T  # Joseph form
+        self.accepted += 1
+        return True
