@@ -314,16 +314,18 @@ def cached_database(scene, *, spacing: float = DEFAULT_SPACING,
     if path.is_file() and not rebuild:
         try:
             db = load_database(path, scene=scene)
-            from engine.raytrace.chains import config_method_tag, method_tag
+            from engine.raytrace.chains import config_path_set_settings, path_set_settings
 
-            want = config_method_tag(kw.get("tracer_config") or scene.config.tracer)
-            have = method_tag(db.meta.get("tracer", {}))
+            want = config_path_set_settings(kw.get("tracer_config") or scene.config.tracer)
+            have = path_set_settings(db.meta.get("tracer", {}))
             if int(db.meta["max_paths"]) >= max_paths and have == want:
                 log.info("fingerprint database: using cache %s", path)
                 return db
             if have != want:
-                log.info("%s was traced with method %r, %r requested: rebuilding", path,
-                         have, want)
+                diff = ", ".join(f"{k} {have.get(k)!r} (requested {want[k]!r})"
+                                 for k in want if have.get(k) != want[k])
+                log.info("%s was traced with other tracer settings: %s; rebuilding", path,
+                         diff)
             else:
                 log.info("%s keeps %s paths, %d requested: rebuilding", path,
                          db.meta["max_paths"], max_paths)

@@ -100,6 +100,32 @@ def config_method_tag(config) -> str:
     return f"chains v{CHAIN_REUSE_VERSION}" if config.uses_chains else "sbr"
 
 
+#: ``[tracer]`` settings that decide which paths a trace finds (a cached grid or
+#: database traced with other values is not the same database).
+PATH_SET_SETTINGS = ("max_depth", "samples_per_src", "los", "specular_reflection",
+                     "diffuse_reflection", "refraction", "diffraction", "seed")
+
+
+def path_set_settings(tracer_meta: dict) -> dict:
+    """What decided a grid's path set, from its ``meta["tracer"]``: the method tag
+    (:func:`method_tag`), :data:`PATH_SET_SETTINGS` and, for chain reuse, the probe
+    spacing."""
+    out = {"method": method_tag(tracer_meta),
+           **{k: tracer_meta.get(k) for k in PATH_SET_SETTINGS}}
+    if tracer_meta.get("method") == "chains":
+        out["probe_spacing"] = (tracer_meta.get("chains") or {}).get("probe_spacing")
+    return out
+
+
+def config_path_set_settings(config) -> dict:
+    """:func:`path_set_settings` of a grid traced now with ``TracerConfig`` ``config``."""
+    out = {"method": config_method_tag(config),
+           **{k: getattr(config, k) for k in PATH_SET_SETTINGS}}
+    if config.uses_chains:
+        out["probe_spacing"] = config.probe_spacing
+    return out
+
+
 def chains_supported(config) -> bool:
     """Whether a ``TracerConfig`` traces specular chains only (reflection/refraction)."""
     return not (config.diffuse_reflection or config.diffraction)

@@ -47,8 +47,13 @@ def test_round_trip_and_cache(lab, lab_db, tmp_path):
 
 
 @pytest.mark.parametrize("tracer", [{"method": "sbr", "chains": None},
-                                    {"chains": {"version": 0}}],
-                         ids=["shoot-and-bounce", "older-chain-reuse"])
+                                    {"chains": {"version": 0}},
+                                    {"samples_per_src": 12345},
+                                    {"max_depth": 1},
+                                    {"refraction": False},
+                                    {"chains": {"version": 2, "probe_spacing": 0.25}}],
+                         ids=["shoot-and-bounce", "older-chain-reuse", "other-ray-count",
+                              "other-depth", "no-refraction", "other-probe-lattice"])
 def test_cache_traced_another_way_is_rebuilt(lab, lab_db, tmp_path, tracer):
     from engine.raytrace.chains import CHAIN_REUSE_VERSION
 
