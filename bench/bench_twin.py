@@ -87,12 +87,12 @@ def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
                                                         for lk, ls in last.links.items()}))
 
 
-#: Extra robots of the ``--robots`` variant: start pose and circle (the lab's
-#: robot1 drives the circle centre (4, 3) m, radius 1.5 m).
-EXTRA_ROBOTS = [((2.5, 1.5, 0.0), {"kind": "circle", "centre": [2.0, 1.5], "radius": 0.5}),
-                ((6.5, 4.5, 0.0), {"kind": "circle", "centre": [6.0, 4.5], "radius": 0.5}),
-                ((2.5, 4.5, 0.0), {"kind": "circle", "centre": [2.0, 4.5], "radius": 0.5}),
-                ((6.5, 1.5, 0.0), {"kind": "circle", "centre": [6.0, 1.5], "radius": 0.5})]
+#: Extra robots of the ``--robots`` variant: start pose and circle, in free space
+#: and clear of robot1's circle (centre (4, 3) m, radius 1.5 m).
+EXTRA_ROBOTS = [((2.0, 2.5, 0.0), {"kind": "circle", "centre": [1.5, 2.5], "radius": 0.5}),
+                ((2.5, 5.0, 0.0), {"kind": "circle", "centre": [2.0, 5.0], "radius": 0.5}),
+                ((6.5, 1.0, 0.0), {"kind": "circle", "centre": [6.0, 1.0], "radius": 0.5}),
+                ((7.5, 4.0, 0.0), {"kind": "circle", "centre": [7.0, 4.0], "radius": 0.5})]
 
 
 def lab_with_robots(n: int, folder: Path) -> Path:
