@@ -538,7 +538,9 @@ def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
     """Re-trace ``n`` random free points one per solver call (Sionna's own
     shoot-and-bounce, the grid's settings) and compare path by path: paths
     the grid lacks (all, and among the ``top_n`` strongest per link), paths
-    the direct trace lacks (extra), and repeated paths in the grid."""
+    the direct trace lacks (extra, unless a trace with 10x the rays holds them:
+    ``paths_found_more``, real paths the direct trace's rays missed), and
+    repeated paths in the grid."""
     if n <= 0 or len(todo) == 0:
         return {"points": 0}
     num_paths = arrays["num_paths"]
@@ -546,7 +548,8 @@ def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
         top_n = min(top_n, keep_strongest)
     rng = np.random.default_rng(seed)
     pick = rng.choice(todo, size=min(n, len(todo)), replace=False)
-    single = missing = extra = repeats = n_top_missing = top_checked = differing = 0
+    single = missing = extra = more = repeats = n_top_missing = top_checked = differing = 0
+    confirm = None
     links = 0
     for i in pick:
         raw = core.solve_endpoints(sc, src, points[i:i + 1], cap, src_orient)
@@ -560,6 +563,17 @@ def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
             m = match_paths(_Paths(stored), _Paths(ref))
             found = np.zeros(k, bool)
             found[m[m >= 0]] = True
+            if not found.all():  # more rays: real paths the direct trace's rays missed?
+                if confirm is None:
+                    confirm = SolverCore(dataclasses.replace(
+                        core.config, samples_per_src=10 * core.config.samples_per_src),
+                        deterministic=True)
+                big = confirm.solve_endpoints(sc, src, points[i:i + 1], cap, src_orient)
+                mb = match_paths(_Paths(stored), _Paths(big.link(0, s)))
+                real = np.zeros(k, bool)
+                real[mb[mb >= 0]] = True
+                more += int((~found & real).sum())
+                found |= real
             links += 1
             single += len(ref["tau"])
             missing += int((m < 0).sum())
@@ -572,6 +586,7 @@ def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
     out = {"points": int(len(pick)), "indices": pick.tolist(),
            "paths_grid": int(num_paths[pick].sum()), "paths_single_calls": int(single),
            "paths_missing": int(missing), "paths_extra": int(extra),
+           "paths_found_more": int(more),
            "paths_repeated": int(repeats),
            "links_differing": int(differing), "links": int(links),
            "top_n": int(top_n), "top_paths_checked": int(top_checked),

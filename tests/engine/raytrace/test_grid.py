@@ -109,3 +109,30 @@ def test_truncation_detected_and_split(room_scene, caplog, method):
     with pytest.raises(TruncationError, match="single receiver"):
         trace_grid(room_scene, spacing=1.4, progress=False, config=tiny, max_cap=150,
                    method=method)
+
+
+def test_verification_tells_an_invented_path_from_a_real_one(room_scene, room_grid):
+    """The grid verification matches paths one by one: a stored path moved off its
+    true delay and vertices is one missing and one extra path, and the 10x-ray
+    confirmation (which turns real paths the direct trace's rays missed into
+    ``paths_found_more``) does not vouch for it."""
+    from engine.raytrace import grid as G
+    from engine.raytrace.base import sionna_orientation
+    from engine.raytrace.solver_core import SolverCore
+
+    g = room_grid
+    poses = device_poses(room_scene.config)
+    src = np.array([poses[n].position for n in g.tx_names])
+    so = np.array([sionna_orientation(poses[n].orientation) for n in g.tx_names])
+    core = SolverCore(room_scene.config.tracer, deterministic=False,
+                      spec_table_size=G.GRID_SPEC_TABLE_SIZE)
+    i = int(np.flatnonzero(g.free)[5])
+    args = (core, room_scene.sionna, src, so, g.points)
+    cap = room_scene.config.tracer.max_num_paths_per_src
+    ok = G._verify(*args, g.arrays, np.array([i]), 1, 0, cap)
+    assert ok["paths_missing"] == 0 and ok["paths_extra"] == 0 and ok["paths_repeated"] == 0
+    arrays = {k: v.copy() for k, v in g.arrays.items()}
+    arrays["tau"][i, 0, 1] += 3e-9
+    arrays["vertices"][i, 0, 1] += 0.5
+    bad = G._verify(*args, arrays, np.array([i]), 1, 0, cap)
+    assert (bad["paths_missing"], bad["paths_extra"], bad["paths_found_more"]) == (1, 1, 0)
