@@ -19,11 +19,14 @@ BAR_SIZE_M = (3.0, 0.25)
 BAR_PIXELS = 64
 #: Text size of labels, m.
 TEXT_SIZE_M = 0.22
-#: The live view's collection (``live_view.COLLECTION``, repeated: legend must not import it).
+#: The live view's collection (defined here, the lowest module that needs it;
+#: ``live_view`` and ``radiomap_view`` import it).
 COLLECTION = "ISAC Live"
 
 
-def _object(scene, name: str, data):
+def scene_object(scene, name: str, data):
+    """The object ``name`` (made with ``data`` and linked into :data:`COLLECTION`
+    when it does not exist yet)."""
     obj = bpy.data.objects.get(name)
     if obj is None:
         obj = bpy.data.objects.new(name, data)
@@ -114,7 +117,7 @@ def quad(scene, name: str, x0: float, y0: float, x1: float, y1: float, z: float,
         mesh.materials[0] = mat
     else:
         mesh.materials.append(mat)
-    return _object(scene, name, mesh)
+    return scene_object(scene, name, mesh)
 
 
 def text(scene, name: str, body: str, location, size: float = TEXT_SIZE_M):
@@ -125,7 +128,7 @@ def text(scene, name: str, body: str, location, size: float = TEXT_SIZE_M):
         curve.size = size
     if curve.body != body:
         curve.body = body
-    obj = _object(scene, name, curve)
+    obj = scene_object(scene, name, curve)
     obj.location = location
     if not curve.materials:
         curve.materials.append(_label_material())
@@ -181,7 +184,7 @@ def mark_access_point(scene, name: str, position) -> list:
         mesh.from_pydata(verts, [], faces)
         mesh.update()
         mesh.materials.append(_emissive("ISAC_Live_APMarker", (1.0, 0.15, 0.1, 1.0)))
-    cone = _object(scene, oname, mesh)
+    cone = scene_object(scene, oname, mesh)
     cone.location = (position[0], position[1], position[2] - 0.02)
     label = text(scene, oname + "_Label", name,
                  (position[0] + 0.1, position[1] + 0.1, position[2] + 0.05))

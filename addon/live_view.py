@@ -31,7 +31,7 @@ from . import legend, schema
 from .exporter import safe_name
 from .modelling import get_collection
 
-COLLECTION = "ISAC Live"
+COLLECTION = legend.COLLECTION
 PREFIX = "ISAC_Live_"
 RAYS = PREFIX + "Rays"
 RAY_COLOR_ATTR = "ray_color"
@@ -168,14 +168,6 @@ def _material(name: str, rgba, *, emission: bool = False, attribute: str | None 
     return mat
 
 
-def _object(scene, name: str, data):
-    obj = bpy.data.objects.get(name)
-    if obj is None:
-        obj = bpy.data.objects.new(name, data)
-        get_collection(scene, COLLECTION).objects.link(obj)
-    return obj
-
-
 def ensure_robot(scene, name: str, model: str = schema.DEFAULT_ROBOT_MODEL):
     """The proxy object of robot ``name`` (created on first use)."""
     oname = f"{PREFIX}{name}"
@@ -183,7 +175,7 @@ def ensure_robot(scene, name: str, model: str = schema.DEFAULT_ROBOT_MODEL):
     if obj is None:
         mesh = robot_mesh(oname, model)
         mesh.materials.append(_material(PREFIX + "Robot", (0.9, 0.35, 0.05, 1.0)))
-        obj = _object(scene, oname, mesh)
+        obj = legend.scene_object(scene, oname, mesh)
         obj.rotation_mode = "XYZ"
     return obj
 
@@ -200,7 +192,7 @@ def _ensure_marker(scene, name: str):
         mesh.from_pydata(v, [], f)
         mesh.materials.append(_material(PREFIX + "Estimate", (1.0, 0.3, 0.1, 1.0),
                                         emission=True))
-        obj = _object(scene, oname, mesh)
+        obj = legend.scene_object(scene, oname, mesh)
     return obj
 
 
@@ -227,7 +219,7 @@ def _set_markers(scene, name: str, points, size: float, rgba) -> None:
     if obj is None:
         mesh = bpy.data.meshes.new(oname)
         mesh.materials.append(_material(oname, rgba, emission=True))
-        obj = _object(scene, oname, mesh)
+        obj = legend.scene_object(scene, oname, mesh)
     mesh = obj.data
     mesh.clear_geometry()
     verts, faces = marker_geometry(points, size)
@@ -262,7 +254,7 @@ def _set_trail(scene, name: str, points, rgba) -> None:
         cu.dimensions = "3D"
         cu.bevel_depth = 0.008
         cu.materials.append(_material(oname, rgba, emission=True))
-        obj = _object(scene, oname, cu)
+        obj = legend.scene_object(scene, oname, cu)
     cu = obj.data
     cu.splines.clear()
     if len(points) < 2:
@@ -289,7 +281,7 @@ def ensure_rays(scene):
             if node.type == "EMISSION":
                 node.inputs["Strength"].default_value = RAY_EMISSION
         cv.materials.append(mat)
-        obj = _object(scene, RAYS, cv)
+        obj = legend.scene_object(scene, RAYS, cv)
         obj.visible_shadow = False  # light paths, not things: no shadows on the room
     return obj
 
