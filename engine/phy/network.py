@@ -42,6 +42,7 @@ group).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -65,9 +66,13 @@ class LinkSignal:
     Attributes:
         tx, rx: device names.
         h: channel ``[K, N, Nr, Nt]`` (complex64).
-        w: precoder ``[K, N, Nt, S]`` (fast path: complex64 and zero off the
-            transmitter's allocation, where it is not used).
-        p: power per RE and stream ``[K, N, S]``, W.
+        w_by_group: precoder ``[G, N, Nt, S]`` per symbol group (``G = K`` and
+            ``group`` None unless the step is time-invariant).
+        p_by_group: power per RE and stream ``[G, N, S]``, W.
+        group: ``[K]`` symbol -> group index, or None (one group per symbol).
+            :attr:`w` / :attr:`p` expand the group values over the symbols on
+            first access (not every step: an expansion copies ``K / G`` times the
+            data, which was 42 % of the PHY time of 4 robots, issue #19).
         mask: the transmitter's allocation ``[K, N]``.
         rate_bps: achievable rate, bit/s (interference treated as noise).
         snr_db: mean SNR over the allocation before precoding,
@@ -87,8 +92,8 @@ class LinkSignal:
     tx: str
     rx: str
     h: np.ndarray
-    w: np.ndarray
-    p: np.ndarray
+    w_by_group: np.ndarray
+    p_by_group: np.ndarray
     mask: np.ndarray
     rate_bps: float
     snr_db: float
@@ -96,6 +101,18 @@ class LinkSignal:
     time_invariant: bool = False
     mcs_rate_bps: float = float("nan")
     mcs: tuple = ()
+    group: np.ndarray | None = None
+
+    @cached_property
+    def w(self) -> np.ndarray:
+        """Precoder ``[K, N, Nt, S]`` (fast paths: complex64 and zero off the
+        transmitter's allocation, where it is not used)."""
+        return self.w_by_group if self.group is None else _expand(self.w_by_group, self.group)
+
+    @cached_property
+    def p(self) -> np.ndarray:
+        """Power per RE and stream ``[K, N, S]``, W."""
+        return self.p_by_group if self.group is None else _expand(self.p_by_group, self.group)
 
 
 def _array(cfg) -> PlanarArray:
@@ -302,16 +319,11 @@ class NetworkPHY:
                 sinr_mean = float(np.dot(ww, sinr[ok]) / ww.sum()) if ok.any() else 0.0
             w_g = on_grid(np.asarray(d["w"]), d)
             p_g = on_grid(d["p"], d)
-            if invariant:
-                hx = _expand(hl, group)
-                wx = _expand(w_g.reshape((g_, n_) + w_g.shape[1:]), group)
-                px = _expand(p_g.reshape((g_, n_) + p_g.shape[1:]), group)
-            else:
-                hx = hl
-                wx = w_g.reshape((k_, n_) + w_g.shape[1:])
-                px = p_g.reshape((k_, n_) + p_g.shape[1:])
+            hx = _expand(hl, group) if invariant else hl
             out[(tx, rx)] = LinkSignal(
-                tx=tx, rx=rx, h=hx, w=wx, p=px, mask=self.masks[tx],
+                tx=tx, rx=rx, h=hx, w_by_group=w_g.reshape((g_, n_) + w_g.shape[1:]),
+                p_by_group=p_g.reshape((g_, n_) + p_g.shape[1:]),
+                group=group if invariant else None, mask=self.masks[tx],
                 rate_bps=bits / self.grid.step_duration_s,
                 snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
                 sinr_db=float(10 * np.log10(sinr_mean)) if sinr_mean > 0 else float("-inf"),
@@ -352,7 +364,8 @@ class NetworkPHY:
             sinr = r.sinr[mask]
             sinr = sinr[np.isfinite(sinr) & (sinr > 0)]
             out[(tx, rx)] = LinkSignal(
-                tx=tx, rx=rx, h=hl, w=w, p=p, mask=mask, rate_bps=r.rate_bps,
+                tx=tx, rx=rx, h=hl, w_by_group=w, p_by_group=p, mask=mask,
+                rate_bps=r.rate_bps,
                 snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
                 sinr_db=float(10 * np.log10(sinr.mean())) if sinr.size else float("-inf"),
                 mcs_rate_bps=mcs_bits / self.grid.step_duration_s,
