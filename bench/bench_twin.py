@@ -11,15 +11,16 @@ fresh twin (same seed) runs ``--steps`` steps after ``--warmup`` steps; printed:
 ``reference`` variant (``NetworkPHY(method="reference")``: np.linalg SVD /
 slogdet / solve on every RE) measured in the same run.
 
-Variants: ``fast`` (default NetworkPHY: closed-form 2 x 2 paths + the
-time-invariant shortcut at 1e-3 rad), ``fast-exact`` (closed forms, shortcut
-off), ``reference``. With ``--grid FILE`` (or a ``tracer.grid_file`` in the
+Variants: ``batched`` (default NetworkPHY: every link of a step in one stacked
+pass), ``fast`` (the same closed-form 2 x 2 paths + time-invariant shortcut at
+1e-3 rad, one link at a time), ``fast-exact`` (per link, shortcut off),
+``reference``. With ``--grid FILE`` (or a ``tracer.grid_file`` in the
 scene's config) the ``fast`` variant is repeated with the grid tracer; skipped
 otherwise. Rates of the variants are compared on the last step. No assertions
 on time.
 
     .venv/bin/python bench/bench_twin.py [--quick] [--steps 40] [--grid FILE]
-    .venv/bin/python bench/bench_twin.py --robots 4     # 4 robots, 8 downlinks vs 1 robot
+    .venv/bin/python bench/bench_twin.py --robots 1,2,4,8,16   # batched vs per-link PHY
 
 On a shared 2-core machine, ``OPENBLAS_NUM_THREADS=1`` makes every variant
 faster and steadier (OpenBLAS threads otherwise wait on descheduled peers).
@@ -45,8 +46,9 @@ from engine.twin import STAGES, Twin  # noqa: E402
 
 PATH = {"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5}
 VARIANTS = {
-    "fast": dict(),
-    "fast-exact": dict(time_invariant_tol=0.0),
+    "batched": dict(),
+    "fast": dict(method="fast"),
+    "fast-exact": dict(method="fast", time_invariant_tol=0.0),
     "reference": dict(method="reference"),
 }
 
@@ -88,11 +90,17 @@ def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
 
 
 #: Extra robots of the ``--robots`` variant: start pose and circle, in free space
-#: and clear of robot1's circle (centre (4, 3) m, radius 1.5 m).
+#: (the scene load refuses a pose or path point inside furniture) and clear of
+#: robot1's circle (centre (4, 3) m, radius 1.5 m) and of each other; the last 11
+#: were found with ``engine.room.path_obstruction`` on a 0.25 m grid of centres.
 EXTRA_ROBOTS = [((2.0, 2.5, 0.0), {"kind": "circle", "centre": [1.5, 2.5], "radius": 0.5}),
                 ((2.5, 5.0, 0.0), {"kind": "circle", "centre": [2.0, 5.0], "radius": 0.5}),
                 ((6.5, 1.0, 0.0), {"kind": "circle", "centre": [6.0, 1.0], "radius": 0.5}),
-                ((7.5, 4.0, 0.0), {"kind": "circle", "centre": [7.0, 4.0], "radius": 0.5})]
+                ((7.5, 4.0, 0.0), {"kind": "circle", "centre": [7.0, 4.0], "radius": 0.5})] + [
+    ((cx + 0.35, cy, 0.0), {"kind": "circle", "centre": [cx, cy], "radius": 0.35})
+    for cx, cy in ((4.75, 0.5), (0.5, 1.5), (7.0, 1.75), (6.0, 2.25), (7.0, 2.75),
+                   (0.5, 3.0), (2.0, 3.75), (5.75, 4.25), (3.25, 5.0), (4.75, 5.0),
+                   (6.5, 5.0))]
 
 
 def lab_with_robots(n: int, folder: Path) -> Path:
@@ -132,45 +140,90 @@ radius = {path["radius"]}
     return folder
 
 
-def run_robots_variant(n: int, steps: int, warmup: int) -> dict:
-    """The lab with ``n`` robots (2n downlinks) against the lab with one, same
-    seed, the ``fast`` PHY, sensing off; per-stage split and steps/s of both."""
+def run_robots_variant(counts, steps: int, warmup: int) -> dict:
+    """The lab with n robots (2n downlinks) for each n of ``counts``, sensing off.
+
+    Per n, one twin runs ``steps`` steps with the default (batched) PHY, then the
+    same twin ``steps`` more with the per-link PHY (``NetworkPHY(method="fast")``,
+    the loop before issue #19): steps/s and per-stage ms of both, the PHY alone
+    replayed on the last step's paths (batched vs per-link, min of 5) and the
+    largest rate difference between them on those paths. Then the marginal cost
+    per added link (least-squares slope of ms/step over the link count)."""
     import tempfile
 
-    out = {}
+    rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for label, folder in (("1 robot", engine.bundled_scene_dir()),
-                              (f"{n} robots", lab_with_robots(n, Path(tmp) / "lab"))):
+        for n in counts:
+            folder = (engine.bundled_scene_dir() if n == 1
+                      else lab_with_robots(n, Path(tmp) / f"lab{n}"))
             tw = Twin.from_scene(folder, seed=0, sensing=False,
                                  sensors=SensorOptions(lidar=True, imu=True, odometry=True,
                                                        camera=False))
-            for _ in tw.run(warmup):
-                pass
-            tw.stats = type(tw.stats)()
-            t0 = time.perf_counter()
-            for _ in tw.run(steps):
-                pass
-            wall = time.perf_counter() - t0
-            out[label] = steps / wall
             links = len(tw.config.links)
-            print(f"== {label} ({links} links, {steps} steps)\n{tw.stats.table()}")
-            print(f"  -> {steps / wall:.1f} steps/s, trace "
-                  f"{1e3 * tw.stats.stage_s['trace'] / steps:.1f} ms/step, PHY "
-                  f"{1e3 * tw.stats.stage_s['phy'] / steps:.1f} ms/step\n", flush=True)
-    print(f"{n} robots: {out[f'{n} robots']:.1f} steps/s = x{out[f'{n} robots'] / out['1 robot']:.2f} "
-          "of the 1-robot lab in the same run")
-    return out
+            row = dict(n=n, links=links)
+            for label, method in (("batched", "batched"), ("per-link", "fast")):
+                tw.phy = NetworkPHY(tw.config, method=method)
+                for _ in tw.run(warmup):
+                    pass
+                tw.stats = type(tw.stats)()
+                t0 = time.perf_counter()
+                for res in tw.run(steps):
+                    pass
+                wall = time.perf_counter() - t0
+                row[label] = dict(steps_s=steps / wall, ms=1e3 * wall / steps,
+                                  stage={st: 1e3 * tw.stats.stage_s[st] / steps
+                                         for st in STAGES})
+                print(f"== {n} robots ({links} links), {label} PHY, {steps} steps\n"
+                      f"{tw.stats.table()}", flush=True)
+            paths = {lk: ls.paths for lk, ls in res.links.items()}
+            sig, replay = {}, {}
+            for method in ("batched", "fast"):
+                phy = NetworkPHY(tw.config, method=method)
+                sig[method] = phy(paths)
+                ts = []
+                for _ in range(5):
+                    t0 = time.perf_counter()
+                    phy(paths)
+                    ts.append(1e3 * (time.perf_counter() - t0))
+                replay[method] = min(ts)
+            row["replay"] = replay
+            row["rate_diff"] = max((abs(sig["batched"][lk].rate_bps / s_.rate_bps - 1)
+                                    for lk, s_ in sig["fast"].items() if s_.rate_bps > 0),
+                                   default=0.0)
+            rows.append(row)
+    print(f"\n{'robots':>6} {'links':>5} {'steps/s':>8} {'ms/step':>8} {'agents':>7} "
+          f"{'trace':>7} {'phy':>7} {'other':>6} | {'per-link':>8} {'phy':>7} {'x step':>7} | "
+          f"{'replay b/p ms':>14} {'x phy':>6} {'rate diff':>9}")
+    for r in rows:
+        b, p = r["batched"], r["per-link"]
+        st = b["stage"]
+        other = sum(v for k, v in st.items() if k not in ("agents", "trace", "phy"))
+        print(f"{r['n']:6d} {r['links']:5d} {b['steps_s']:8.1f} {b['ms']:8.1f} "
+              f"{st['agents']:7.1f} {st['trace']:7.1f} {st['phy']:7.1f} {other:6.1f} | "
+              f"{p['steps_s']:8.1f} {p['stage']['phy']:7.1f} "
+              f"{b['steps_s'] / p['steps_s']:6.2f}x | "
+              f"{r['replay']['batched']:6.1f}/{r['replay']['fast']:6.1f} "
+              f"{r['replay']['fast'] / r['replay']['batched']:5.2f}x {r['rate_diff']:9.1e}")
+    if len(rows) > 1:
+        x = np.array([r["links"] for r in rows], float)
+        for label in ("batched", "per-link"):
+            parts = {k: np.polyfit(x, [r[label]["stage"][k] for r in rows], 1)[0]
+                     for k in ("trace", "phy")}
+            total = np.polyfit(x, [r[label]["ms"] for r in rows], 1)[0]
+            print(f"marginal cost per added link ({label} PHY): {total:.2f} ms/step "
+                  f"(trace {parts['trace']:.2f}, PHY {parts['phy']:.2f})")
+    return {r["n"]: r for r in rows}
 
 
 def run_sensing_variant(steps: int, warmup: int) -> dict:
     """The lab with its ``[[sensing]]`` radar (AP2 -> AP1, every 2nd step) against
-    the same twin without it, same seed, both with the ``fast`` PHY. Prints the
+    the same twin without it, same seed, both with the default (batched) PHY. Prints the
     stage tables, steps/s, the radar's ms per sensing step and the slow-down."""
     out = {}
     for label, on in (("without sensing", False), ("with sensing", True)):
-        r = run_variant("fast", steps, warmup, sensing=on)
+        r = run_variant("batched", steps, warmup, sensing=on)
         out[label] = r
-        print(f"== bundled/fast {label} ({steps} steps)\n{r['table']}")
+        print(f"== bundled/batched {label} ({steps} steps)\n{r['table']}")
         print(f"  -> {r['steps_s']:.1f} steps/s\n", flush=True)
     every = load_config(engine.bundled_scene_dir()).sensing[0].every
     sense = out["with sensing"]["stage_ms"]["sense"]
@@ -186,16 +239,25 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="10 steps (reference: 5)")
     ap.add_argument("--grid", type=Path, default=None, help="grid NPZ for the grid tracer")
-    ap.add_argument("--variants", default="fast,fast-exact,reference")
+    ap.add_argument("--variants", default="batched,fast,fast-exact,reference")
     ap.add_argument("--allocations", default="bundled,overlap")
     ap.add_argument("--sensing", action="store_true",
                     help="only the sensing variant (run_sensing_variant)")
-    ap.add_argument("--robots", type=int, default=0,
-                    help="only the many-robot variant: the lab with N robots (2N downlinks) "
-                         "against the lab with one")
+    ap.add_argument("--robots", default="",
+                    help="only the many-robot variant: comma-separated robot counts, e.g. "
+                         "1,2,4,8,16 (the lab with n robots, 2n downlinks; batched vs "
+                         f"per-link PHY; at most {1 + len(EXTRA_ROBOTS)} robots)")
     args = ap.parse_args(argv)
     if args.robots:
-        run_robots_variant(args.robots, 10 if args.quick else args.steps,
+        try:
+            counts = [int(c) for c in args.robots.split(",") if c.strip()]
+        except ValueError:
+            ap.error(f"--robots {args.robots!r}: expected comma-separated integers")
+        bad = [c for c in counts if not 1 <= c <= 1 + len(EXTRA_ROBOTS)]
+        if bad or not counts:
+            ap.error(f"--robots {args.robots!r}: each count must be in "
+                     f"1..{1 + len(EXTRA_ROBOTS)}")
+        run_robots_variant(counts, 10 if args.quick else args.steps,
                            1 if args.quick else args.warmup)
         return
     if args.sensing:
@@ -226,12 +288,12 @@ def main(argv: list[str] | None = None) -> None:
         from engine.raytrace.grid_backend import GridTracer
 
         try:
-            r = run_variant("fast", steps, 1 if args.quick else args.warmup,
+            r = run_variant("batched", steps, 1 if args.quick else args.warmup,
                             tracer=GridTracer(grid))
         except Exception as exc:  # a stale / foreign grid file must not kill the bench
             print(f"(grid tracer variant skipped: {type(exc).__name__}: {exc})\n")
         else:
-            r["name"] = "bundled/fast+grid"
+            r["name"] = "bundled/batched+grid"
             results.append(r)
             print(f"== fast, grid tracer {grid}\n{r['table']}")
             print(f"  -> {r['steps_s']:.1f} steps/s, PHY {r['phy_ms']:.1f} ms/step\n")
@@ -250,7 +312,7 @@ def main(argv: list[str] | None = None) -> None:
     # PHY alone, replayed on the last step's paths (no tracer in between): min / median.
     print("\nPHY replay on the last step's paths (ms, min / median):")
     for r in results:
-        if not r["name"].endswith("/fast"):
+        if not r["name"].endswith("/batched"):
             continue
         line = []
         for name in VARIANTS:

@@ -254,7 +254,8 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, default=100, help="steps to run (default 100)")
     p.add_argument("--rate", type=float, default=None,
                    help="pace the loop at this many steps per second in real time "
-                        "(default: as fast as possible)")
+                        "(default: as fast as possible); prints the overruns and the "
+                        "stage that caused each")
     p.add_argument("--dt", type=float, default=0.05, help="simulated time per step, s")
     p.add_argument("--seed", type=int, default=0, help="seed of every random stream")
     p.add_argument("--no-phy", action="store_true", help="skip channels and rates")
@@ -267,6 +268,10 @@ def cmd_run(args) -> int:
 
     if args.steps < 0:
         print(f"isac-twin: error: --steps {args.steps}: expected >= 0", file=sys.stderr)
+        return 2
+    if args.rate is not None and not args.rate > 0:
+        print(f"isac-twin: error: --rate {args.rate}: expected a positive rate in Hz",
+              file=sys.stderr)
         return 2
     twin = Twin.from_scene(scene_path(args), seed=args.seed, dt=args.dt, phy=not args.no_phy)
     for r in twin.run(args.steps, rate_hz=args.rate):
@@ -281,6 +286,10 @@ def cmd_run(args) -> int:
             n = sum(len(v) for v in r.sensing.detections.values())
             parts.append(f"radar {n} det {len(r.sensing.tracks)} tracks")
         print("  ".join(parts), flush=True)
+    if args.rate is not None:
+        st = twin.stats
+        print(f"paced at {args.rate:g} Hz: {st.steps} steps in {st.wall_s:.2f} s, "
+              f"{st.overrun_summary()}", flush=True)
     if args.timing:
         print(twin.stats.table())
     return 0

@@ -68,19 +68,33 @@ class RunStats:
         wall_s: wall time, s.
         overruns: steps that took longer than the period (paced runs only).
         stage_s: total wall time per stage, s.
+        overrun_stages: overruns per cause: the step's longest stage (one of
+            :data:`STAGES`), or ``"caller"`` when the code that consumed the step
+            between two steps (e.g. printing, recording) took longer than any stage.
+        overrun_ms: total time by which paced steps missed their deadline, ms.
     """
 
     steps: int = 0
     wall_s: float = 0.0
     overruns: int = 0
     stage_s: dict[str, float] = field(default_factory=lambda: {s: 0.0 for s in STAGES})
+    overrun_stages: dict[str, int] = field(default_factory=dict)
+    overrun_ms: float = 0.0
+
+    def overrun_summary(self) -> str:
+        """``"N overruns"`` with their causes, e.g. ``"2 overruns (trace 2; 3.1 ms late)"``."""
+        if not self.overruns:
+            return "0 overruns"
+        causes = ", ".join(f"{k} {v}" for k, v in sorted(self.overrun_stages.items(),
+                                                         key=lambda kv: -kv[1]))
+        return f"{self.overruns} overruns ({causes}; {self.overrun_ms:.1f} ms late in total)"
 
     def table(self) -> str:
         """A per-stage timing breakdown (mean ms per step and share)."""
         n = max(self.steps, 1)
         total = sum(self.stage_s.values()) or 1e-12
         lines = [f"{self.steps} steps in {self.wall_s:.2f} s "
-                 f"({self.steps / max(self.wall_s, 1e-12):.1f} steps/s), {self.overruns} overruns",
+                 f"({self.steps / max(self.wall_s, 1e-12):.1f} steps/s), {self.overrun_summary()}",
                  f"  {'stage':<10} {'ms/step':>9} {'share':>6}"]
         for s in STAGES:
             lines.append(f"  {s:<10} {1e3 * self.stage_s[s] / n:9.2f} "
@@ -656,8 +670,10 @@ class Twin:
         """Run ``steps`` steps, as fast as possible or paced at ``rate_hz`` in real time.
 
         A paced step that takes longer than its period is an *overrun*: it is
-        counted in :attr:`stats` and logged, and the schedule restarts from now
-        (no burst of catch-up steps).
+        counted in :attr:`stats` with its cause (the step's longest stage, or
+        ``"caller"`` when the consumer of the previous result took longer; see
+        :attr:`RunStats.overrun_stages`) and logged, and the schedule restarts
+        from now (no burst of catch-up steps).
         """
         if steps < 0:
             raise ValueError(f"steps: expected >= 0, got {steps}")
@@ -668,15 +684,23 @@ class Twin:
         deadline = start + period
         for _ in range(steps):
             res = self.step()
+            t_done = time.perf_counter()
             if on_step is not None:
                 on_step(res)
             yield res
             if period:
                 now = time.perf_counter()
                 if now > deadline:
-                    self.stats.overruns += 1
-                    log.warning("step %d overran its %.1f ms period by %.1f ms", res.step,
-                                1e3 * period, 1e3 * (now - deadline))
+                    costs = dict(res.timings_s)
+                    costs["caller"] = now - t_done
+                    cause = max(costs, key=costs.get)
+                    st = self.stats
+                    st.overruns += 1
+                    st.overrun_stages[cause] = st.overrun_stages.get(cause, 0) + 1
+                    st.overrun_ms += 1e3 * (now - deadline)
+                    log.warning("step %d overran its %.1f ms period by %.1f ms (%s %.1f ms)",
+                                res.step, 1e3 * period, 1e3 * (now - deadline), cause,
+                                1e3 * costs[cause])
                     deadline = now + period
                 else:
                     time.sleep(deadline - now)

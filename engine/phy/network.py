@@ -6,9 +6,19 @@ allocation that keep ``sum |x|^2 <= P_q`` over the transmitter's resource set
 ``R_q``, and the achievable rate with every *other* transmitter heard by
 ``v`` on shared resource elements treated as interference (eq. 2).
 
-Two implementations give the same result (tests/engine/phy/test_network_fast.py):
+Three implementations give the same result (tests/engine/phy/test_network_fast.py,
+tests/engine/phy/test_network_batched.py):
 
-* ``method="fast"`` (default): per link, the channel is synthesised once, the
+* ``method="batched"`` (default): the ``fast`` closed forms with all links of
+  a step together (issue #19): one channel-synthesis pass over every link's
+  paths (:meth:`NetworkPHY.channels`: one delay-phase table, one Doppler
+  Taylor order), the rotated element positions of a device kept while its
+  orientation does not change (static access points: once), and the per-RE
+  precoding and rates of all links of one transmitter with the same array
+  shapes stacked along the RE axis into one call each (water-filling and MCS
+  stay per link: own budget, own allocation). Rates equal the per-link
+  ``fast`` ones (bit-identical on the lab; tested to 1e-6 relative).
+* ``method="fast"``: per link (the per-link reference of ``batched``), the channel is synthesised once, the
   per-RE SVD precoder comes from the closed-form 2 x 2 Gram eigen-decomposition
   (:func:`~engine.phy.link.svd_streams`, exact; LAPACK when ``min(Nr, Nt) > 2``),
   its eigenmode gains feed water-filling directly, and the effective channels
@@ -42,11 +52,12 @@ group).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
-from engine.phy.arrays import PlanarArray
-from engine.phy.channel import OFDMChannel, baseband_gains
+from engine.phy.arrays import PlanarArray, r_hat
+from engine.phy.channel import OFDMChannel, baseband_gains, synthesize_many
 from engine.phy.mcs import McsRate
 from engine.phy.patterns import MODELLED_POLARIZATIONS, AntennaPatterns
 from engine.phy.link import (AchievableRate, EqualPower, Interferer, SVDPrecoder,
@@ -55,7 +66,12 @@ from engine.phy.link import (AchievableRate, EqualPower, Interferer, SVDPrecoder
 from engine.phy.ofdm import ResourceGrid, ResourceSet
 from engine.phy.units import dbm_to_watt, thermal_noise_power
 
-__all__ = ["LinkSignal", "NetworkPHY"]
+__all__ = ["LinkSignal", "METHODS", "NetworkPHY"]
+
+#: ``NetworkPHY(method=...)``: ``batched`` (default: all links of a step in one
+#: stacked pass), ``fast`` (the same closed forms, one link at a time: the
+#: per-link reference of ``batched``), ``reference`` (np.linalg on every RE).
+METHODS = ("batched", "fast", "reference")
 
 
 @dataclass(frozen=True)
@@ -65,9 +81,13 @@ class LinkSignal:
     Attributes:
         tx, rx: device names.
         h: channel ``[K, N, Nr, Nt]`` (complex64).
-        w: precoder ``[K, N, Nt, S]`` (fast path: complex64 and zero off the
-            transmitter's allocation, where it is not used).
-        p: power per RE and stream ``[K, N, S]``, W.
+        w_by_group: precoder ``[G, N, Nt, S]`` per symbol group (``G = K`` and
+            ``group`` None unless the step is time-invariant).
+        p_by_group: power per RE and stream ``[G, N, S]``, W.
+        group: ``[K]`` symbol -> group index, or None (one group per symbol).
+            :attr:`w` / :attr:`p` expand the group values over the symbols on
+            first access (not every step: an expansion copies ``K / G`` times the
+            data, which was 42 % of the PHY time of 4 robots, issue #19).
         mask: the transmitter's allocation ``[K, N]``.
         rate_bps: achievable rate, bit/s (interference treated as noise).
         snr_db: mean SNR over the allocation before precoding,
@@ -87,8 +107,8 @@ class LinkSignal:
     tx: str
     rx: str
     h: np.ndarray
-    w: np.ndarray
-    p: np.ndarray
+    w_by_group: np.ndarray
+    p_by_group: np.ndarray
     mask: np.ndarray
     rate_bps: float
     snr_db: float
@@ -96,6 +116,18 @@ class LinkSignal:
     time_invariant: bool = False
     mcs_rate_bps: float = float("nan")
     mcs: tuple = ()
+    group: np.ndarray | None = None
+
+    @cached_property
+    def w(self) -> np.ndarray:
+        """Precoder ``[K, N, Nt, S]`` (fast paths: complex64 and zero off the
+        transmitter's allocation, where it is not used)."""
+        return self.w_by_group if self.group is None else _expand(self.w_by_group, self.group)
+
+    @cached_property
+    def p(self) -> np.ndarray:
+        """Power per RE and stream ``[K, N, S]``, W."""
+        return self.p_by_group if self.group is None else _expand(self.p_by_group, self.group)
 
 
 def _array(cfg) -> PlanarArray:
@@ -116,16 +148,16 @@ class NetworkPHY:
         config: :class:`~engine.config.TwinConfig`.
         power_allocation: ``"waterfilling"`` (default) or ``"equal"``.
         precoding: ``"svd"`` (per resource element) or ``"svd_wideband"``.
-        method: ``"fast"`` (default) or ``"reference"`` (see the module doc).
+        method: one of :data:`METHODS` (see the module doc).
         time_invariant_tol: Doppler phase tolerance [rad] below which a step is
             treated as time-invariant (fast path only; 0 disables).
     """
 
     def __init__(self, config, *, power_allocation: str = "waterfilling",
-                 precoding: str = "svd", method: str = "fast",
+                 precoding: str = "svd", method: str = "batched",
                  time_invariant_tol: float = 1e-3) -> None:
-        if method not in ("fast", "reference"):
-            raise ValueError(f"method: expected 'fast' or 'reference', got {method!r}")
+        if method not in METHODS:
+            raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
         if not time_invariant_tol >= 0:
             raise ValueError(f"time_invariant_tol: expected >= 0 rad, got {time_invariant_tol}")
         self.method = method
@@ -171,7 +203,43 @@ class NetworkPHY:
         link_paths = self.patterns(link_paths)
         if self.method == "reference":
             return self._reference(link_paths)
-        return self._fast(link_paths)
+        return self._fast(link_paths, batched=self.method == "batched")
+
+    def _steering(self, name: str, theta, phi, orientation) -> np.ndarray:
+        """Steering vectors ``[L, Nant]`` of device ``name``'s array; the rotated
+        element positions are kept per device while its orientation does not
+        change (static access points: computed once)."""
+        arr = self.arrays[name]
+        key = tuple(float(x) for x in orientation)
+        hit = self._cache.get(("pos", name))
+        if hit is None or hit[0] != key:
+            hit = (key, arr.positions(key))
+            self._cache[("pos", name)] = hit
+        k = r_hat(np.asarray(theta, np.float64), np.asarray(phi, np.float64))
+        return np.exp(1j * (2.0 * np.pi * (k @ hit[1].T)))
+
+    def channels(self, link_paths: dict, times=None) -> dict:
+        """Eq. 4 for every link in one pass (:func:`~engine.phy.channel.synthesize_many`):
+        ``{(tx, rx): LinkPaths}`` -> ``{(tx, rx): [K|T, N, Nr, Nt]}`` complex64;
+        equal to :meth:`channel` per link."""
+        from engine.pose import sionna_orientation
+
+        gains, shapes = [], []
+        for lp in link_paths.values():
+            b = baseband_gains(lp.a, lp.tau, lp.frequency_hz)
+            a_rx = self._steering(lp.rx, lp.theta_r, lp.phi_r,
+                                  sionna_orientation(lp.rx_orientation))
+            a_tx = self._steering(lp.tx, lp.theta_t, lp.phi_t,
+                                  sionna_orientation(lp.tx_orientation))
+            nr, nt = self.arrays[lp.rx].num_ant, self.arrays[lp.tx].num_ant
+            gains.append((b[:, None, None] * a_rx[:, :, None] * a_tx[:, None, :])
+                         .reshape(b.shape[0], nr * nt))
+            shapes.append((nr, nt))
+        hs = synthesize_many(self.grid, gains, [lp.tau for lp in link_paths.values()],
+                             [lp.doppler for lp in link_paths.values()], times=times)
+        n_ = self.grid.num_subcarriers
+        return {lk: hl.reshape(hl.shape[0], n_, nr, nt)
+                for lk, hl, (nr, nt) in zip(link_paths, hs, shapes)}
 
     def _groups(self, txs: tuple):
         """Symbols grouped by the pattern of all transmitters' masks (cached):
@@ -200,7 +268,13 @@ class NetworkPHY:
         span = self._groups(tuple(sorted({tx for tx, _ in link_paths})))[4]
         return 2 * np.pi * nu * span
 
-    def _fast(self, link_paths: dict) -> dict[tuple[str, str], LinkSignal]:
+    def _fast(self, link_paths: dict, batched: bool = False) -> dict[tuple[str, str], LinkSignal]:
+        """The closed-form PHY. ``batched``: channels from one synthesis pass
+        (:meth:`channels`), and the per-RE precoding / rate of all links of one
+        transmitter with the same array shapes (and, for the rate, the same
+        interferers' stream counts) stacked along the RE axis into one call each;
+        water-filling and MCS stay per link (each has its own budget and
+        allocation). Otherwise one link at a time (the per-link reference)."""
         k_, n_ = self.grid.shape
         txs = tuple(sorted({tx for tx, _ in link_paths}))
         invariant = (self.time_invariant_tol > 0 and k_ > 1 and bool(txs)
@@ -217,7 +291,10 @@ class NetworkPHY:
             group = None
             weights_g = None
         g_ = next(iter(masks.values())).shape[0] if masks else k_
-        h = {lk: self.channel(lp, times) for lk, lp in link_paths.items()}  # [T, N, ...]
+        if batched:
+            h = self.channels(link_paths, times)  # [T, N, Nr, Nt] per link
+        else:
+            h = {lk: self.channel(lp, times) for lk, lp in link_paths.items()}
 
         def gather(hl, idx, full):
             """Channels at the flat (group/symbol, subcarrier) REs ``idx`` -> [R, Nr, Nt]."""
@@ -225,33 +302,48 @@ class NetworkPHY:
             flat = hl.reshape(t_ * n_, nr, nt)
             return flat if full else flat[idx]
 
+        # Transmit side: precoder, powers and effective channels, stacked per
+        # (tx, Nr, Nt) bucket when batched (one bucket per link otherwise).
+        buckets: dict = {}
+        for lk, hl in h.items():
+            key = (lk[0], hl.shape[2], hl.shape[3]) if batched else lk
+            buckets.setdefault(key, []).append(lk)
         side = {}
-        for (tx, rx), hl in h.items():
+        for lks in buckets.values():
+            tx = lks[0][0]
             mask = masks[tx]
             full = bool(mask.all())
             idx = None if full else np.flatnonzero(mask)
-            hm = gather(hl, idx, full)
+            hms = [gather(h[lk], idx, full) for lk in lks]
+            hm = hms[0] if len(hms) == 1 else np.concatenate(hms)
+            r_ = hms[0].shape[0]
             wts = None
             if invariant:
                 wts = np.repeat(weights_g, n_) if full else weights_g[idx // n_]
-            nr, nt = hl.shape[2], hl.shape[3]
+            nr, nt = hm.shape[1], hm.shape[2]
             s = min(nr, nt)
             total = float(dbm_to_watt(self.devices[tx].power_dbm))
             if self.precoding == "per_re":
                 w, lam, f1 = svd_streams(hm, s)
             else:
                 hd = np.asarray(hm, dtype=np.complex128)
-                w0 = wideband_streams(hd, s, wts)
-                f1 = hd @ w0
+                w0s = [wideband_streams(hd[b * r_:(b + 1) * r_], s, wts)
+                       for b in range(len(lks))]
+                w = np.concatenate([np.broadcast_to(w0, (r_, nt, s)) for w0 in w0s])
+                f1 = hd @ w
                 lam = np.sum(np.abs(f1) ** 2, axis=1)
-                w = np.broadcast_to(w0, (hd.shape[0], nt, s))
             count = int(self.masks[tx].sum())
             if self.power_allocation == "waterfilling":
                 p = np.zeros(lam.shape)
-                on = lam > 0
-                if total > 0 and on.any():
-                    pw = None if wts is None else np.broadcast_to(wts[:, None], lam.shape)[on]
-                    p[on] = water_level(lam[on], total, self.noise_power, pw)
+                for b in range(len(lks)):  # each link has its own budget
+                    seg = slice(b * r_, (b + 1) * r_)
+                    lb = lam[seg]
+                    on = lb > 0
+                    if total > 0 and on.any():
+                        pw = None if wts is None else np.broadcast_to(wts[:, None], lb.shape)[on]
+                        pb = np.zeros(lb.shape)
+                        pb[on] = water_level(lb[on], total, self.noise_power, pw)
+                        p[seg] = pb
             else:
                 p = np.full(lam.shape, total / (count * s))
             f = f1 * np.sqrt(p)[:, None, :]
@@ -259,8 +351,10 @@ class NetworkPHY:
             gain_re = lam.sum(axis=1) if self.precoding == "per_re" else \
                 np.sum(np.abs(np.asarray(hm, dtype=np.complex128).reshape(hm.shape[0], -1))
                        ** 2, axis=1)
-            side[(tx, rx)] = dict(idx=idx, full=full, w=w, p=p, f=f, wts=wts, total=total,
-                                  count=count, gain=gain_re)
+            for b, lk in enumerate(lks):
+                seg = slice(b * r_, (b + 1) * r_)
+                side[lk] = dict(idx=idx, full=full, w=w[seg], p=p[seg], f=f[seg], wts=wts,
+                                total=total, count=count, gain=gain_re[seg])
 
         def on_grid(arr, d):
             """Per-RE values of a link -> [G * N, ...] (zeros off its REs)."""
@@ -270,11 +364,12 @@ class NetworkPHY:
             out[d["idx"]] = arr
             return out
 
-        out = {}
-        for (tx, rx), hl in h.items():
+        # Receive side: every other transmitter heard on shared REs interferes.
+        interf = {}
+        for (tx, rx) in h:
             d = side[(tx, rx)]
             mask = masks[tx]
-            interf = []
+            lst = []
             for (tx2, rx2), d2 in side.items():
                 if tx2 == tx or (tx2, rx) not in h or not (masks[tx2] & mask).any():
                     continue
@@ -286,8 +381,33 @@ class NetworkPHY:
                                    np.asarray(d2["w"], dtype=np.complex128)) \
                         * np.sqrt(d2["p"])[:, None, :]
                 fi = on_grid(fi, d2)
-                interf.append(fi if d["full"] else fi[d["idx"]])
-            se, sinr = rate_per_re(d["f"], interf, self.noise_power)
+                lst.append(fi if d["full"] else fi[d["idx"]])
+            interf[(tx, rx)] = lst
+        rate_buckets: dict = {}
+        for lk in h:
+            f = side[lk]["f"]
+            key = ((lk[0], f.shape[1:], tuple(fi.shape[1:] for fi in interf[lk]))
+                   if batched else lk)
+            rate_buckets.setdefault(key, []).append(lk)
+        per_re = {}
+        for lks in rate_buckets.values():
+            if len(lks) == 1:
+                per_re[lks[0]] = rate_per_re(side[lks[0]]["f"], interf[lks[0]],
+                                             self.noise_power)
+                continue
+            r_ = side[lks[0]]["f"].shape[0]
+            fs = np.concatenate([side[lk]["f"] for lk in lks])
+            its = [np.concatenate([interf[lk][i] for lk in lks])
+                   for i in range(len(interf[lks[0]]))]
+            se_all, sinr_all = rate_per_re(fs, its, self.noise_power)
+            for b, lk in enumerate(lks):
+                seg = slice(b * r_, (b + 1) * r_)
+                per_re[lk] = (se_all[seg], sinr_all[seg])
+
+        out = {}
+        for (tx, rx), hl in h.items():
+            d = side[(tx, rx)]
+            se, sinr = per_re[(tx, rx)]
             wts = d["wts"]
             mcs_bits, mcs = self.mcs(sinr, d["p"], wts)
             bits = float(se.sum() if wts is None else np.dot(wts, se))
@@ -302,16 +422,11 @@ class NetworkPHY:
                 sinr_mean = float(np.dot(ww, sinr[ok]) / ww.sum()) if ok.any() else 0.0
             w_g = on_grid(np.asarray(d["w"]), d)
             p_g = on_grid(d["p"], d)
-            if invariant:
-                hx = _expand(hl, group)
-                wx = _expand(w_g.reshape((g_, n_) + w_g.shape[1:]), group)
-                px = _expand(p_g.reshape((g_, n_) + p_g.shape[1:]), group)
-            else:
-                hx = hl
-                wx = w_g.reshape((k_, n_) + w_g.shape[1:])
-                px = p_g.reshape((k_, n_) + p_g.shape[1:])
+            hx = _expand(hl, group) if invariant else hl
             out[(tx, rx)] = LinkSignal(
-                tx=tx, rx=rx, h=hx, w=wx, p=px, mask=self.masks[tx],
+                tx=tx, rx=rx, h=hx, w_by_group=w_g.reshape((g_, n_) + w_g.shape[1:]),
+                p_by_group=p_g.reshape((g_, n_) + p_g.shape[1:]),
+                group=group if invariant else None, mask=self.masks[tx],
                 rate_bps=bits / self.grid.step_duration_s,
                 snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
                 sinr_db=float(10 * np.log10(sinr_mean)) if sinr_mean > 0 else float("-inf"),
@@ -352,7 +467,8 @@ class NetworkPHY:
             sinr = r.sinr[mask]
             sinr = sinr[np.isfinite(sinr) & (sinr > 0)]
             out[(tx, rx)] = LinkSignal(
-                tx=tx, rx=rx, h=hl, w=w, p=p, mask=mask, rate_bps=r.rate_bps,
+                tx=tx, rx=rx, h=hl, w_by_group=w, p_by_group=p, mask=mask,
+                rate_bps=r.rate_bps,
                 snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
                 sinr_db=float(10 * np.log10(sinr.mean())) if sinr.size else float("-inf"),
                 mcs_rate_bps=mcs_bits / self.grid.step_duration_s,

@@ -32,6 +32,11 @@ def test_run_prints_a_line_per_step_and_timing(lab, capsys):
     out = capsys.readouterr().out
     assert out.count("step ") >= 3 and "AP2->robot1" in out and "Mbit/s" in out
     assert "steps/s" in out and "trace" in out
+    # Paced far above what the lab can do: every step overruns, each with its cause.
+    assert main(["run", str(lab), "--steps", "2", "--rate", "1000"]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"paced at 1000 Hz: 2 steps in [\d.]+ s, 2 overruns \("
+                     r"(agents|trace|phy|sense|estimate|control|caller) [12]", out), out
 
 
 @pytest.mark.slow
@@ -49,6 +54,8 @@ def test_fingerprints_builds_then_reuses_the_cache(lab, tmp_path, capsys):
 def test_bad_input_exits_2_with_the_culprit(lab, tmp_path, capsys):
     assert main(["run", str(lab), "--steps", "-1"]) == 2
     assert "--steps -1" in capsys.readouterr().err
+    assert main(["run", str(lab), "--steps", "2", "--rate", "0"]) == 2
+    assert "--rate 0.0: expected a positive rate" in capsys.readouterr().err
     assert main(["fingerprints", str(lab), "--spacing", "0"]) == 2
     bad = tmp_path / "twin.toml"
     bad.write_text((lab / "twin.toml").read_text().replace("rows = 2", "rows = 0"))

@@ -266,3 +266,21 @@ def test_set_path_is_checked_against_the_room_as_it_is_now(tmp_path):
     tw.apply_edit(Edit(op="move", target="Desk", position=(3.1, 4.0, 0.375)))
     tw.step()
     tw.set_path("robot1", through)  # free now
+
+
+def test_paced_run_names_the_stage_of_each_overrun(lab):
+    """A paced run counts an overrun against the step's longest stage, or against
+    the caller when the consumer of a result held the loop (issue #19)."""
+    import time
+
+    tw = Twin.from_scene(lab, seed=1, phy=False)
+    tw.estimators.append(lambda twin, res: time.sleep(0.4) if res.step == 1 else None)
+    for res in tw.run(4, rate_hz=4.0):  # period 250 ms; normal steps take far less
+        if res.step == 2:
+            time.sleep(0.4)
+    st = tw.stats
+    assert st.overrun_stages.get("estimate") == 1 and st.overrun_stages.get("caller") == 1
+    assert st.overruns == sum(st.overrun_stages.values()) and st.overrun_ms >= 2 * 150
+    assert "estimate 1" in st.overrun_summary() and "caller 1" in st.table()
+    with pytest.raises(ValueError, match="rate_hz"):
+        list(tw.run(1, rate_hz=0))
