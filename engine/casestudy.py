@@ -40,8 +40,27 @@ PAPER_MAX_POSITIONING_M = 0.16
 PAPER_MAX_MODELLING_M = 0.08
 
 #: Keys of ``metrics.json`` (each error entry holds rmse, median, p90, max in m).
-METRICS_KEYS = ("paper_mode", "closed_loop", "table", "database", "paper_reference",
-                "timings_s", "rates")
+#: ``headline`` comes first: errors against the simulator's truth; ``paper_mode`` is
+#: the paper's comparison (estimate and twin against odometry: self-consistency).
+METRICS_KEYS = ("headline", "paper_mode", "closed_loop", "table", "database",
+                "paper_reference", "timings_s", "rates")
+
+#: Rate samples (PHY evaluations) per closed-loop run at least, when the run is long
+#: enough: the closed loop's rates figure needs a curve, not one point.
+CLOSED_LOOP_RATE_SAMPLES = 24
+
+
+def rate_cadence(steps: int, rate_every: int, samples: int = CLOSED_LOOP_RATE_SAMPLES) -> int:
+    """PHY cadence (every this many steps) of a run of ``steps`` steps: ``rate_every``,
+    coarsened so that about ``samples`` steps get rates (at least 2 if ``steps`` >= 2).
+
+    The PHY costs most of a step, so the closed-loop run evaluates it sparsely; a
+    fixed huge cadence left a single sample (step 0) and an empty rates figure."""
+    if steps < 1 or rate_every < 1 or samples < 2:
+        raise ValueError(f"rate_cadence: expected steps, rate_every >= 1 and samples >= 2, "
+                         f"got {steps}, {rate_every}, {samples}")
+    every = max(int(rate_every), math.ceil(steps / samples))
+    return min(every, max(1, steps - 1))  # steps 0 and ``every`` both inside the run
 
 
 def disjoint_config(config):
@@ -228,7 +247,9 @@ def plot_run(dep: Deployment, out: Path, tag: str, title: str) -> list[Path]:
     plan = dep.path.sample(400)
     ax.plot(plan[:, 0], plan[:, 1], color="0.6", lw=0.8, ls=(0, (4, 3)), zorder=3,
             label=f"path ({dep.path.describe()})")
-    style = {"estimate": ("C3", ".", f"estimate ({dep.settings.method})", 0.5),
+    est_label = (closed_loop_label(dep.settings) + ", fused" if dep.settings.closed_loop
+                 and dep.settings.fusion == "ekf" else dep.settings.method)
+    style = {"estimate": ("C3", ".", f"estimate ({est_label})", 0.5),
              "twin": ("C2", "-", "twin", 1.6),
              "odometry": ("C0", "-", "odometry (paper's ground truth)", 1.6),
              "truth": ("k", "--", "truth (simulator)", 1.2)}
@@ -246,15 +267,19 @@ def plot_run(dep: Deployment, out: Path, tag: str, title: str) -> list[Path]:
     fig.savefig(files[-1], dpi=120)
     plt.close(fig)
 
+    # against the simulator's truth first (solid); the paper's comparison against
+    # odometry (self-consistency) dashed
     fig, ax = plt.subplots(figsize=(8, 4))
-    ax.plot(t, 100 * err["positioning"], color="C3", label="positioning: estimate vs odometry")
-    ax.plot(t, 100 * err["modelling"], color="C2", label="modelling: twin vs odometry")
-    ax.plot(t, 100 * err["estimate_vs_truth"], color="C3", ls=":", lw=1,
+    ax.plot(t, 100 * err["estimate_vs_truth"], color="C3", lw=1.6,
             label="estimate vs truth")
-    ax.plot(t, 100 * err["odometry_vs_truth"], color="C0", ls=":", lw=1,
+    ax.plot(t, 100 * err["odometry_vs_truth"], color="C0", lw=1.2,
             label="odometry vs truth (drift)")
-    ax.axhline(100 * PAPER_MAX_POSITIONING_M, color="C3", ls="--", lw=0.8)
-    ax.axhline(100 * PAPER_MAX_MODELLING_M, color="C2", ls="--", lw=0.8)
+    ax.plot(t, 100 * err["positioning"], color="C3", ls=(0, (3, 2)), lw=1,
+            label="paper's positioning: estimate vs odometry (self-consistency)")
+    ax.plot(t, 100 * err["modelling"], color="C2", ls=(0, (3, 2)), lw=1,
+            label="paper's modelling: twin vs odometry (self-consistency)")
+    ax.axhline(100 * PAPER_MAX_POSITIONING_M, color="C3", ls=":", lw=0.8)
+    ax.axhline(100 * PAPER_MAX_MODELLING_M, color="C2", ls=":", lw=0.8)
     box = {"facecolor": "white", "alpha": 0.8, "lw": 0, "pad": 1}
     ax.text(t[-1], 100 * PAPER_MAX_POSITIONING_M + 0.5, "paper: max positioning 16 cm",
             color="C3", fontsize=8, ha="right", bbox=box)
@@ -262,10 +287,10 @@ def plot_run(dep: Deployment, out: Path, tag: str, title: str) -> list[Path]:
             fontsize=8, ha="right", bbox=box)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("error (cm)")
-    ax.set_title(f"Positioning and modelling errors: {title}")
+    ax.set_title(f"Errors against the truth and the paper's: {title}", fontsize=10)
     top = max(100 * max(float(np.max(v)) for v in err.values()), 16.0)
     ax.set_ylim(0, 1.45 * top)
-    ax.legend(fontsize=8, loc="upper left", ncol=2)
+    ax.legend(fontsize=7, loc="upper left", ncol=2)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     files.append(out / f"errors_{tag}.png")
@@ -339,16 +364,24 @@ def rate_observations(dep: Deployment) -> dict:
 # --------------------------------------------------------------------------- driver
 
 
-def _run(folder, db, settings, steps, dt, seed, rate_every, label, extra_phy=None):
+def _run(folder, db, settings, steps, dt, seed, rate_every, label, extra_phy=None,
+         rate_samples=None):
+    """One deployment run -> (Deployment, result dict). ``rate_samples``: coarsen the PHY
+    cadence to about that many rate samples over the run (:func:`rate_cadence`)."""
     t0 = time.perf_counter()
     dep = Deployment(folder, db, settings, seed=seed, dt=dt, rate_every=rate_every,
                      extra_phy=extra_phy)
     n = steps if steps is not None else dep.lap_steps()
+    if rate_samples is not None:  # before the first step: the cadence of the whole run
+        dep.rate_every = rate_cadence(n, rate_every, rate_samples)
     dep.run(n)
     wall = time.perf_counter() - t0
     err = errors(dep.records)
+    key = next(iter(dep.records[0].rates_bps), None) if dep.records else None
     res = {"settings": {k: v for k, v in asdict(settings).items() if k != "mca"},
-           "steps": n, "dt_s": dt, "wall_s": wall,
+           "steps": n, "dt_s": dt, "wall_s": wall, "rate_every": dep.rate_every,
+           "rate_samples": int(sum(np.isfinite(r.rates_bps.get(key, np.nan))
+                                   for r in dep.records)) if key else 0,
            "errors": {k: summarize(v) for k, v in err.items()},
            "perturbation": dep.perturbation["material"] if dep.perturbation else None,
            "calibration_error": {"dxy_m": dep.calib[0].tolist(),
@@ -373,24 +406,33 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
                    dt: float = 0.25, seed: int = 0, cache_dir="out/cache", table_points: int = 12,
                    snrs=(0.0, 10.0, 20.0, 30.0), closed_loop_steps: int | None = None,
                    rate_every: int = 2, mca: dict | None = None,
-                   closed_loop_method: str = "PDP", closed_loop: bool = True,
-                   path: dict | None = None,
+                   closed_loop_method: str = "MCA-angles", closed_loop_fusion: str = "ekf",
+                   closed_loop: bool = True, path: dict | None = None,
                    report=print) -> dict:
     """Run the whole case study on a scene folder; write figures, table.md, metrics.json.
+
+    Errors are reported against the simulator's truth first (``metrics["headline"]``
+    and the summary printed last); the paper-mode run's errors against odometry are
+    the paper's comparison, a self-consistency check of the twin.
 
     Args:
         folder: scene folder of the twin's room.
         out_dir: output folder.
         spacing: fingerprint grid spacing, m (default 5 cm, the paper's; the
-            database takes ~25 s to trace on 2 cores with chain reuse).
+            database takes ~41 s to trace on 2 cores with chain reuse).
         steps: deployment steps (default: one lap of a closed path, or to the end of
             an open one).
         dt: step, s.
         table_points: test points along the path for the static table.
         closed_loop_steps: steps of the closed-loop realistic run (default ``steps``).
-        rate_every: PHY (rates) every this many steps.
+        rate_every: PHY (rates) every this many steps in the paper-mode run; the
+            closed loop coarsens it to about :data:`CLOSED_LOOP_RATE_SAMPLES` samples.
         mca: MCA parameters (eps, k, num_paths).
-        closed_loop_method: localizer of the closed-loop realistic run.
+        closed_loop_method: localizer of the closed-loop realistic run (default
+            ``"MCA-angles"``; ``"PDP"`` with ``closed_loop_fusion="blend"`` is the
+            earlier run).
+        closed_loop_fusion: ``"ekf"`` (default: :class:`~engine.localization.fusion.PoseEKF`
+            over odometry with the gated fixes) or ``"blend"`` (complementary filter).
         closed_loop: run it at all (``metrics["closed_loop"]`` is None otherwise).
         path: the path the robot follows, a ``[devices.path]`` spec of any kind
             (``{"kind": "circle", "centre": [x, y], "radius": r}``, ``"polyline"``,
@@ -405,6 +447,11 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     mca = dict(mca or {"eps": 0.5, "k": 4, "num_paths": 9})
+    # refused before anything is traced (the same checks as DeploymentSettings)
+    closed = DeploymentSettings(source="real", mode="pilots", snr_db=20.0, perturb=True,
+                                closed_loop=True, method=closed_loop_method,
+                                fusion=closed_loop_fusion, mca=mca, path=path,
+                                num_paths=mca.get("num_paths", 9))
     timings = {}
     t0 = time.perf_counter()
     scene = load_scene(folder)
@@ -416,6 +463,7 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
         dev = dataclasses.replace(scene.config.device(robot), path=path)
         check_placement(scene, devices=[dev])
     robot, path = robot_path(scene.config, path)
+    closed.path = path
     report(f"case study on {scene.config.scene.name!r}: {robot} follows "
            f"{path_from_spec(path, start=scene.config.device(robot).position[:2]).describe()}")
     db = cached_database(scene, spacing=spacing, cache_dir=cache_dir)
@@ -433,15 +481,19 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
     else:
         extra = {"shared REs": NetworkPHY(shared_config(scene.config))}
     dep, res_paper = _run(folder, db, paper, steps, dt, seed, rate_every, "paper mode", extra)
+    res_paper["comparison"] = ("self-consistency (the paper's): the twin's own tracer at the "
+                               "twin's position, errors against odometry")
     timings["paper_mode"] = res_paper["wall_s"]
     e = res_paper["errors"]
-    report(f"paper mode ({res_paper['steps']} steps, {res_paper['wall_s']:.1f} s): "
-           f"max positioning error {100 * e['positioning']['max']:.1f} cm "
-           f"(paper ~16 cm), RMSE {100 * e['positioning']['rmse']:.1f} cm; "
-           f"max modelling error {100 * e['modelling']['max']:.1f} cm (paper < 8 cm); "
-           f"estimate vs truth RMSE {100 * e['estimate_vs_truth']['rmse']:.1f} cm; "
-           f"truth off the path: max {100 * res_paper['truth_off_path']['max']:.1f} cm")
-    files = plot_run(dep, out, "paper", "paper mode (twin tracer MDP, open loop)")
+    report(f"paper mode, self-consistency ({res_paper['steps']} steps, "
+           f"{res_paper['wall_s']:.1f} s): estimate vs truth RMSE "
+           f"{100 * e['estimate_vs_truth']['rmse']:.1f} cm, max "
+           f"{100 * e['estimate_vs_truth']['max']:.1f} cm; against odometry (the paper's "
+           f"comparison): max positioning error {100 * e['positioning']['max']:.1f} cm "
+           f"(paper ~16 cm), max modelling error {100 * e['modelling']['max']:.1f} cm "
+           f"(paper < 8 cm)")
+    files = plot_run(dep, out, "paper",
+                     "paper mode (twin tracer MDP, open loop; self-consistency)")
     rates = rate_observations(dep)
     for k, v in rates.items():
         report(f"  rate {k}: mean {v['mean_mbps']:.1f} Mbit/s "
@@ -449,24 +501,23 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
                f"{v['rank_corr_rate_vs_distance']:+.2f}")
 
     res_closed = None
+    cl_label = closed_loop_label(closed)
     if closed_loop:
         # Closed loop in the realistic mode: pilots at 20 dB received in the perturbed
-        # room; PDP matching (the method that survives pilot estimation, see the table).
-        closed = DeploymentSettings(source="real", mode="pilots", snr_db=20.0, perturb=True,
-                                    closed_loop=True, method=closed_loop_method, mca=mca,
-                                    path=path, num_paths=mca.get("num_paths", 9))
+        # room, the controller steering on the fused estimate.
         n_cl = closed_loop_steps if closed_loop_steps is not None else steps
-        dep2, res_closed = _run(folder, db, closed, n_cl, dt, seed, 10 ** 9, "closed loop")
+        dep2, res_closed = _run(folder, db, closed, n_cl, dt, seed, rate_every, "closed loop",
+                                rate_samples=CLOSED_LOOP_RATE_SAMPLES)
+        res_closed["rates"] = rate_observations(dep2)
         timings["closed_loop"] = res_closed["wall_s"]
         e2 = res_closed["errors"]
-        report(f"closed loop, realistic mode ({closed_loop_method}, pilots 20 dB, perturbed room, "
+        report(f"closed loop, realistic mode ({cl_label}, pilots 20 dB, perturbed room, "
                f"{res_closed['steps']} steps, {res_closed['wall_s']:.1f} s): estimate vs truth "
                f"RMSE {100 * e2['estimate_vs_truth']['rmse']:.1f} cm, max "
-               f"{100 * e2['estimate_vs_truth']['max']:.1f} cm; odometry drift max "
-               f"{100 * e2['odometry_vs_truth']['max']:.1f} cm; truth off the path: max "
-               f"{100 * res_closed['truth_off_path']['max']:.1f} cm")
+               f"{100 * e2['estimate_vs_truth']['max']:.1f} cm; {res_closed['rejected_estimates']} "
+               f"fixes gated out; {res_closed['rate_samples']} rate samples")
         files += plot_run(dep2, out, "closed_loop",
-                          f"closed loop, {closed_loop_method}, pilots 20 dB, perturbed room")
+                          f"closed loop, {cl_label}, pilots 20 dB, perturbed room")
 
     t1 = time.perf_counter()
     rows = static_table(folder, db, n_points=table_points, snrs=snrs, seed=seed, mca=mca,
@@ -474,11 +525,16 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
     timings["table"] = time.perf_counter() - t1
     md = table_markdown(rows)
     (out / "table.md").write_text(
-        f"Static localization error at {table_points} points along the robot's path "
-        f"(database: {spacing * 100:g} cm grid of the twin's room; cm):\n\n{md}\n")
+        f"Static localization error against the simulator's truth at {table_points} points "
+        f"along the robot's path (database: {spacing * 100:g} cm grid of the twin's room; "
+        f"cm):\n\n{md}\n")
     report(md)
 
+    head = headline(res_paper, res_closed, rows, cl_label)
+    for line in headline_lines(head):
+        report(line)
     metrics = {
+        "headline": head,
         "paper_mode": res_paper, "closed_loop": res_closed,
         "table": [{k: v for k, v in r.items() if k != "errors"} for r in rows],
         "database": {**db.summary(), "path": str(db.path)},
@@ -489,3 +545,78 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
     }
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=float))
     return metrics
+
+
+def closed_loop_label(settings: DeploymentSettings) -> str:
+    """``"MCA-angles + EKF"``, ``"PDP + complementary filter"``: method and fusion."""
+    return settings.method + (" + EKF" if settings.fusion == "ekf"
+                              else " + complementary filter")
+
+
+def best_pilot_rows(rows: list[dict], snr_db: float = 20.0) -> list[dict]:
+    """The static table's best pilot-mode method (lowest median in the first room) at the
+    table's SNR nearest ``snr_db``: its rows in every room ([] without pilot rows)."""
+    pil = [r for r in rows if r["mode"].startswith("pilots ")]
+    if not pil:
+        return []
+    snr = lambda r: float(r["mode"].split()[1])  # noqa: E731  ("pilots 20 dB")
+    near = min({snr(r) for r in pil}, key=lambda v: abs(v - snr_db))
+    pil = [r for r in pil if snr(r) == near]
+    first = pil[0]["room"]
+    best = min((r for r in pil if r["room"] == first), key=lambda r: r["median"])["method"]
+    return [r for r in pil if r["method"] == best]
+
+
+def headline(res_paper: dict, res_closed: dict | None, rows: list[dict],
+             closed_label: str = "") -> dict:
+    """``metrics["headline"]``: errors against the simulator's truth (m), then the paper's
+    self-consistency figures (against odometry), each entry labelled."""
+    h = {}
+    if res_closed is not None:
+        e = res_closed["errors"]
+        h["closed_loop_vs_truth"] = {
+            "what": f"closed loop, realistic mode ({closed_label}, pilots 20 dB, perturbed "
+                    "room): estimate vs the simulator's truth",
+            **e["estimate_vs_truth"], "odometry_vs_truth": e["odometry_vs_truth"],
+            "fixes_gated_out": res_closed["rejected_estimates"], "steps": res_closed["steps"]}
+    best = best_pilot_rows(rows)
+    if best:
+        h["static_best_pilots_vs_truth"] = {
+            "what": f"static table, {best[0]['method']} on {best[0]['mode']}: estimate vs "
+                    "the simulator's truth",
+            **{r["room"]: {k: r[k] for k in ("median", "p90", "max")} for r in best}}
+    e = res_paper["errors"]
+    h["paper_mode_vs_truth"] = {
+        "what": "paper mode (twin tracer MDP at the twin's position, open loop): estimate "
+                "vs the simulator's truth", **e["estimate_vs_truth"]}
+    h["paper_self_consistency"] = {
+        "what": "the paper's comparison, self-consistency: positioning = estimate vs "
+                "odometry, modelling = twin vs odometry (odometry is the paper's ground truth)",
+        "positioning": e["positioning"], "modelling": e["modelling"],
+        "paper": {"max_positioning_m": PAPER_MAX_POSITIONING_M,
+                  "max_modelling_m": PAPER_MAX_MODELLING_M}}
+    return h
+
+
+def headline_lines(h: dict) -> list[str]:
+    """The printed summary of :func:`headline`: against the truth first."""
+    cm = lambda d: (f"RMSE {100 * d['rmse']:.1f} cm, median {100 * d['median']:.1f} cm, "  # noqa
+                    f"max {100 * d['max']:.1f} cm")
+    out = ["summary, against the simulator's truth:"]
+    if "closed_loop_vs_truth" in h:
+        c = h["closed_loop_vs_truth"]
+        out.append(f"  {c['what']}: {cm(c)} ({c['fixes_gated_out']} of {c['steps']} fixes "
+                   f"gated out; odometry alone: {cm(c['odometry_vs_truth'])})")
+    if "static_best_pilots_vs_truth" in h:
+        c = h["static_best_pilots_vs_truth"]
+        rooms = "; ".join(f"{room} room median {100 * v['median']:.1f} / P90 "
+                          f"{100 * v['p90']:.1f} / max {100 * v['max']:.1f} cm"
+                          for room, v in c.items() if room != "what")
+        out.append(f"  {c['what']}: {rooms}")
+    c = h["paper_mode_vs_truth"]
+    out.append(f"  {c['what']}: {cm(c)}")
+    c = h["paper_self_consistency"]
+    out.append("the paper's comparison (self-consistency, against odometry): max positioning "
+               f"error {100 * c['positioning']['max']:.1f} cm (paper ~16 cm), max modelling "
+               f"error {100 * c['modelling']['max']:.1f} cm (paper < 8 cm)")
+    return out

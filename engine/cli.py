@@ -13,7 +13,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from engine.config import ConfigError
+from engine.config import LOCALIZATION_METHODS, ConfigError
 from engine.paths import bundled_scene_dir
 
 COMMANDS: dict[str, tuple[str, Callable[[argparse.ArgumentParser], None], Callable]] = {}
@@ -341,6 +341,13 @@ def _localize_args(p: argparse.ArgumentParser) -> None:
                    help="pilot SNR of the static table, dB (repeat; default 0 10 20 30)")
     p.add_argument("--no-closed-loop", action="store_true",
                    help="skip the closed-loop realistic run")
+    p.add_argument("--closed-loop-method", default="MCA-angles",
+                   choices=LOCALIZATION_METHODS,
+                   help="localizer of the closed-loop run (default MCA-angles)")
+    p.add_argument("--closed-loop-fusion", default="ekf", choices=("ekf", "blend"),
+                   help="closed loop: EKF over odometry with gated fixes (default) or the "
+                        "complementary filter (blend; the earlier run: --closed-loop-method "
+                        "PDP --closed-loop-fusion blend)")
     p.add_argument("--cache-dir", type=Path, default=Path("out/cache"),
                    help="where databases are cached (default out/cache)")
     p.add_argument("--seed", type=int, default=0)
@@ -381,7 +388,9 @@ def cmd_localize(args) -> int:
         run_case_study(scene_path(args), args.out, spacing=args.spacing, steps=args.steps,
                        seed=args.seed, cache_dir=args.cache_dir, table_points=args.table_points,
                        snrs=tuple(args.snr) if args.snr else (0.0, 10.0, 20.0, 30.0),
-                       closed_loop=not args.no_closed_loop, path=path)
+                       closed_loop=not args.no_closed_loop, path=path,
+                       closed_loop_method=args.closed_loop_method,
+                       closed_loop_fusion=args.closed_loop_fusion)
     except PathError as exc:  # a path the robot cannot follow (too tight, leaves the room)
         print(f"isac-twin: error: path: {exc}", file=sys.stderr)
         return 2

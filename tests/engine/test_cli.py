@@ -196,6 +196,10 @@ def test_localize_runs_the_case_study_on_an_l_room(tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["paper_mode"]["path"]["waypoints"][1] == [3.5, 1.0]
     assert m["closed_loop"]["steps"] == 3
+    # the default closed loop is the fused one; the headline (against the truth) first
+    assert m["closed_loop"]["settings"]["method"] == "MCA-angles"
+    assert m["closed_loop"]["settings"]["fusion"] == "ekf"
+    assert list(m)[0] == "headline"
     for name in ("trajectories_paper.png", "errors_paper.png", "rates_paper.png",
                  "trajectories_closed_loop.png"):
         assert (out / name).stat().st_size > 10000, name
@@ -205,6 +209,10 @@ def test_localize_runs_the_case_study_on_an_l_room(tmp_path):
                          cwd=ROOT, capture_output=True, text=True)
     assert bad.returncode == 2
     assert bad.stderr.count("\n") == 1 and "outside the room's footprint" in bad.stderr
+    bad = subprocess.run([sys.executable, "-m", "engine.cli", "localize", str(f), "--out",
+                          str(out), "--closed-loop-fusion", "ukf"],
+                         cwd=ROOT, capture_output=True, text=True)
+    assert bad.returncode == 2 and "--closed-loop-fusion: invalid choice: 'ukf'" in bad.stderr
 
 
 @pytest.mark.slow
