@@ -352,7 +352,8 @@ class Calibrator:
                 yaw = off.get("yaw", mi.Float(0.0))
                 cs, sn = dr.cos(yaw), dr.sin(yaw)
                 rx, ry = mi.Float(v0[:, 0] - c[0]), mi.Float(v0[:, 1] - c[1])
-                pts = mi.Point3f(c[0] + cs * rx - sn * ry + dx, c[1] + sn * rx + cs * ry + dy,
+                cx, cy = float(c[0]), float(c[1])  # a NumPy scalar on the left drops AD
+                pts = mi.Point3f(cx + cs * rx - sn * ry + dx, cy + sn * rx + cs * ry + dy,
                                  mi.Float(v0[:, 2]))
                 params_mi[key] = dr.ravel(pts)
             params_mi.update()
