@@ -26,9 +26,9 @@ keeps every parameter inside its physical bounds and decides convergence
 (relative mismatch change or projected gradient below tolerance); the result
 says whether it converged and why.
 
-Model assumptions (what a calibration cannot see): one isotropic, vertically
-polarised element at each array centre on both sides (the measurement's CSI
-must be of that kind, or reduced to it); specular reflection and refraction
+Model assumptions (what a calibration cannot see): planar arrays of
+isotropic, vertically polarised elements (the twin's channel model,
+:mod:`engine.phy.channel`); specular reflection and refraction
 only (no diffuse scattering, no diffraction); the measurement positions are
 taken as exact. A parameter whose gradient is zero at the start (no traced
 path touches the material or object) is reported as unobserved.
@@ -108,20 +108,29 @@ class Parameter:
 
 @dataclass
 class Measurements:
-    """Channels measured from one transmitter at N receiver positions.
+    """Channels measured from one transmitter at N receiver poses.
 
     Attributes:
         tx_position: ``[3]`` transmitter array centre, m.
         rx_positions: ``[N, 3]`` receiver array centres, m.
         subcarrier_offsets_hz: ``[K]`` subcarrier frequencies relative to the carrier, Hz.
-        csi: ``[N, K]`` complex channel (one antenna pair, transmit power normalised
-            to 1 W); only its magnitude is used.
+        csi: ``[N, K, Nr, Nt]`` complex channel per antenna pair (``[N, K]`` for one
+            pair), transmit power normalised to 1 W; only its magnitude is used.
+        tx_array, rx_array: ``(rows, cols, vertical_spacing, horizontal_spacing)``
+            (spacings in wavelengths) of isotropic, vertically polarised elements;
+            ``rows * cols`` must be ``Nt`` / ``Nr``.
+        tx_orientation: ``[3]`` Sionna ``(yaw, pitch, roll)`` of the transmit array, rad.
+        rx_orientations: ``[N, 3]`` the same per receiver pose, rad.
     """
 
     tx_position: np.ndarray
     rx_positions: np.ndarray
     subcarrier_offsets_hz: np.ndarray
     csi: np.ndarray
+    tx_array: tuple = (1, 1, 0.5, 0.5)
+    rx_array: tuple = (1, 1, 0.5, 0.5)
+    tx_orientation: np.ndarray | None = None
+    rx_orientations: np.ndarray | None = None
 
     def __post_init__(self):
         self.tx_position = np.asarray(self.tx_position, float).reshape(-1)
@@ -129,18 +138,32 @@ class Measurements:
         self.subcarrier_offsets_hz = np.asarray(self.subcarrier_offsets_hz, float).reshape(-1)
         self.csi = np.asarray(self.csi, complex)
         n, k = len(self.rx_positions), len(self.subcarrier_offsets_hz)
+        if self.csi.ndim == 2:
+            self.csi = self.csi[:, :, None, None]
+        self.tx_array, self.rx_array = tuple(self.tx_array), tuple(self.rx_array)
+        nt = int(self.tx_array[0]) * int(self.tx_array[1])
+        nr = int(self.rx_array[0]) * int(self.rx_array[1])
+        self.tx_orientation = (np.zeros(3) if self.tx_orientation is None else
+                               np.asarray(self.tx_orientation, float).reshape(-1))
+        self.rx_orientations = (np.zeros((n, 3)) if self.rx_orientations is None else
+                                np.atleast_2d(np.asarray(self.rx_orientations, float)))
         if self.tx_position.shape != (3,):
             raise CalibrationError(f"measurements: tx_position must be [3] m, "
                                    f"got shape {self.tx_position.shape}")
         if self.rx_positions.shape[1:] != (3,):
             raise CalibrationError(f"measurements: rx_positions must be [N, 3] m, "
                                    f"got shape {self.rx_positions.shape}")
-        if self.csi.shape != (n, k):
-            raise CalibrationError(f"measurements: csi must be [N={n}, K={k}] "
-                                   f"(positions x subcarriers), got shape {self.csi.shape}")
+        if self.csi.shape != (n, k, nr, nt):
+            raise CalibrationError(f"measurements: csi must be [N={n}, K={k}, Nr={nr}, Nt={nt}] "
+                                   f"(positions x subcarriers x rx x tx antennas), got shape "
+                                   f"{self.csi.shape}")
+        if self.tx_orientation.shape != (3,) or self.rx_orientations.shape != (n, 3):
+            raise CalibrationError(f"measurements: orientations must be [3] (tx) and "
+                                   f"[N={n}, 3] (rx) rad, got {self.tx_orientation.shape} and "
+                                   f"{self.rx_orientations.shape}")
         for label, a in (("tx_position", self.tx_position), ("rx_positions", self.rx_positions),
                          ("subcarrier_offsets_hz", self.subcarrier_offsets_hz),
-                         ("csi", self.csi)):
+                         ("csi", self.csi), ("rx_orientations", self.rx_orientations)):
             if not np.isfinite(a).all():
                 raise CalibrationError(f"measurements: {label} has non-finite values")
 
@@ -292,17 +315,27 @@ class Calibrator:
         self.scales = np.array([self._scale(p, v) for p, v in zip(self.params, self.initial)])
 
         # devices: one isotropic V element at each array centre
-        sc.tx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
-        sc.rx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
+        def array(spec):
+            rows, cols, dv, dh = spec
+            return rt.PlanarArray(num_rows=int(rows), num_cols=int(cols),
+                                  vertical_spacing=float(dv), horizontal_spacing=float(dh),
+                                  pattern="iso", polarization="V")
+
+        sc.tx_array, sc.rx_array = array(measurements.tx_array), array(measurements.rx_array)
         for name in [n for n in list(sc.transmitters) + list(sc.receivers)]:
             sc.remove(name)
-        sc.add(rt.Transmitter("calib_tx", position=mi.Point3f(*map(float, measurements.tx_position))))
-        for i, pos in enumerate(measurements.rx_positions):
-            sc.add(rt.Receiver(f"calib_rx{i:04d}", position=mi.Point3f(*map(float, pos))))
+        m = measurements
+        sc.add(rt.Transmitter("calib_tx", position=mi.Point3f(*map(float, m.tx_position)),
+                              orientation=mi.Point3f(*map(float, m.tx_orientation))))
+        for i, (pos, ori) in enumerate(zip(m.rx_positions, m.rx_orientations)):
+            sc.add(rt.Receiver(f"calib_rx{i:04d}", position=mi.Point3f(*map(float, pos)),
+                               orientation=mi.Point3f(*map(float, ori))))
         self._solver = rt.PathSolver()
         self._solver.loop_mode = "evaluated"  # symbolic loops do not backpropagate
         self._freqs = mi.Float(measurements.subcarrier_offsets_hz)
-        self._meas_db = mi.TensorXf(power_db(measurements.csi).astype(np.float32).reshape(-1))
+        # Sionna's cfr order [N, Nr, (tx=1), Nt, (time=1), K]
+        self._meas_db = mi.TensorXf(power_db(measurements.csi.transpose(0, 2, 3, 1))
+                                    .astype(np.float32).reshape(-1))
 
     # ------------------------------------------------------------------ helpers
 
@@ -361,7 +394,7 @@ class Calibrator:
         return vars_
 
     def _trace_db(self):
-        """Model channel power in dB, a Dr.Jit tensor ``[N * K]``."""
+        """Model channel power in dB, a Dr.Jit array ``[N * Nr * Nt * K]``."""
         dr, mi = self._dr, self._mi
         s = self.settings
         paths = self._solver(self.sc, max_depth=s.max_depth, samples_per_src=s.samples_per_src,
@@ -370,7 +403,7 @@ class Calibrator:
                              diffraction=False, seed=s.seed)
         h_re, h_im = paths.cfr(frequencies=self._freqs, normalize_delays=False,
                                out_type="drjit")
-        # [num_rx, 1, num_tx=1, 1, 1, K] -> [N * K]
+        # [num_rx, Nr, num_tx=1, Nt, 1, K] -> [N * Nr * Nt * K]
         pw = dr.ravel(h_re) ** 2 + dr.ravel(h_im) ** 2
         return 10.0 * dr.log(pw + POWER_FLOOR) / math.log(10.0)
 
@@ -380,7 +413,7 @@ class Calibrator:
         """Mismatch at ``values`` (physical units, ``[P]``).
 
         Returns:
-            ``(mismatch dB^2, gradient [P] in dB^2 per unit, model power [N, K] dB)``.
+            ``(mismatch dB^2, gradient [P] in dB^2 per unit, model power [N, K, Nr, Nt] dB)``.
         """
         dr = self._dr
         t0 = time.perf_counter()
@@ -393,8 +426,9 @@ class Calibrator:
         if grad:
             dr.backward(loss)
             g = np.array([float(dr.grad(x)[0]) for x in vars_])
-        out = float(loss[0]), g, np.array(dr.detach(model_db).numpy(), float).reshape(
-            self.meas.csi.shape)
+        n, k, nr, nt = self.meas.csi.shape
+        model = np.array(dr.detach(model_db).numpy(), float).reshape(n, nr, nt, k)
+        out = float(loss[0]), g, model.transpose(0, 3, 1, 2)
         self._apply(values, False)  # leave the scene at values, detached from the graph
         self.evaluations += 1
         self.step_seconds.append(time.perf_counter() - t0)
@@ -434,7 +468,7 @@ class Calibrator:
                        options={"maxiter": max_steps, "ftol": ftol, "gtol": gtol})
         final = x0 + res.x * sc
         f_final, _, model = self.evaluate(final, grad=False)
-        residual = np.sqrt(np.mean((model - power_db(self.meas.csi)) ** 2, axis=1))
+        residual = np.sqrt(np.mean((model - power_db(self.meas.csi)) ** 2, axis=(1, 2, 3)))
         names = [p.name for p in self.params]
         return CalibrationResult(
             names=names, initial=x0.copy(), final=final, gradient_initial=first["g"],

@@ -99,7 +99,7 @@ def test_bad_input_is_refused(tmp_path):
         Parameter("height", "Cabinet")
     with pytest.raises(CalibrationError, match="permittivity is >= 1"):
         Parameter("permittivity", "concrete", bounds=(0.5, 10))
-    with pytest.raises(CalibrationError, match=r"csi must be \[N=4, K=6\]"):
+    with pytest.raises(CalibrationError, match=r"csi must be \[N=4, K=6, Nr=1, Nt=1\]"):
         Measurements(TX, RX, OFFSETS, np.zeros((4, 5)))
     meas = Measurements(TX, RX, OFFSETS, np.ones((4, 6)))
     scene = load_scene(room(tmp_path / "twin"))
