@@ -241,6 +241,21 @@ class SolverSettings:
     seed: int = 1
     refraction: bool = True
 
+    @classmethod
+    def from_tracer(cls, tracer) -> SolverSettings:
+        """The settings of a scene's ``[tracer]`` (:class:`engine.config.TracerConfig`), so
+        the model sees the paths the twin's tracer sees.
+
+        Raises:
+            CalibrationError: diffuse reflection or diffraction is on (not modelled).
+        """
+        if tracer.diffuse_reflection or tracer.diffraction or not tracer.los:
+            raise CalibrationError("calibrate: the scene's [tracer] has diffuse reflection, "
+                                   "diffraction or no line of sight; the calibration models "
+                                   "line of sight, specular reflection and refraction only")
+        return cls(max_depth=tracer.max_depth, samples_per_src=tracer.samples_per_src,
+                   seed=tracer.seed, refraction=tracer.refraction)
+
 
 class Calibrator:
     """Fits :class:`Parameter` s of a scene to :class:`Measurements`.
@@ -424,7 +439,9 @@ class Calibrator:
         loss = dr.mean(diff * diff)
         g = np.zeros(len(values))
         if grad:
-            dr.backward(loss)
+            # at some bounds (conductivity 0) Sionna's graph no longer depends on a
+            # parameter: its gradient is then 0, not an error
+            dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
             g = np.array([float(dr.grad(x)[0]) for x in vars_])
         n, k, nr, nt = self.meas.csi.shape
         model = np.array(dr.detach(model_db).numpy(), float).reshape(n, nr, nt, k)
@@ -434,11 +451,33 @@ class Calibrator:
         self.step_seconds.append(time.perf_counter() - t0)
         return out
 
-    def fit(self, *, max_steps: int = 30, ftol: float = 1e-4, gtol: float = 1e-5
-            ) -> CalibrationResult:
-        """Fit by L-BFGS-B inside the bounds, starting at the scene's values.
+    def scan(self, index: int, values, start=None) -> np.ndarray:
+        """Mismatch (dB^2, ``[S]``) with parameter ``index`` set to each of ``values``
+        (physical units, ``[S]``, clipped to its bounds) and the others at ``start``
+        (default the scene's values); no gradients.
+
+        A slab's reflection is nearly periodic in ``sqrt(permittivity)`` with period
+        ``wavelength / (2 thickness)`` (multiple reflections inside it), so over a
+        narrow band the mismatch has one local minimum per period: scan permittivity
+        on a grid finer than that before :meth:`fit`.
+        """
+        base = np.array(self.initial if start is None else start, float)
+        lo, hi = self.params[index].limits
+        out = []
+        for v in np.clip(np.asarray(values, float).reshape(-1), lo, hi):
+            x = base.copy()
+            x[index] = v
+            out.append(self.evaluate(x, grad=False)[0])
+        return np.array(out)
+
+    def fit(self, *, max_steps: int = 30, ftol: float = 1e-7, gtol: float = 1e-6,
+            start=None) -> CalibrationResult:
+        """Fit by L-BFGS-B inside the bounds.
 
         Args:
+            start: ``[P]`` values to start from (physical units; e.g. the best of a
+                :meth:`scan`); default the scene's values. ``initial`` in the result
+                stays the scene's values.
             max_steps: most optimiser iterations.
             ftol: stop when the relative mismatch change per step is below this.
             gtol: stop when the projected gradient (per ``scale``) is below this, dB^2.
@@ -448,7 +487,11 @@ class Calibrator:
         """
         from scipy.optimize import minimize
 
-        x0 = self.initial
+        x0 = self.initial if start is None else np.asarray(start, float).reshape(-1)
+        if x0.shape != self.initial.shape:
+            raise CalibrationError(f"fit: start must have {len(self.initial)} values, "
+                                   f"got {x0.shape}")
+        x0 = np.clip(x0, [p.limits[0] for p in self.params], [p.limits[1] for p in self.params])
         sc = self.scales
         history: list[float] = []
         first: dict = {}
@@ -468,10 +511,13 @@ class Calibrator:
                        options={"maxiter": max_steps, "ftol": ftol, "gtol": gtol})
         final = x0 + res.x * sc
         f_final, _, model = self.evaluate(final, grad=False)
+        if start is not None:  # report against the scene's values
+            f0, g0, _ = self.evaluate(self.initial)
+            first.update(f=f0, g=g0)
         residual = np.sqrt(np.mean((model - power_db(self.meas.csi)) ** 2, axis=(1, 2, 3)))
         names = [p.name for p in self.params]
         return CalibrationResult(
-            names=names, initial=x0.copy(), final=final, gradient_initial=first["g"],
+            names=names, initial=self.initial.copy(), final=final, gradient_initial=first["g"],
             unobserved=[n for n, g in zip(names, first["g"]) if g == 0.0],
             mismatch_initial=first["f"], mismatch_final=f_final, residual_db=residual,
             converged=bool(res.success), message=str(res.message), evaluations=self.evaluations,
