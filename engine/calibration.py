@@ -168,6 +168,20 @@ class Measurements:
                 raise CalibrationError(f"measurements: {label} has non-finite values")
 
 
+#: A parameter whose scaled start gradient is below this fraction of the largest one
+#: is reported as not seen by the measurements.
+UNOBSERVED_RATIO = 1e-5
+
+
+def unobserved(scaled_gradient, names) -> list[str]:
+    """Names whose ``|d mismatch / d (value / scale)|`` at the start is at most
+    :data:`UNOBSERVED_RATIO` of the largest (all of them when every one is 0): no traced
+    path changes with them there (e.g. an object shifted along its own reflecting face)."""
+    g = np.abs(np.asarray(scaled_gradient, float))
+    top = g.max() if len(g) else 0.0
+    return [n for n, v in zip(names, g) if top == 0.0 or v <= UNOBSERVED_RATIO * top]
+
+
 def power_db(h: np.ndarray) -> np.ndarray:
     """Channel power in dB, ``10 log10(|h|^2 + POWER_FLOOR)``, same shape as ``h``."""
     return 10.0 * np.log10(np.abs(h) ** 2 + POWER_FLOOR)
@@ -187,7 +201,7 @@ class CalibrationResult:
         initial, final: parameter values before/after, physical units, ``[P]``.
         gradient_initial: d mismatch / d parameter at the start, dB^2 per unit, ``[P]``
             (the sensitivity; 0 means the measurements do not see the parameter).
-        unobserved: names whose initial gradient is exactly zero.
+        unobserved: names the measurements do not see at the start (:func:`unobserved`).
         mismatch_initial, mismatch_final: :func:`mismatch_db2`, dB^2.
         residual_db: ``[N]`` RMS power difference per measurement after the fit, dB.
         converged, message: the optimiser's verdict and reason.
@@ -263,6 +277,10 @@ class Calibrator:
     The calibrator owns ``scene`` (a freshly loaded :class:`~engine.scene.TwinScene`):
     it adds its own transmitter and receivers, replaces the scene's arrays by one
     isotropic element and switches the fitted materials' ITU frequency callback off.
+    Object offsets are written straight into Mitsuba's vertex buffers, which the
+    ``TwinScene``'s edit bookkeeping (``object_poses``, ``content_hash``) does not
+    see: do not trace the twin with this scene afterwards; load the calibrated
+    folder (:func:`engine.calibrate_run.write_calibrated_scene`) instead.
 
     Args:
         scene: the twin's scene (``engine.scene.load_scene``).
@@ -518,7 +536,7 @@ class Calibrator:
         names = [p.name for p in self.params]
         return CalibrationResult(
             names=names, initial=self.initial.copy(), final=final, gradient_initial=first["g"],
-            unobserved=[n for n, g in zip(names, first["g"]) if g == 0.0],
+            unobserved=unobserved(first["g"] * sc, names),
             mismatch_initial=first["f"], mismatch_final=f_final, residual_db=residual,
             converged=bool(res.success), message=str(res.message), evaluations=self.evaluations,
             seconds_per_step=float(np.mean(self.step_seconds)), history=history)

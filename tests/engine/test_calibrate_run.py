@@ -18,9 +18,11 @@ from engine.scene import load_scene
 FREQ = 2.4e9
 
 
-def room(folder, wall):
+def room(folder, wall, cabinet_shift=(0.0, 0.0)):
+    dx, dy = cabinet_shift
     objs = syn.room_objects((5.0, 4.0, 3.0),
-                            {"Cabinet": ((3.0, 2.5, 0.0), (3.6, 3.0, 1.5), "metal", 0.002)},
+                            {"Cabinet": ((3.0 + dx, 2.5 + dy, 0.0), (3.6 + dx, 3.0 + dy, 1.5),
+                                         "metal", 0.002)},
                             material=wall)
     path = {"kind": "polyline", "closed": True,
             "waypoints": [[1.5, 1.5], [3.5, 1.5], [3.5, 2.2], [1.5, 2.2]]}
@@ -81,6 +83,32 @@ def test_cli_recovers_brick_walls(recording, capsys):
     # the scan saw more than one slab resonance: a single start could end elsewhere
     assert len(rep["permittivity_scans"]["concrete.permittivity"]["starts"]) > 1
     assert load_scene(d / "out" / "scene").objects.keys() == load_scene(twin).objects.keys()
+
+
+@pytest.mark.slow
+def test_cli_recovers_cabinet_offset_and_says_what_it_cannot_see(tmp_path, capsys):
+    """60 steps recorded with the cabinet 3 cm further in x and 2 cm back in y: the
+    paths to the robot's positions reflect off the cabinet's y-facing side, so y is
+    recovered and x (a shift along that face) is reported as not seen."""
+    from engine.record import record_twin
+    from engine.twin import Twin
+
+    real = room(tmp_path / "real", "concrete", (0.03, -0.02))
+    record_twin(Twin.from_scene(real), 60, tmp_path / "run.mcap")
+    twin = room(tmp_path / "twin", "concrete")
+    code = main(["calibrate", str(twin), "--measurements", str(tmp_path / "run.mcap"),
+                 "--out", str(tmp_path / "out"), "--params", "poses", "--objects", "Cabinet",
+                 "--snapshots", "8", "--subcarriers", "8"])
+    assert code == 0
+    assert "not seen by the measurements: Cabinet.x" in capsys.readouterr().out
+    rep = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    got = {p["name"]: p["final"] for p in rep["parameters"]}
+    assert got["Cabinet.y"] == pytest.approx(-0.02, abs=0.002)
+    assert abs(got["Cabinet.yaw"]) < np.radians(0.5)
+    assert rep["unobserved"] == ["Cabinet.x"]
+    assert rep["mismatch_db2"]["final"] < 1e-3 * rep["mismatch_db2"]["initial"]
+    v = read_ply(tmp_path / "out" / "scene" / "meshes" / "Cabinet.ply").vertices
+    assert v[:, 1].min() == pytest.approx(2.5 - 0.02, abs=0.002)
 
 
 def test_calibrated_scene_moves_the_fitted_object(tmp_path):

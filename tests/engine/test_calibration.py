@@ -114,6 +114,13 @@ def test_mismatch_ignores_common_phase():
     assert mismatch_db2(2 * h, h) == pytest.approx((20 * np.log10(2)) ** 2, rel=1e-6)
 
 
+def test_unobserved_is_relative_to_the_best_seen():
+    from engine.calibration import unobserved
+
+    assert unobserved([3.0, -2e-7, 0.5], ["a", "b", "c"]) == ["b"]
+    assert unobserved([0.0, 0.0], ["a", "b"]) == ["a", "b"]
+
+
 def test_bad_input_is_refused(tmp_path):
     with pytest.raises(CalibrationError, match="kind 'height'"):
         Parameter("height", "Cabinet")
