@@ -801,5 +801,67 @@ def cmd_replay(args) -> int:
     return 0
 
 
+def _calibrate_args(p: argparse.ArgumentParser) -> None:
+    _scene_arg(p)
+    p.add_argument("--measurements", type=Path, required=True,
+                   help="an .mcap written by `isac-twin record` (/<robot>/csi and "
+                        "/<robot>/ground_truth)")
+    p.add_argument("--out", type=Path, required=True,
+                   help="output folder: scene/ (calibrated) and calibration.json")
+    p.add_argument("--params", default="materials",
+                   help="comma-separated: materials, poses (default materials)")
+    p.add_argument("--objects", default="", help="comma-separated objects whose x, y, yaw "
+                                                 "offsets are fitted (with --params poses)")
+    p.add_argument("--link", default=None, metavar="TX,RX",
+                   help="the recorded link to use (default: the first one)")
+    p.add_argument("--snapshots", type=int, default=6, help="CSI messages used (default 6)")
+    p.add_argument("--subcarriers", type=int, default=16,
+                   help="recorded subcarriers used (default 16)")
+    p.add_argument("--max-steps", type=int, default=30, help="optimiser iterations per start")
+    p.add_argument("--no-scan", action="store_true",
+                   help="start at the scene's permittivities (no scan, single start)")
+
+
+@command("calibrate", "fit materials and object poses of a scene to recorded CSI "
+                      "(Sionna gradients)", _calibrate_args)
+def cmd_calibrate(args) -> int:
+    from engine.calibrate_run import calibrate_recording
+    from engine.calibration import CalibrationError
+
+    link = None
+    if args.link:
+        parts = args.link.split(",")
+        if len(parts) != 2 or not all(parts):
+            print(f"isac-twin: error: --link: expected TX,RX, got {args.link!r}",
+                  file=sys.stderr)
+            return 2
+        link = (parts[0], parts[1])
+    what = tuple(w.strip() for w in args.params.split(",") if w.strip())
+    objects = [o.strip() for o in args.objects.split(",") if o.strip()]
+    if not args.measurements.is_file():
+        print(f"isac-twin: error: --measurements {args.measurements}: no such file",
+              file=sys.stderr)
+        return 2
+    try:
+        run = calibrate_recording(scene_path(args), args.measurements, args.out, what=what,
+                                  objects=objects, link=link, max_snapshots=args.snapshots,
+                                  max_subcarriers=args.subcarriers, max_steps=args.max_steps,
+                                  scan=not args.no_scan)
+    except CalibrationError as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
+    r = run.report
+    for p in r["parameters"]:
+        print(f"{p['name']:32s} {p['initial']:12.6g} -> {p['final']:12.6g}")
+    m = r["mismatch_db2"]
+    print(f"mismatch {m['initial']:.4g} -> {m['final']:.4g} dB^2, "
+          f"{'converged' if r['converged'] else 'NOT converged'} ({r['message']}), "
+          f"{r['evaluations']} evaluations at {r['seconds_per_step']:.2f} s")
+    if r["unobserved"]:
+        print(f"not seen by the measurements: {', '.join(r['unobserved'])}")
+    print(f"wrote {run.scene_dir} and {run.report_path}")
+    return 0
+
+
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,0 +1,542 @@
+"""Calibrate the twin from measured channels: fit materials and object poses (issue 20).
+
+The twin's modelling error comes from materials guessed from inspection and
+objects placed by hand. :class:`Calibrator` fits
+
+* the relative permittivity and/or the conductivity (S/m) of a radio material
+  (every Sionna radio material of the scene whose ITU type or name matches),
+* the x/y position offset (m) and yaw offset (rad) of named objects,
+
+to channels measured at known transmitter/receiver positions, by minimising
+:func:`mismatch_db2`: the mean squared difference of the per-subcarrier
+channel *power* in dB. Magnitudes are blind to a common phase offset per
+snapshot (a real receiver's carrier phase) and to a timing offset (a delay is
+a linear phase across subcarriers), which is why they are compared instead of
+the complex channel.
+
+Gradients come from Sionna RT through Dr.Jit's automatic differentiation on
+the LLVM backend: the material parameters are Dr.Jit variables of Sionna's
+``RadioMaterial`` (its ITU frequency callback is switched off so the fitted
+value sticks), the object offsets move the mesh vertices through Mitsuba's
+scene parameters, and ``PathSolver`` (``loop_mode="evaluated"``, the mode
+Sionna documents as differentiable) plus ``Paths.cfr`` propagate both to the
+channel. Paths are re-traced at every evaluation with a fixed seed, so the
+mismatch is a deterministic function of the parameters. SciPy's L-BFGS-B
+keeps every parameter inside its physical bounds and decides convergence
+(relative mismatch change or projected gradient below tolerance); the result
+says whether it converged and why.
+
+Model assumptions (what a calibration cannot see): planar arrays of
+isotropic, vertically polarised elements (the twin's channel model,
+:mod:`engine.phy.channel`); specular reflection and refraction
+only (no diffuse scattering, no diffraction); the measurement positions are
+taken as exact. A parameter whose gradient is zero at the start (no traced
+path touches the material or object) is reported as unobserved.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: Parameter kinds: material ones name a radio material, pose ones an object.
+MATERIAL_KINDS = ("permittivity", "conductivity")
+POSE_KINDS = ("x", "y", "yaw")
+
+#: Default physical bounds per kind (relative permittivity; S/m; m; rad).
+#: Offsets are relative to the pose the scene was loaded with.
+DEFAULT_BOUNDS = {"permittivity": (1.0, 100.0), "conductivity": (0.0, 1.0e7),
+                  "x": (-0.25, 0.25), "y": (-0.25, 0.25), "yaw": (-math.radians(15),
+                                                               math.radians(15))}
+
+#: Power floor added before taking dB, W (relative to 1 W transmit power): -200 dB.
+POWER_FLOOR = 1e-20
+
+
+class CalibrationError(ValueError):
+    """Bad calibration input (unknown material/object, bad shapes, bad bounds)."""
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One parameter to fit.
+
+    Attributes:
+        kind: ``"permittivity"``, ``"conductivity"`` (of radio material ``target``),
+            ``"x"``, ``"y"`` (offset, m) or ``"yaw"`` (offset, rad) of object ``target``.
+        target: ITU type or Sionna material name (material kinds), object name (pose kinds).
+        bounds: ``(lower, upper)`` in physical units; default :data:`DEFAULT_BOUNDS`.
+        scale: the parameter's typical change, in its units (the optimiser works on
+            ``value / scale``); default: 10 % of the start value for materials
+            (0.01 S/m at least), 1 cm for x/y, 1 deg for yaw.
+    """
+
+    kind: str
+    target: str
+    bounds: tuple[float, float] | None = None
+    scale: float | None = None
+
+    def __post_init__(self):
+        if self.kind not in MATERIAL_KINDS + POSE_KINDS:
+            raise CalibrationError(f"parameter kind {self.kind!r}: expected one of "
+                                   f"{', '.join(MATERIAL_KINDS + POSE_KINDS)}")
+        lo, hi = self.bounds if self.bounds is not None else DEFAULT_BOUNDS[self.kind]
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise CalibrationError(f"parameter {self.name}: bounds must be finite with "
+                                   f"lower < upper, got {self.bounds!r}")
+        if self.kind == "permittivity" and lo < 1.0:
+            raise CalibrationError(f"parameter {self.name}: relative permittivity is >= 1, "
+                                   f"lower bound {lo} given")
+        if self.kind == "conductivity" and lo < 0.0:
+            raise CalibrationError(f"parameter {self.name}: conductivity is >= 0 S/m, "
+                                   f"lower bound {lo} given")
+
+    @property
+    def name(self) -> str:
+        return f"{self.target}.{self.kind}"
+
+    @property
+    def limits(self) -> tuple[float, float]:
+        return tuple(self.bounds if self.bounds is not None else DEFAULT_BOUNDS[self.kind])
+
+
+@dataclass
+class Measurements:
+    """Channels measured from one transmitter at N receiver poses.
+
+    Attributes:
+        tx_position: ``[3]`` transmitter array centre, m.
+        rx_positions: ``[N, 3]`` receiver array centres, m.
+        subcarrier_offsets_hz: ``[K]`` subcarrier frequencies relative to the carrier, Hz.
+        csi: ``[N, K, Nr, Nt]`` complex channel per antenna pair (``[N, K]`` for one
+            pair), transmit power normalised to 1 W; only its magnitude is used.
+        tx_array, rx_array: ``(rows, cols, vertical_spacing, horizontal_spacing)``
+            (spacings in wavelengths) of isotropic, vertically polarised elements;
+            ``rows * cols`` must be ``Nt`` / ``Nr``.
+        tx_orientation: ``[3]`` Sionna ``(yaw, pitch, roll)`` of the transmit array, rad.
+        rx_orientations: ``[N, 3]`` the same per receiver pose, rad.
+    """
+
+    tx_position: np.ndarray
+    rx_positions: np.ndarray
+    subcarrier_offsets_hz: np.ndarray
+    csi: np.ndarray
+    tx_array: tuple = (1, 1, 0.5, 0.5)
+    rx_array: tuple = (1, 1, 0.5, 0.5)
+    tx_orientation: np.ndarray | None = None
+    rx_orientations: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.tx_position = np.asarray(self.tx_position, float).reshape(-1)
+        self.rx_positions = np.atleast_2d(np.asarray(self.rx_positions, float))
+        self.subcarrier_offsets_hz = np.asarray(self.subcarrier_offsets_hz, float).reshape(-1)
+        self.csi = np.asarray(self.csi, complex)
+        n, k = len(self.rx_positions), len(self.subcarrier_offsets_hz)
+        if self.csi.ndim == 2:
+            self.csi = self.csi[:, :, None, None]
+        self.tx_array, self.rx_array = tuple(self.tx_array), tuple(self.rx_array)
+        nt = int(self.tx_array[0]) * int(self.tx_array[1])
+        nr = int(self.rx_array[0]) * int(self.rx_array[1])
+        self.tx_orientation = (np.zeros(3) if self.tx_orientation is None else
+                               np.asarray(self.tx_orientation, float).reshape(-1))
+        self.rx_orientations = (np.zeros((n, 3)) if self.rx_orientations is None else
+                                np.atleast_2d(np.asarray(self.rx_orientations, float)))
+        if self.tx_position.shape != (3,):
+            raise CalibrationError(f"measurements: tx_position must be [3] m, "
+                                   f"got shape {self.tx_position.shape}")
+        if self.rx_positions.shape[1:] != (3,):
+            raise CalibrationError(f"measurements: rx_positions must be [N, 3] m, "
+                                   f"got shape {self.rx_positions.shape}")
+        if self.csi.shape != (n, k, nr, nt):
+            raise CalibrationError(f"measurements: csi must be [N={n}, K={k}, Nr={nr}, Nt={nt}] "
+                                   f"(positions x subcarriers x rx x tx antennas), got shape "
+                                   f"{self.csi.shape}")
+        if self.tx_orientation.shape != (3,) or self.rx_orientations.shape != (n, 3):
+            raise CalibrationError(f"measurements: orientations must be [3] (tx) and "
+                                   f"[N={n}, 3] (rx) rad, got {self.tx_orientation.shape} and "
+                                   f"{self.rx_orientations.shape}")
+        for label, a in (("tx_position", self.tx_position), ("rx_positions", self.rx_positions),
+                         ("subcarrier_offsets_hz", self.subcarrier_offsets_hz),
+                         ("csi", self.csi), ("rx_orientations", self.rx_orientations)):
+            if not np.isfinite(a).all():
+                raise CalibrationError(f"measurements: {label} has non-finite values")
+
+
+#: A parameter whose scaled start gradient is below this fraction of the largest one
+#: is reported as not seen by the measurements.
+UNOBSERVED_RATIO = 1e-5
+
+
+def unobserved(scaled_gradient, names) -> list[str]:
+    """Names whose ``|d mismatch / d (value / scale)|`` at the start is at most
+    :data:`UNOBSERVED_RATIO` of the largest (all of them when every one is 0): no traced
+    path changes with them there (e.g. an object shifted along its own reflecting face)."""
+    g = np.abs(np.asarray(scaled_gradient, float))
+    top = g.max() if len(g) else 0.0
+    return [n for n, v in zip(names, g) if top == 0.0 or v <= UNOBSERVED_RATIO * top]
+
+
+def power_db(h: np.ndarray) -> np.ndarray:
+    """Channel power in dB, ``10 log10(|h|^2 + POWER_FLOOR)``, same shape as ``h``."""
+    return 10.0 * np.log10(np.abs(h) ** 2 + POWER_FLOOR)
+
+
+def mismatch_db2(model: np.ndarray, measured: np.ndarray) -> float:
+    """Mean squared per-subcarrier power difference, dB^2 (NumPy reference of the loss)."""
+    return float(np.mean((power_db(model) - power_db(measured)) ** 2))
+
+
+@dataclass
+class CalibrationResult:
+    """What a fit did.
+
+    Attributes:
+        names: parameter names (``target.kind``), ``[P]``.
+        initial, final: parameter values before/after, physical units, ``[P]``.
+        gradient_initial: d mismatch / d parameter at the start, dB^2 per unit, ``[P]``
+            (the sensitivity; 0 means the measurements do not see the parameter).
+        unobserved: names the measurements do not see at the start (:func:`unobserved`).
+        mismatch_initial, mismatch_final: :func:`mismatch_db2`, dB^2.
+        residual_db: ``[N]`` RMS power difference per measurement after the fit, dB.
+        converged, message: the optimiser's verdict and reason.
+        evaluations: mismatch+gradient evaluations (traces).
+        seconds_per_step: mean wall time of one evaluation (trace, CFR, backward), s.
+    """
+
+    names: list[str]
+    initial: np.ndarray
+    final: np.ndarray
+    gradient_initial: np.ndarray
+    unobserved: list[str]
+    mismatch_initial: float
+    mismatch_final: float
+    residual_db: np.ndarray
+    converged: bool
+    message: str
+    evaluations: int
+    seconds_per_step: float
+    history: list[float] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        """A JSON-serialisable report."""
+        return {
+            "parameters": [{"name": n, "initial": float(a), "final": float(b),
+                            "gradient_initial": float(g)}
+                           for n, a, b, g in zip(self.names, self.initial, self.final,
+                                                 self.gradient_initial)],
+            "unobserved": list(self.unobserved),
+            "mismatch_db2": {"initial": self.mismatch_initial, "final": self.mismatch_final},
+            "residual_db_per_measurement": [float(r) for r in self.residual_db],
+            "converged": bool(self.converged), "message": self.message,
+            "evaluations": self.evaluations, "seconds_per_step": self.seconds_per_step,
+            "history_db2": [float(h) for h in self.history],
+        }
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """Path solver settings of the calibration's traces.
+
+    Attributes:
+        max_depth: interactions per path.
+        samples_per_src: rays shot per transmitter.
+        seed: the ray sampler's seed (fixed: the mismatch must be deterministic).
+        refraction: trace transmission through objects.
+    """
+
+    max_depth: int = 2
+    samples_per_src: int = 20000
+    seed: int = 1
+    refraction: bool = True
+
+    @classmethod
+    def from_tracer(cls, tracer) -> SolverSettings:
+        """The settings of a scene's ``[tracer]`` (:class:`engine.config.TracerConfig`), so
+        the model sees the paths the twin's tracer sees.
+
+        Raises:
+            CalibrationError: diffuse reflection or diffraction is on (not modelled).
+        """
+        if tracer.diffuse_reflection or tracer.diffraction or not tracer.los:
+            raise CalibrationError("calibrate: the scene's [tracer] has diffuse reflection, "
+                                   "diffraction or no line of sight; the calibration models "
+                                   "line of sight, specular reflection and refraction only")
+        return cls(max_depth=tracer.max_depth, samples_per_src=tracer.samples_per_src,
+                   seed=tracer.seed, refraction=tracer.refraction)
+
+
+class Calibrator:
+    """Fits :class:`Parameter` s of a scene to :class:`Measurements`.
+
+    The calibrator owns ``scene`` (a freshly loaded :class:`~engine.scene.TwinScene`):
+    it adds its own transmitter and receivers, replaces the scene's arrays by one
+    isotropic element and switches the fitted materials' ITU frequency callback off.
+    Object offsets are written straight into Mitsuba's vertex buffers, which the
+    ``TwinScene``'s edit bookkeeping (``object_poses``, ``content_hash``) does not
+    see: do not trace the twin with this scene afterwards; load the calibrated
+    folder (:func:`engine.calibrate_run.write_calibrated_scene`) instead.
+
+    Args:
+        scene: the twin's scene (``engine.scene.load_scene``).
+        measurements: what was measured.
+        params: what to fit (at least one).
+        solver: :class:`SolverSettings`.
+
+    Raises:
+        CalibrationError: unknown material/object, a parameter given twice.
+    """
+
+    def __init__(self, scene, measurements: Measurements, params: list[Parameter],
+                 solver: SolverSettings | None = None):
+        import drjit as dr
+        import mitsuba as mi
+        import sionna.rt as rt
+
+        self._dr, self._mi = dr, mi
+        if not params:
+            raise CalibrationError("calibrate: no parameters to fit")
+        names = [p.name for p in params]
+        if len(set(names)) != len(names):
+            raise CalibrationError(f"calibrate: a parameter is given twice: {names}")
+        self.params = list(params)
+        self.meas = measurements
+        self.settings = solver or SolverSettings()
+        self.sc = sc = scene.sionna
+        self.evaluations = 0
+        self.step_seconds: list[float] = []
+
+        # materials: every Sionna radio material whose ITU type or name matches
+        self._materials: dict[str, list] = {}
+        for p in self.params:
+            if p.kind in MATERIAL_KINDS and p.target not in self._materials:
+                mats = [m for m in sc.radio_materials.values()
+                        if getattr(m, "itu_type", None) == p.target or m.name == p.target]
+                if not mats:
+                    have = sorted({getattr(m, "itu_type", m.name)
+                                   for m in sc.radio_materials.values()})
+                    raise CalibrationError(f"calibrate: parameter {p.name}: no radio material "
+                                           f"{p.target!r} in the scene (have: {', '.join(have)})")
+                for m in mats:
+                    m.frequency_update_callback = None  # keep the fitted value
+                self._materials[p.target] = mats
+        # objects: original vertices and bounding-box centre
+        self._objects: dict[str, tuple[str, np.ndarray, np.ndarray]] = {}
+        params_mi = sc.mi_scene_params
+        for p in self.params:
+            if p.kind in POSE_KINDS and p.target not in self._objects:
+                obj = sc.objects.get(p.target)
+                if obj is None:
+                    raise CalibrationError(f"calibrate: parameter {p.name}: no object "
+                                           f"{p.target!r} (objects: {', '.join(sc.objects)})")
+                key = obj.mi_mesh.id() + ".vertex_positions"
+                v = np.array(params_mi[key].numpy(), dtype=np.float64).reshape(-1, 3)
+                centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+                self._objects[p.target] = (key, v, centre)
+
+        self.initial = np.array([self._current(p) for p in self.params])
+        for p, v in zip(self.params, self.initial):
+            lo, hi = p.limits
+            if not lo <= v <= hi:
+                raise CalibrationError(f"calibrate: parameter {p.name} starts at {v:g}, "
+                                       f"outside its bounds [{lo:g}, {hi:g}]")
+        self.scales = np.array([self._scale(p, v) for p, v in zip(self.params, self.initial)])
+
+        # devices: one isotropic V element at each array centre
+        def array(spec):
+            rows, cols, dv, dh = spec
+            return rt.PlanarArray(num_rows=int(rows), num_cols=int(cols),
+                                  vertical_spacing=float(dv), horizontal_spacing=float(dh),
+                                  pattern="iso", polarization="V")
+
+        sc.tx_array, sc.rx_array = array(measurements.tx_array), array(measurements.rx_array)
+        for name in [n for n in list(sc.transmitters) + list(sc.receivers)]:
+            sc.remove(name)
+        m = measurements
+        sc.add(rt.Transmitter("calib_tx", position=mi.Point3f(*map(float, m.tx_position)),
+                              orientation=mi.Point3f(*map(float, m.tx_orientation))))
+        for i, (pos, ori) in enumerate(zip(m.rx_positions, m.rx_orientations)):
+            sc.add(rt.Receiver(f"calib_rx{i:04d}", position=mi.Point3f(*map(float, pos)),
+                               orientation=mi.Point3f(*map(float, ori))))
+        self._solver = rt.PathSolver()
+        self._solver.loop_mode = "evaluated"  # symbolic loops do not backpropagate
+        self._freqs = mi.Float(measurements.subcarrier_offsets_hz)
+        # Sionna's cfr order [N, Nr, (tx=1), Nt, (time=1), K]
+        self._meas_db = mi.TensorXf(power_db(measurements.csi.transpose(0, 2, 3, 1))
+                                    .astype(np.float32).reshape(-1))
+
+    # ------------------------------------------------------------------ helpers
+
+    def _current(self, p: Parameter) -> float:
+        if p.kind == "permittivity":
+            return float(self._materials[p.target][0].relative_permittivity.numpy()[0])
+        if p.kind == "conductivity":
+            return float(self._materials[p.target][0].conductivity.numpy()[0])
+        return 0.0  # pose offsets start at the loaded pose
+
+    @staticmethod
+    def _scale(p: Parameter, v: float) -> float:
+        if p.scale is not None:
+            if not p.scale > 0:
+                raise CalibrationError(f"parameter {p.name}: scale must be > 0, got {p.scale}")
+            return float(p.scale)
+        if p.kind == "permittivity":
+            return 0.1 * v
+        if p.kind == "conductivity":
+            return max(0.1 * v, 0.01)
+        return 0.01 if p.kind in ("x", "y") else math.radians(1.0)
+
+    def _apply(self, values: np.ndarray, grad: bool) -> list:
+        """Write ``values`` into the scene; return the Dr.Jit variables, one per parameter."""
+        dr, mi = self._dr, self._mi
+        vars_ = []
+        for v in values:
+            x = mi.Float(float(v))
+            if grad:
+                dr.enable_grad(x)
+            vars_.append(x)
+        offsets: dict[str, dict] = {}
+        for p, x in zip(self.params, vars_):
+            if p.kind == "permittivity":
+                for m in self._materials[p.target]:
+                    m.relative_permittivity = x
+            elif p.kind == "conductivity":
+                for m in self._materials[p.target]:
+                    m.conductivity = x
+            else:
+                offsets.setdefault(p.target, {})[p.kind] = x
+        if offsets:
+            params_mi = self.sc.mi_scene_params
+            for obj, off in offsets.items():
+                key, v0, c = self._objects[obj]
+                dx, dy = off.get("x", mi.Float(0.0)), off.get("y", mi.Float(0.0))
+                yaw = off.get("yaw", mi.Float(0.0))
+                cs, sn = dr.cos(yaw), dr.sin(yaw)
+                rx, ry = mi.Float(v0[:, 0] - c[0]), mi.Float(v0[:, 1] - c[1])
+                cx, cy = float(c[0]), float(c[1])  # a NumPy scalar on the left drops AD
+                pts = mi.Point3f(cx + cs * rx - sn * ry + dx, cy + sn * rx + cs * ry + dy,
+                                 mi.Float(v0[:, 2]))
+                params_mi[key] = dr.ravel(pts)
+            params_mi.update()
+            self.sc.scene_geometry_updated()
+        return vars_
+
+    def _trace_db(self):
+        """Model channel power in dB, a Dr.Jit array ``[N * Nr * Nt * K]``."""
+        dr, mi = self._dr, self._mi
+        s = self.settings
+        paths = self._solver(self.sc, max_depth=s.max_depth, samples_per_src=s.samples_per_src,
+                             synthetic_array=True, los=True, specular_reflection=True,
+                             diffuse_reflection=False, refraction=s.refraction,
+                             diffraction=False, seed=s.seed)
+        h_re, h_im = paths.cfr(frequencies=self._freqs, normalize_delays=False,
+                               out_type="drjit")
+        # [num_rx, Nr, num_tx=1, Nt, 1, K] -> [N * Nr * Nt * K]
+        pw = dr.ravel(h_re) ** 2 + dr.ravel(h_im) ** 2
+        return 10.0 * dr.log(pw + POWER_FLOOR) / math.log(10.0)
+
+    # ------------------------------------------------------------------ API
+
+    def evaluate(self, values, grad: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+        """Mismatch at ``values`` (physical units, ``[P]``).
+
+        Returns:
+            ``(mismatch dB^2, gradient [P] in dB^2 per unit, model power [N, K, Nr, Nt] dB)``.
+        """
+        dr = self._dr
+        t0 = time.perf_counter()
+        values = np.asarray(values, float).reshape(-1)
+        vars_ = self._apply(values, grad)
+        model_db = self._trace_db()
+        diff = model_db - self._meas_db.array
+        loss = dr.mean(diff * diff)
+        g = np.zeros(len(values))
+        if grad:
+            # at some bounds (conductivity 0) Sionna's graph no longer depends on a
+            # parameter: its gradient is then 0, not an error
+            dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+            g = np.array([float(dr.grad(x)[0]) for x in vars_])
+        n, k, nr, nt = self.meas.csi.shape
+        model = np.array(dr.detach(model_db).numpy(), float).reshape(n, nr, nt, k)
+        out = float(loss[0]), g, model.transpose(0, 3, 1, 2)
+        self._apply(values, False)  # leave the scene at values, detached from the graph
+        self.evaluations += 1
+        self.step_seconds.append(time.perf_counter() - t0)
+        return out
+
+    def scan(self, index: int, values, start=None) -> np.ndarray:
+        """Mismatch (dB^2, ``[S]``) with parameter ``index`` set to each of ``values``
+        (physical units, ``[S]``, clipped to its bounds) and the others at ``start``
+        (default the scene's values); no gradients.
+
+        A slab's reflection is nearly periodic in ``sqrt(permittivity)`` with period
+        ``wavelength / (2 thickness)`` (multiple reflections inside it), so over a
+        narrow band the mismatch has one local minimum per period: scan permittivity
+        on a grid finer than that before :meth:`fit`.
+        """
+        base = np.array(self.initial if start is None else start, float)
+        lo, hi = self.params[index].limits
+        out = []
+        for v in np.clip(np.asarray(values, float).reshape(-1), lo, hi):
+            x = base.copy()
+            x[index] = v
+            out.append(self.evaluate(x, grad=False)[0])
+        return np.array(out)
+
+    def fit(self, *, max_steps: int = 30, ftol: float = 1e-7, gtol: float = 1e-6,
+            start=None) -> CalibrationResult:
+        """Fit by L-BFGS-B inside the bounds.
+
+        Args:
+            start: ``[P]`` values to start from (physical units; e.g. the best of a
+                :meth:`scan`); default the scene's values. ``initial`` in the result
+                stays the scene's values.
+            max_steps: most optimiser iterations.
+            ftol: stop when the relative mismatch change per step is below this.
+            gtol: stop when the projected gradient (per ``scale``) is below this, dB^2.
+
+        Returns:
+            :class:`CalibrationResult`; the scene is left at the fitted values.
+        """
+        from scipy.optimize import minimize
+
+        x0 = self.initial if start is None else np.asarray(start, float).reshape(-1)
+        if x0.shape != self.initial.shape:
+            raise CalibrationError(f"fit: start must have {len(self.initial)} values, "
+                                   f"got {x0.shape}")
+        x0 = np.clip(x0, [p.limits[0] for p in self.params], [p.limits[1] for p in self.params])
+        sc = self.scales
+        history: list[float] = []
+        first: dict = {}
+
+        def fun(u):
+            f, g, model = self.evaluate(x0 + u * sc)
+            history.append(f)
+            if not first:
+                first.update(f=f, g=g)
+            log.info("calibrate: step %d mismatch %.5g dB^2 at %s", len(history), f,
+                     np.round(x0 + u * sc, 6).tolist())
+            return f, g * sc
+
+        bounds = [((p.limits[0] - v) / s, (p.limits[1] - v) / s)
+                  for p, v, s in zip(self.params, x0, sc)]
+        res = minimize(fun, np.zeros(len(x0)), jac=True, method="L-BFGS-B", bounds=bounds,
+                       options={"maxiter": max_steps, "ftol": ftol, "gtol": gtol})
+        final = x0 + res.x * sc
+        f_final, _, model = self.evaluate(final, grad=False)
+        if start is not None:  # report against the scene's values
+            f0, g0, _ = self.evaluate(self.initial)
+            first.update(f=f0, g=g0)
+        residual = np.sqrt(np.mean((model - power_db(self.meas.csi)) ** 2, axis=(1, 2, 3)))
+        names = [p.name for p in self.params]
+        return CalibrationResult(
+            names=names, initial=self.initial.copy(), final=final, gradient_initial=first["g"],
+            unobserved=unobserved(first["g"] * sc, names),
+            mismatch_initial=first["f"], mismatch_final=f_final, residual_db=residual,
+            converged=bool(res.success), message=str(res.message), evaluations=self.evaluations,
+            seconds_per_step=float(np.mean(self.step_seconds)), history=history)

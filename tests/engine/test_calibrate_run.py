@@ -1,0 +1,165 @@
+"""isac-twin calibrate: a twin with concrete walls, calibrated from a recording made in a
+room whose walls are brick (the recorder's real MCAP, the twin's own tracer and PHY),
+recovers brick's ITU parameters (Sionna's own table, read independently)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from engine import synthetic as syn
+from engine.calibrate_run import (local_minima, measurements_from_recording,
+                                  write_calibrated_scene)
+from engine.calibration import CalibrationResult, Calibrator, Parameter, SolverSettings
+from engine.cli import main
+from engine.meshes import read_ply
+from engine.scene import load_scene
+
+FREQ = 2.4e9
+
+
+def room(folder, wall, cabinet_shift=(0.0, 0.0)):
+    dx, dy = cabinet_shift
+    objs = syn.room_objects((5.0, 4.0, 3.0),
+                            {"Cabinet": ((3.0 + dx, 2.5 + dy, 0.0), (3.6 + dx, 3.0 + dy, 1.5),
+                                         "metal", 0.002)},
+                            material=wall)
+    path = {"kind": "polyline", "closed": True,
+            "waypoints": [[1.5, 1.5], [3.5, 1.5], [3.5, 2.2], [1.5, 2.2]]}
+    devs = [syn.SyntheticDevice("AP1", "access_point", "tx", (0.5, 0.5, 2.0), rows=2, cols=2),
+            syn.SyntheticDevice("robot1", "robot", "rx", (1.5, 2.0, 0.0), cols=2,
+                                extra={**syn.ROBOT_EXTRA, "path": path})]
+    return syn.write_scene_folder(folder, objs, devs, [("AP1", "robot1")], frequency_hz=FREQ,
+                                  num_subcarriers=256, subcarrier_spacing_hz=312500.0,
+                                  tracer={"samples_per_src": 20000, "max_depth": 2})
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """12 twin steps in the brick room, recorded with compact CSI."""
+    from engine.record import record_twin
+    from engine.twin import Twin
+
+    d = tmp_path_factory.mktemp("calrun")
+    real = room(d / "real", "brick")
+    record_twin(Twin.from_scene(real), 12, d / "run.mcap")
+    return d, real, d / "run.mcap"
+
+
+@pytest.mark.slow
+def test_recorded_csi_is_the_model_at_truth(recording):
+    """Reading path check: poses, arrays, orientations, subcarriers of the recording
+    reproduce the recorded channel exactly in the calibrator's Sionna model."""
+    _, real, run = recording
+    scene = load_scene(real)
+    (tx, rx), meas = measurements_from_recording(run, scene.config, max_snapshots=4,
+                                                 max_subcarriers=8)
+    assert (tx, rx) == ("AP1", "robot1") and meas.csi.shape == (4, 8, 2, 4)
+    cal = Calibrator(scene, meas, [Parameter("permittivity", "brick")],
+                     SolverSettings.from_tracer(scene.config.tracer))
+    f, g, _ = cal.evaluate(cal.initial)
+    assert f < 1e-5  # dB^2
+    assert abs(g[0]) < 0.05
+
+
+@pytest.mark.slow
+def test_cli_recovers_brick_walls(recording, capsys):
+    from sionna.rt.radio_materials.itu import itu_material
+
+    d, _, run = recording
+    twin = room(d / "twin", "concrete")
+    code = main(["calibrate", str(twin), "--measurements", str(run), "--out", str(d / "out"),
+                 "--snapshots", "4", "--subcarriers", "8", "--max-steps", "20"])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "converged" in out and "concrete.permittivity" in out
+    rep = json.loads((d / "out" / "calibration.json").read_text())
+    eps, sigma = (float(np.asarray(v).reshape(-1)[0]) for v in itu_material("brick", FREQ))
+    got = {p["name"]: p for p in rep["parameters"]}
+    assert got["concrete.permittivity"]["final"] == pytest.approx(eps, rel=0.01)
+    assert got["concrete.conductivity"]["final"] == pytest.approx(sigma, rel=0.05)
+    assert rep["converged"]
+    assert rep["mismatch_db2"]["final"] < 1e-3 * rep["mismatch_db2"]["initial"]
+    # the scan saw more than one slab resonance: a single start could end elsewhere
+    assert len(rep["permittivity_scans"]["concrete.permittivity"]["starts"]) > 1
+    assert load_scene(d / "out" / "scene").objects.keys() == load_scene(twin).objects.keys()
+
+
+@pytest.mark.slow
+def test_cli_recovers_cabinet_offset_and_says_what_it_cannot_see(tmp_path, capsys):
+    """60 steps recorded with the cabinet 3 cm further in x and 2 cm back in y: the
+    paths to the robot's positions reflect off the cabinet's y-facing side, so y is
+    recovered and x (a shift along that face) is reported as not seen."""
+    from engine.record import record_twin
+    from engine.twin import Twin
+
+    real = room(tmp_path / "real", "concrete", (0.03, -0.02))
+    record_twin(Twin.from_scene(real), 60, tmp_path / "run.mcap")
+    twin = room(tmp_path / "twin", "concrete")
+    code = main(["calibrate", str(twin), "--measurements", str(tmp_path / "run.mcap"),
+                 "--out", str(tmp_path / "out"), "--params", "poses", "--objects", "Cabinet",
+                 "--snapshots", "8", "--subcarriers", "8"])
+    assert code == 0
+    assert "not seen by the measurements: Cabinet.x" in capsys.readouterr().out
+    rep = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    got = {p["name"]: p["final"] for p in rep["parameters"]}
+    assert got["Cabinet.y"] == pytest.approx(-0.02, abs=0.002)
+    assert abs(got["Cabinet.yaw"]) < np.radians(0.5)
+    assert rep["unobserved"] == ["Cabinet.x"]
+    assert rep["mismatch_db2"]["final"] < 1e-3 * rep["mismatch_db2"]["initial"]
+    v = read_ply(tmp_path / "out" / "scene" / "meshes" / "Cabinet.ply").vertices
+    assert v[:, 1].min() == pytest.approx(2.5 - 0.02, abs=0.002)
+
+
+def test_calibrated_scene_moves_the_fitted_object(tmp_path):
+    twin = room(tmp_path / "twin", "concrete")
+    scene = load_scene(twin, load_sionna=False)
+    res = CalibrationResult(
+        names=["Cabinet.x", "Cabinet.y", "Cabinet.yaw", "concrete.permittivity"],
+        initial=np.zeros(4), final=np.array([0.02, -0.01, np.pi / 2, 4.0]),
+        gradient_initial=np.ones(4), unobserved=[], mismatch_initial=1.0, mismatch_final=0.0,
+        residual_db=np.zeros(1), converged=True, message="", evaluations=1,
+        seconds_per_step=0.0)
+    out = write_calibrated_scene(scene, res, tmp_path / "out")
+    v = read_ply(out / "meshes" / "Cabinet.ply").vertices
+    # 0.6 x 0.5 footprint centred at (3.3, 2.75), turned 90 deg -> 0.5 x 0.6, then shifted
+    assert np.allclose(v.min(axis=0), [3.3 - 0.25 + 0.02, 2.75 - 0.3 - 0.01, 0.0], atol=1e-5)
+    assert np.allclose(v.max(axis=0), [3.3 + 0.25 + 0.02, 2.75 + 0.3 - 0.01, 1.5], atol=1e-5)
+    assert np.allclose(read_ply(out / "meshes" / "floor.ply").vertices,
+                       read_ply(twin / "meshes" / "floor.ply").vertices)
+    load_scene(out, load_sionna=False)
+
+
+def test_local_minima():
+    assert local_minima(np.array([3.0, 1.0, 2.0, 0.5, 0.7, 0.2])).tolist() == [5, 3, 1]
+
+
+def test_cli_refuses_bad_input(tmp_path, capsys):
+    twin = room(tmp_path / "twin", "concrete")
+    junk = tmp_path / "junk.mcap"
+    junk.write_text("not an mcap")
+    assert main(["calibrate", str(twin), "--measurements", str(junk),
+                 "--out", str(tmp_path / "o")]) == 2
+    assert f"{junk}: no 'csi' entry" in capsys.readouterr().err
+    assert main(["calibrate", str(twin), "--measurements", str(tmp_path / "none.mcap"),
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert main(["calibrate", str(twin), "--measurements", str(junk), "--link", "AP1",
+                 "--out", str(tmp_path / "o")]) == 2
+    assert "expected TX,RX" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_parameter_choice_is_checked(tmp_path):
+    from engine.calibrate_run import default_parameters
+    from engine.calibration import CalibrationError
+
+    scene = load_scene(room(tmp_path / "twin", "concrete"), load_sionna=False)
+    names = [p.name for p in default_parameters(scene, ("materials",), [])]
+    assert names == ["concrete.permittivity", "concrete.conductivity"]  # metal is not fitted
+    with pytest.raises(CalibrationError, match="needs --objects"):
+        default_parameters(scene, ("poses",), [])
+    with pytest.raises(CalibrationError, match="no object 'Sofa'"):
+        default_parameters(scene, ("poses",), ["Sofa"])
+    with pytest.raises(CalibrationError, match="'colours' is not one of"):
+        default_parameters(scene, ("colours",), [])
