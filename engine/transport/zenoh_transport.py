@@ -215,15 +215,25 @@ class ZenohTransport:
         """Simulate a network partition: close the session (publications are dropped,
         nothing is received) until :meth:`heal`."""
         with self._lock:
-            s, self._session = self._session, None
-            self._publishers.clear()
-            self._subscribers.clear()
-            self._tokens.clear()
-            self._graph_sub = None
-            self._graph.clear()
+            s, doomed = self._detach()
+        del doomed  # undeclared outside the lock (see _detach)
         if s is not None:
             s.close()
             log.warning("zenoh transport %s: partitioned (session closed)", self.name)
+
+    def _detach(self) -> tuple:
+        """Take the session and every declared entity off this transport (call with
+        the lock held); returns ``(session, entities)``. The caller drops the
+        entities *after* releasing the lock: dropping a zenoh subscriber undeclares
+        it, which waits for its running callback, and a callback may be waiting
+        for this lock (it publishes, or records a graph token) -- dropping them
+        under the lock deadlocked a robot's SIGTERM now and then."""
+        s, self._session = self._session, None
+        doomed = (self._publishers, self._subscribers, self._tokens, self._graph_sub)
+        self._publishers, self._subscribers, self._tokens = {}, {}, {}
+        self._graph_sub = None
+        self._graph.clear()
+        return s, doomed
 
     def heal(self) -> None:
         """Reopen the session after :meth:`partition` and re-declare every entity."""
@@ -273,12 +283,8 @@ class ZenohTransport:
         """Undeclare everything and close the session (idempotent)."""
         with self._lock:
             self._closed = True
-            s, self._session = self._session, None
-            self._publishers.clear()
-            self._subscribers.clear()
-            self._tokens.clear()
-            self._graph_sub = None
-            self._graph.clear()
+            s, doomed = self._detach()
+        del doomed  # undeclared outside the lock (see _detach)
         if s is not None:
             s.close()
 

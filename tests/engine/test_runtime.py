@@ -121,7 +121,12 @@ def test_robot_cli_sigterm_ends_it_during_start_up_and_when_running(tmp_path):
         first = proc.stdout.readline()
         assert "up" in first, first
         proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=40)
+        try:
+            out, err = proc.communicate(timeout=40)
+        except subprocess.TimeoutExpired:  # say where it hung, not just that it did
+            proc.send_signal(signal.SIGKILL)
+            out, err = proc.communicate(timeout=10)
+            pytest.fail(f"no exit 40 s after SIGTERM; stdout:\n{out}\nstderr:\n{err}")
     finally:
         proc.kill()
     assert proc.returncode == 0 and "stopped" in out and "RPLIDAR:" in out, (out, err)
