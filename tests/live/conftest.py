@@ -119,3 +119,27 @@ def raw_viewer(wire):
     yield connect
     for v in made:
         v.close()
+
+
+@pytest.fixture(scope="module")
+def addon_module():
+    """The add-on registered in the ``bpy`` module (skips without bpy)."""
+    bpy = pytest.importorskip("bpy")
+    import addon
+
+    if not hasattr(bpy.types.Scene, "isac_live"):
+        addon.register()
+    return addon
+
+
+@pytest.fixture
+def blank_scene(addon_module):
+    """The current Blender scene with the live view cleared and every object removed."""
+    import bpy
+
+    from addon import live_view
+
+    live_view.clear(bpy.context.scene)
+    for obj in list(bpy.data.objects):
+        bpy.data.objects.remove(obj)
+    return bpy.context.scene

@@ -25,15 +25,6 @@ pytestmark = [pytest.mark.blender, pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")
-def addon_module():
-    import addon
-
-    if not hasattr(bpy.types.Scene, "isac_live"):
-        addon.register()
-    return addon
-
-
-@pytest.fixture(scope="module")
 def lab(addon_module, tmp_path_factory):
     """The lab .blend opened, an engine started paused, a session connected to it."""
     from addon import live

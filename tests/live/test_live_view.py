@@ -14,23 +14,9 @@ bpy = pytest.importorskip("bpy")
 pytestmark = pytest.mark.blender
 
 
-@pytest.fixture(scope="module")
-def addon_module():
-    import addon
-
-    if not hasattr(bpy.types.Scene, "isac_live"):
-        addon.register()
-    return addon
-
-
 @pytest.fixture
-def scene(addon_module):
-    from addon import live_view
-
-    live_view.clear(bpy.context.scene)
-    for obj in list(bpy.data.objects):
-        bpy.data.objects.remove(obj)
-    return bpy.context.scene
+def scene(blank_scene):
+    return blank_scene
 
 
 def _paths(n_links=2, per_link=3):

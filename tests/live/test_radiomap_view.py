@@ -12,23 +12,11 @@ bpy = pytest.importorskip("bpy")
 pytestmark = pytest.mark.blender
 
 
-@pytest.fixture(scope="module")
-def addon_module():
-    import addon
-
-    if not hasattr(bpy.types.Scene, "isac_live"):
-        addon.register()
-    return addon
-
-
 @pytest.fixture
-def scene(addon_module):
+def scene(blank_scene):
     from addon import live_view
 
-    live_view.clear(bpy.context.scene)
-    for obj in list(bpy.data.objects):
-        bpy.data.objects.remove(obj)
-    p = bpy.context.scene.isac_live
+    p = blank_scene.isac_live
     p.radiomap_layer, p.radiomap_layers, p.show_radiomap = "", "", True
     yield bpy.context.scene
     live_view.clear(bpy.context.scene)
