@@ -652,13 +652,34 @@ def cmd_robot(args) -> int:
         code = 1
     finally:
         starting[0] = False
-        if rt is not None:
-            rt.stop()
+        stalled = rt is not None and not _bounded_stop(rt, ROBOT_STOP_TIMEOUT_S)
     if rt is not None:
         print(f"isac-twin robot: stopped ({rt.stats})", flush=True)
         for line in rt.device_summaries():
             print(f"isac-twin robot:   {line}", flush=True)
+    if stalled:  # a stuck driver or transport thread must not keep the process alive
+        sys.stderr.flush()
+        os._exit(code)
     return code
+
+
+#: Longest the robot runtime's shutdown may take after a stop request, s.
+ROBOT_STOP_TIMEOUT_S = 10.0
+
+
+def _bounded_stop(rt, timeout_s: float) -> bool:
+    """``rt.stop()`` in a helper thread; False (and one line on stderr naming the
+    shutdown stage it is stuck in) when it does not finish within ``timeout_s``."""
+    import threading
+
+    t = threading.Thread(target=rt.stop, name="robot-stop", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    if not t.is_alive():
+        return True
+    print(f"isac-twin robot: warning: shutdown did not finish in {timeout_s:g} s (stuck in "
+          f"{getattr(rt, 'stop_stage', '?')}); exiting anyway", file=sys.stderr, flush=True)
+    return False
 
 
 def _record_args(p: argparse.ArgumentParser) -> None:

@@ -443,8 +443,12 @@ class RobotRuntime:
         self.node.publish(topic, msg)
 
     def stop(self) -> None:
-        """Stop the robot (zero command), the control loop, drivers, emulators, the session."""
+        """Stop the robot (zero command), the control loop, drivers, emulators, the session.
+
+        :attr:`stop_stage` names the step it is in (a caller that bounds the
+        shutdown reports where it stalled)."""
         self._stop.set()
+        self.stop_stage = "control loop"
         if self._thread is not None:
             self._thread.join(2.0)
             self._thread = None
@@ -456,13 +460,17 @@ class RobotRuntime:
                 pass
         for d in (self.oakd, self.lidar, self.opencr):
             if d is not None:
+                self.stop_stage = f"driver {type(d).__name__}"
                 d.stop()
                 if not d.ever_connected:
                     log.warning("%s: %s", self.config.name, d.summary())
         for e in reversed(self.emulators):
+            self.stop_stage = f"emulator {type(e).__name__}"
             e.stop()
         self.emulators = []
+        self.stop_stage = "zenoh transport close"
         self.transport.close()
+        self.stop_stage = "done"
 
     def drivers(self) -> list[tuple[str, object]]:
         """(name, driver) of every device driver running."""
