@@ -626,6 +626,10 @@ def cmd_robot(args) -> int:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
+    # `kill -USR1 PID` prints every thread's stack to stderr (works even while a
+    # native call holds the GIL): how a stuck robot process says where it is.
+    import faulthandler
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     rt = None
     code = 0
     try:
@@ -645,7 +649,7 @@ def cmd_robot(args) -> int:
             print(f"isac-twin robot: {cfg.name} ({cfg.model}{', emulated' if cfg.emulated else ''}) up, "
                   f"zenoh {rt.transport.zid()} listen {cfg.network.listen} connect "
                   f"{cfg.network.connect}", flush=True)
-            stop.wait(args.duration)
+            rt.run(args.duration, stop)  # wakes for signals whichever thread got them
     except Exception as exc:  # noqa: BLE001 - end cleanly, say what happened
         logging.getLogger("engine.cli").exception("robot runtime failed")
         print(f"isac-twin: error: robot runtime failed: {exc}", file=sys.stderr)
@@ -811,7 +815,8 @@ def cmd_replay(args) -> int:
         server.start()
         print(f"isac-twin replay: serving on 127.0.0.1:{server.address[1]}", flush=True)
         try:
-            server.done.wait()
+            while not server.done.wait(0.2):  # short waits: Ctrl-C is handled at once
+                pass
         finally:
             server.stop()
         return 0

@@ -506,10 +506,25 @@ class RobotRuntime:
     def __exit__(self, *exc) -> None:
         self.stop()
 
+    #: Longest the main thread sleeps in :meth:`run` between looks at its signals, s.
+    RUN_POLL_S = 0.2
+
     def run(self, duration: float | None = None, stop: threading.Event | None = None) -> None:
-        """Block until ``duration`` s passed or ``stop`` is set (the runtime keeps running)."""
+        """Block until ``duration`` s passed or ``stop`` is set (the runtime keeps running).
+
+        Waits in slices of :attr:`RUN_POLL_S`: CPython runs signal handlers only in
+        the main thread, and a process-directed SIGTERM that the kernel hands to
+        another thread (one of zenoh's, a driver's) does not interrupt the main
+        thread's lock wait, so one long ``Event.wait`` left the handler (and the
+        stop it sets) pending until the whole duration ran out.
+        """
         stop = stop or self._stop
-        stop.wait(duration)
+        end = None if duration is None else time.monotonic() + duration
+        while not stop.is_set():
+            left = self.RUN_POLL_S if end is None else min(self.RUN_POLL_S, end - time.monotonic())
+            if left <= 0:
+                return
+            stop.wait(left)
 
     # ------------------------------------------------------------ callbacks
     def _on_odom(self, msg: Odometry) -> None:
