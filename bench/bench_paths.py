@@ -60,7 +60,7 @@ def main(argv=None) -> int:
     poses = device_poses(scene.config)
     robot = next(d.name for d in scene.config.devices if d.kind == "robot")
     pts = robot_points(scene, a.points, poses[robot].position[2], clearance=a.clearance,
-                       seed=a.seed, lattice=cfg.probe_spacing)
+                       seed=a.seed)
     print(f"{len(pts)} points ({a.points} random, {len(pts) - a.points} on lattice lines), "
           f"reference: Sionna PathSolver at {a.reference:.0e} rays per source")
     ref = SionnaReference(scene, int(a.reference))

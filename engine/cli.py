@@ -152,11 +152,9 @@ def _grid_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk-size", type=int, default=None,
                    help="receivers per solver call (method sbr)")
     p.add_argument("--method", choices=("auto", "chains", "sbr"), default=None,
-                   help="chains: shoot-and-bounce at probe points, image method for every "
-                        "point; sbr: shoot-and-bounce for every point (default: "
-                        "tracer.method of twin.toml)")
-    p.add_argument("--probe-spacing", type=float, default=None,
-                   help="probe lattice spacing, m (default: tracer.probe_spacing)")
+                   help="chains: every chain of the transmitters enumerated once, the "
+                        "image method for every point; sbr: shoot-and-bounce for every "
+                        "point (default: tracer.method of twin.toml)")
     p.add_argument("--deterministic", action="store_true",
                    help="use Sionna's deterministic generator (needs much more memory)")
     p.add_argument("--verify", type=int, default=8,
@@ -178,7 +176,7 @@ def cmd_grid(args) -> int:
     try:
         g = trace_grid(scene, args.tx, spacing=args.spacing, height=args.height,
                        margin=args.margin, chunk_size=args.chunk_size,
-                       method=args.method, probe_spacing=args.probe_spacing,
+                       method=args.method,
                        deterministic=True if args.deterministic else None,
                        verify=args.verify)
     except (ValueError, TruncationError) as exc:

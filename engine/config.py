@@ -87,10 +87,9 @@ class TracerConfig:
     deterministic: bool = True
     grid_file: str = ""  #: backend "grid": the grid NPZ, relative to twin.toml
     #: "auto" (chain reuse when only specular reflection/refraction are on),
-    #: "chains" (shoot-and-bounce at probe points, image method per receiver;
-    #: see engine/raytrace/chains.py) or "sbr" (shoot-and-bounce per call)
+    #: "chains" (every chain of the sources enumerated once, image method per
+    #: receiver; see engine/raytrace/chains.py) or "sbr" (shoot-and-bounce per call)
     method: str = "auto"
-    probe_spacing: float = 0.5  #: m, lattice of the probe points ("chains")
 
     @property
     def uses_chains(self) -> bool:
@@ -536,6 +535,9 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
 
     t = r.table(data, "tracer", "", required=False)
     d = TracerConfig()
+    if "probe_spacing" in t:
+        raise r.fail("tracer.probe_spacing", "no longer used: chain reuse enumerates every "
+                     "chain of the sources (there is no probe lattice); remove the key")
     r.check_keys(t, tuple(d.__dataclass_fields__), "tracer.")
     tracer = TracerConfig(
         backend=r.string(t, "backend", "tracer.", d.backend, choices=TRACER_BACKENDS),
@@ -556,7 +558,6 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
         deterministic=r.boolean(t, "deterministic", "tracer.", d.deterministic),
         grid_file=r.get(t, "grid_file", "tracer.", d.grid_file),
         method=r.string(t, "method", "tracer.", d.method, choices=TRACER_METHODS),
-        probe_spacing=r.number(t, "probe_spacing", "tracer.", d.probe_spacing, positive=True),
     )
     if tracer.method == "chains" and (tracer.diffuse_reflection or tracer.diffraction):
         raise r.fail("tracer.method", '"chains" reuses specular chains only; with '

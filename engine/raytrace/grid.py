@@ -5,14 +5,14 @@ that move on the floor, the paths can be traced once for every grid position
 and stored in a database. :func:`trace_grid` traces a regular grid of receiver
 positions at one height against the static transmitters with a progress bar.
 
-By default it reuses specular chains (:mod:`engine.raytrace.chains`):
-shoot-and-bounce only at the probes of a 0.5 m lattice, Sionna's image method
-for every grid point (the full 5 cm lab grid in ~25 s instead of ~470 s).
-``method="sbr"`` traces every point by shoot-and-bounce, in chunks of
-receivers (bounded memory). Either way no path is dropped silently: a chunk
-(or probe call) whose solver buffer reached ``max_num_paths_per_src`` is
-split in halves (down to one receiver) and then retried with a doubled cap;
-if that is still not enough, :class:`~engine.raytrace.base.TruncationError`.
+By default it reuses specular chains (:mod:`engine.raytrace.chains`): every
+chain of each transmitter is enumerated once, Sionna's image method keeps the
+ones that are paths to each grid point. ``method="sbr"`` traces every point
+by shoot-and-bounce, in chunks of receivers (bounded memory). No path is
+dropped silently: a chunk whose solver buffer reached
+``max_num_paths_per_src`` is split in halves (down to one receiver) and then
+retried with a doubled cap; if that is still not enough,
+:class:`~engine.raytrace.base.TruncationError`.
 The rest of this note is about the chunked shoot-and-bounce.
 
 Receivers per solver call. Besides the cap, Sionna's shoot-and-bounce
@@ -188,8 +188,8 @@ def grid_points(lo, hi, spacing: float, margin: float = 0.0) -> tuple[np.ndarray
     if np.any(size < spacing):
         raise ValueError(f"grid area {size.tolist()} m is smaller than the spacing {spacing} m")
     n = np.floor(size / spacing + 1e-6).astype(int)
-    # Rounded to 1 um: the bounds are Mitsuba's float32 bounding box, and a
-    # grid point meant to sit on a probe-lattice line must not be 1e-7 m off.
+    # Rounded to 1 um: the bounds are Mitsuba's float32 bounding box (a grid
+    # point meant to sit at a round coordinate must not be 1e-7 m off).
     origin = np.round(lo + (size - (n - 1) * spacing) / 2, 6)
     return origin, (int(n[0]), int(n[1]))
 
@@ -267,7 +267,7 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
                verify: int = 8, verify_top: int = VERIFY_TOP_N,
                keep_strongest: int | None = None,
                spec_table_size: int | None = GRID_SPEC_TABLE_SIZE,
-               method: str | None = None, probe_spacing: float | None = None,
+               method: str | None = None,
                legacy: bool = False, out: str | Path | None = None) -> PathGrid:
     """Trace a floor grid of receiver positions against static transmitters.
 
@@ -285,8 +285,8 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         deterministic: override ``config.deterministic`` for ``"sbr"`` and the
             verification (default for grids: False, because Sionna's
             deterministic generator needs memory proportional to samples x
-            receivers; see ``docs/tracers.md``). Chain reuse always traces its
-            probes with the deterministic generator.
+            receivers; see ``docs/tracers.md``). Chain reuse enumerates its
+            chains without sampling.
         max_cap: largest ``max_num_paths_per_src`` tried on truncation
             (default 16 x the configured cap).
         tx_poses: transmitter poses (default: from the config).
@@ -302,13 +302,11 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
             table (default :data:`GRID_SPEC_TABLE_SIZE`; None: Sionna's own
             ``max(cap, 1e6)``, which loses candidates when many receivers share
             a call).
-        method: ``"chains"`` (reuse the specular chains of a probe lattice, see
+        method: ``"chains"`` (every specular chain of the transmitters, see
             :mod:`engine.raytrace.chains`), ``"sbr"`` (shoot-and-bounce for
             every receiver, in chunks) or ``"auto"`` (default: ``config.method``,
             whose ``"auto"`` means chains when only specular reflection and
             refraction are enabled).
-        probe_spacing: lattice spacing of the probes, m (default
-            ``config.probe_spacing``).
         legacy: trace with ``SolverCore(legacy=True)`` (Sionna's ``Paths``,
             full-size candidate buffer; with ``spec_table_size=None`` and
             ``chunk_size=16`` this is the code path before the optimization,
@@ -330,13 +328,12 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
     core = SolverCore(config, deterministic=det, spec_table_size=spec_table_size,
                       legacy=legacy)
     chunk_size = _chunk_size(chunk_size, plan, config, det)
-    spacing_p = config.probe_spacing if probe_spacing is None else float(probe_spacing)
     log.info("tracing %d x %d grid (%d free points) at z=%.3f m against %s (%s)",
              *plan.shape, len(plan.todo), plan.height, ", ".join(plan.tx_names),
-             f"chains, probes every {spacing_p} m" if plan.use_chains else "shoot-and-bounce")
+             "chain reuse" if plan.use_chains else "shoot-and-bounce")
     if plan.use_chains:
         pieces, cap_used, retries, chain_stats = _trace_by_chains(
-            core, scene.sionna, plan, chunk_size, spacing_p, max_cap, progress)
+            core, scene.sionna, plan, chunk_size, max_cap, progress)
     else:
         pieces, cap_used, retries = _trace_by_sbr(
             core, scene.sionna, plan, chunk_size, max_cap or 16 * config.max_num_paths_per_src,
@@ -431,13 +428,13 @@ def _chunk_size(chunk_size: int | None, plan: _GridPlan, config: TracerConfig,
     return int(chunk_size)
 
 
-def _trace_by_chains(core, sc, plan: _GridPlan, chunk_size: int, probe_spacing: float,
-                     max_cap: int | None, progress: bool):
-    """Job 2 (chain reuse): every probe first, then the points chunk by chunk."""
+def _trace_by_chains(core, sc, plan: _GridPlan, chunk_size: int, max_cap: int | None,
+                     progress: bool):
+    """Job 2 (chain reuse): the transmitters' chains first, then the points chunk by chunk."""
     from tqdm import tqdm
 
-    ct = ChainTracer(core, probe_spacing, max_cap=max_cap)
-    ct.prepare(sc, plan.src, plan.points[plan.todo])  # every probe, PROBES_PER_CALL per call
+    ct = ChainTracer(core, max_cap=max_cap)
+    ct.prepare(sc, plan.src, plan.points[plan.todo][:1])  # enumerates the chains
     pieces = []
     with tqdm(total=len(plan.todo), unit="pt", desc="grid", disable=not progress) as bar:
         for start in range(0, len(plan.todo), chunk_size):
@@ -445,8 +442,8 @@ def _trace_by_chains(core, sc, plan: _GridPlan, chunk_size: int, probe_spacing: 
             raw = ct.trace(sc, plan.src, plan.points[idx], source_orientations=plan.src_orient)
             pieces.append((idx, sorted_chunk(raw, plan.keep_strongest)))
             bar.update(len(idx))
-    stats = {"version": CHAIN_REUSE_VERSION, "probe_spacing": probe_spacing,
-             "probes_traced": ct.probes_traced, "chains": len(ct.store)}
+    stats = {"version": CHAIN_REUSE_VERSION, "rays_per_source": ct.rays,
+             "chains": len(ct.store)}
     return pieces, ct.cap, ct.truncation_retries, stats
 
 

@@ -15,7 +15,7 @@ into planes once: triangles whose oriented normals differ by at most
 :data:`NORMAL_TOLERANCE` (per component) and whose offsets differ by at most
 :data:`OFFSET_TOLERANCE` m are the same plane (transitively). Each plane has
 a canonical triangle (the first in scene order) and a point on it, so that a
-chain's representative never depends on which probe's ray found it first.
+chain's representative never depends on which ray found it first.
 """
 
 from __future__ import annotations

@@ -64,8 +64,7 @@ class SionnaTracer:
         self.chains = None
         if self.config.uses_chains and not legacy:
             cap = self.config.max_num_paths_per_src
-            self.chains = ChainTracer(self.core, self.config.probe_spacing,
-                                      max_cap=cap if on_truncation == "raise"
+            self.chains = ChainTracer(self.core, max_cap=cap if on_truncation == "raise"
                                       else cap << MAX_CAP_DOUBLINGS)
         #: Where each source of chain reuse was at its last call (name -> [3] m).
         self._source_positions: dict[str, np.ndarray] = {}
@@ -126,8 +125,8 @@ class SionnaTracer:
         src_names, tgt_names, flipped = tx_names, rx_names, set()
         if self.chains is not None:
             # Reciprocity: an uplink (robot -> access point) is traced as the
-            # downlink and reversed, so that the sources, whose chains the
-            # probes cache, stay the static access points.
+            # downlink and reversed, so that the sources, whose chains are
+            # enumerated once, stay the static access points.
             kinds = {d.name: d.kind for d in scene.config.devices}
             flipped = {(tx, rx) for tx, rx in links
                        if kinds.get(rx) == "access_point" and kinds.get(tx) != "access_point"}
@@ -142,7 +141,7 @@ class SionnaTracer:
                         and not np.array_equal(self._source_positions[n], q)
                         for n, q in zip(c_src, sources))
             self._source_positions.update(zip(c_src, sources))
-            if moved:  # the probes' chains belong to the source positions
+            if moved:  # the enumerated chains belong to the source positions
                 flipped = set()
             else:
                 raw = self.chains.trace(

@@ -210,7 +210,7 @@ def bundled_lab_db():
     from engine.localization.fingerprints import build_database
 
     scene = load_scene(BUNDLED_LAB)
-    tc = dataclasses.replace(scene.config.tracer, probe_spacing=1.0, samples_per_src=20000)
+    tc = dataclasses.replace(scene.config.tracer, samples_per_src=20000)
     return build_database(scene, spacing=0.1, verify=0, tracer_config=tc)
 
 

@@ -51,9 +51,9 @@ def test_round_trip_and_cache(lab, lab_db, tmp_path):
                                     {"samples_per_src": 12345},
                                     {"max_depth": 1},
                                     {"refraction": False},
-                                    {"chains": {"version": 2, "probe_spacing": 0.25}}],
+                                    {"chains": {"version": 2, "probe_spacing": 0.5}}],
                          ids=["shoot-and-bounce", "older-chain-reuse", "other-ray-count",
-                              "other-depth", "no-refraction", "other-probe-lattice"])
+                              "other-depth", "no-refraction", "probe-lattice-v2"])
 def test_cache_traced_another_way_is_rebuilt(lab, lab_db, tmp_path, tracer):
     from engine.raytrace.chains import CHAIN_REUSE_VERSION
 
