@@ -168,9 +168,18 @@ def colour_bar(scene, name: str, color, lo: float, hi: float, title: str, corner
             text(scene, name + "_Max", fmt(hi), (x0 + length - 0.3, ty, z))]
 
 
-def mark_access_point(scene, name: str, position) -> list:
-    """A red cone under access point ``name`` pointing at it and its name label
-    (``ISAC_Live_AP_<name>``, ``..._Label``)."""
+def device_label(name: str, array=None) -> str:
+    """A device's label: its name and, when known, its array ``[rows, cols]`` (``AP1 4x8``)."""
+    if array is None:
+        return name
+    return f"{name} {int(array[0])}x{int(array[1])}"
+
+
+def mark_access_point(scene, name: str, position, label: str | None = None) -> list:
+    """A red cone under access point ``name`` pointing at it and its label
+    (``ISAC_Live_AP_<name>``, ``..._Label``) reading ``label`` (default: what the label
+    already reads, else the name: a radio map's transmitter list does not erase the array
+    size the ``scene`` message gave)."""
     oname = f"ISAC_Live_AP_{name}"
     mesh = bpy.data.meshes.get(oname)
     if mesh is None:
@@ -186,6 +195,9 @@ def mark_access_point(scene, name: str, position) -> list:
         mesh.materials.append(_emissive("ISAC_Live_APMarker", (1.0, 0.15, 0.1, 1.0)))
     cone = scene_object(scene, oname, mesh)
     cone.location = (position[0], position[1], position[2] - 0.02)
-    label = text(scene, oname + "_Label", name,
+    if label is None:
+        old = bpy.data.curves.get(oname + "_Label")
+        label = old.body if old is not None else name
+    label = text(scene, oname + "_Label", label,
                  (position[0] + 0.1, position[1] + 0.1, position[2] + 0.05))
     return [cone, label]

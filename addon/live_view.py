@@ -381,10 +381,11 @@ def apply_scene(scene, msg: dict, view: LiveView) -> None:
             obj = ensure_robot(scene, d["name"], view.robot_models[d["name"]])
             obj.location = d["position"]
             obj.rotation_euler = d.get("orientation") or (0.0, 0.0, 0.0)
-            legend.text(scene, f"{PREFIX}{d['name']}_Label", d["name"],
-                        _label_at(d["position"]))
+            legend.text(scene, f"{PREFIX}{d['name']}_Label",
+                        legend.device_label(d["name"], d.get("array")), _label_at(d["position"]))
         elif d["kind"] == "access_point":
-            legend.mark_access_point(scene, d["name"], d["position"])
+            legend.mark_access_point(scene, d["name"], d["position"],
+                                     legend.device_label(d["name"], d.get("array")))
 
 
 def apply_state(scene, msg: dict, view: LiveView) -> None:

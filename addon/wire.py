@@ -40,7 +40,7 @@ from collections import Counter
 log = logging.getLogger(__name__)
 
 #: Protocol version ``(major, minor)``: bump major for incompatible changes.
-PROTOCOL_VERSION = (1, 1)
+PROTOCOL_VERSION = (1, 2)
 #: Largest frame payload a peer sends or accepts, bytes.
 MAX_FRAME_BYTES = 8 * 1024 * 1024
 #: Deepest nesting of arrays/objects a payload may have (the deepest message, ``paths``,
@@ -228,6 +228,8 @@ _MAP_TX = {"name": (_str, _R), "position": (_vec(3), _R)}
 _DEVICE = {
     "name": (_str, _R), "kind": (_str, _R), "role": (_str, _R), "position": (_vec(3), _R),
     "orientation": (_vec(3), _O), "model": (_opt(_str), _O),
+    # 1.2: the antenna array as ``[rows, cols]`` (the viewer labels devices with it)
+    "array": (_intvec(2), _O),
 }
 
 #: ``type -> (directions, field spec)``; directions: "e2v" engine -> viewer, "v2e" back.

@@ -332,15 +332,22 @@ def test_rays_legend_follows_the_colour_mode(scene):
     live_view.apply_scene(scene, {"type": "scene", "name": "s", "content_hash": "h",
                                   "frequency_hz": 2.4e9, "links": [],
                                   "devices": [{"name": "AP1", "kind": "access_point",
-                                               "role": "tx", "position": [0, 3, 2]},
+                                               "role": "tx", "position": [0, 3, 2],
+                                               "array": [4, 8]},
                                               {"name": "robot1", "kind": "robot", "role": "rx",
                                                "position": [4, 3, 0]}],
                                   "objects": [{"name": "W", "material": "concrete",
                                                "thickness": 0.2, "bounds_min": [-0.2, -0.3, 0],
                                                "bounds_max": [8, 6, 3]}]}, view)
     assert view.extent == (-0.2, -0.3, 8, 6)
-    assert bpy.data.objects["ISAC_Live_AP_AP1_Label"].data.body == "AP1"
+    # array sizes from the scene message (wire 1.2); a 1.1 scene without them: the name
+    assert bpy.data.objects["ISAC_Live_AP_AP1_Label"].data.body == "AP1 4x8"
     assert list(bpy.data.objects["ISAC_Live_AP_AP1"].location)[:2] == [0, 3]
+    # a radio map's transmitter list marks the AP again without erasing the array size
+    from addon import legend
+
+    legend.mark_access_point(scene, "AP1", (0, 3, 2))
+    assert bpy.data.objects["ISAC_Live_AP_AP1_Label"].data.body == "AP1 4x8"
     lab = bpy.data.objects["ISAC_Live_robot1_Label"]
     assert lab.data.body == "robot1" and list(lab.location)[:2] == pytest.approx([4.15, 3.15])
     live_view.apply_state(scene, {"type": "state", "step": 0, "time_s": 0.0, "robots": [

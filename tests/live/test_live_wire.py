@@ -33,7 +33,8 @@ def _all_messages(wire):
          "objects": [{"name": "Wall", "material": "concrete", "thickness": 0.2,
                       "bounds_min": [0, 0, 0], "bounds_max": [1, 1, 1]}],
          "devices": [{"name": "AP1", "kind": "access_point", "role": "tx",
-                      "position": [0, 0, 2], "orientation": [0, 0, 0], "model": None}],
+                      "position": [0, 0, 2], "orientation": [0, 0, 0], "model": None,
+                      "array": [4, 8]}],
          "links": [["AP1", "robot1"]]},
         {"type": "state", "step": 0, "time_s": 0.1, "scene_hash": "x",
          "robots": [{"name": "robot1", "pose": [1, 2, 0, 0, 0, 1.5], "velocity": [0.2, 0],
@@ -58,6 +59,19 @@ def test_every_message_type_round_trips(wire):
     dec = wire.Decoder()
     assert dec.feed(stream) == msgs
     assert not dec.rejections and dec.buffered == 0
+
+
+def test_scene_message_carries_every_devices_array(wire, box_scene_dir):
+    """1.2: ``devices[].array`` is ``[rows, cols]`` of the device's ``[devices.array]``."""
+    from engine.live.protocol import scene_message
+    from engine.scene import load_scene
+
+    scene = load_scene(box_scene_dir, load_sionna=False)
+    msg = scene_message(scene)
+    assert wire.validate(msg, "e2v") is None
+    want = {d.name: [d.array.rows, d.array.cols] for d in scene.config.devices}
+    assert {d["name"]: d["array"] for d in msg["devices"]} == want
+    assert wire.PROTOCOL_VERSION >= (1, 2)
 
 
 def test_byte_by_byte_and_split_frames(wire):
@@ -94,6 +108,10 @@ def test_engine_and_addon_share_one_definition(wire):
     (b'{"type": "command", "op": "run", "args": []}', "invalid", "field 'args' must be an object"),
     (b'{"type": "hello", "protocol": [1, 0], "role": "viewer", "capabilities": "all"}',
      "invalid", "field 'capabilities' must be a list"),
+    (b'{"type": "scene", "name": "s", "content_hash": "h", "frequency_hz": 1e9, "objects": [],'
+     b' "links": [], "devices": [{"name": "AP1", "kind": "access_point", "role": "tx",'
+     b' "position": [0, 0, 2], "array": [4, 8.5]}]}', "invalid",
+     "field 'array' must be a list of 2 integers, got [4, 8.5]"),
 ])
 def test_faults_are_rejected_with_a_reason_and_the_stream_survives(wire, caplog, payload,
                                                                     kind, reason):
