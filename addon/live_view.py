@@ -47,6 +47,9 @@ RAY_ALPHA_MIN = 0.15
 #: same power has the same colour in every frame and every scene (the legend shows it).
 RAY_SCALE_DB = (-110.0, -40.0)
 RAYS_LEGEND = PREFIX + "RaysLegend"
+#: Bevel resolution of the trail curves (Blender's default 4 makes 4x the vertices to
+#: evaluate per state; a 8 mm tube reads the same at 1).
+TRAIL_BEVEL_RESOLUTION = 1
 #: Text object with one line per link (SNR, Shannon and MCS rate), behind the scene's north edge.
 METRICS_TEXT = PREFIX + "Metrics"
 #: Emission strength of the rays (1: the colour map's colours, not washed out to white).
@@ -252,24 +255,32 @@ def apply_sensing(scene, msg: dict, view: LiveView) -> None:
 
 
 def _set_trail(scene, name: str, points, rgba) -> None:
-    """Poly curve ``name`` through ``points`` ``[(x, y, z), ...]`` (m)."""
+    """Poly curve ``name`` through ``points`` ``[(x, y, z), ...]`` (m); a trail at its full
+    length keeps its spline and only moves the points (no spline rebuild per state)."""
     oname = f"{PREFIX}{name}"
     obj = bpy.data.objects.get(oname)
     if obj is None:
         cu = bpy.data.curves.new(oname, "CURVE")
         cu.dimensions = "3D"
         cu.bevel_depth = 0.008
+        cu.bevel_resolution = TRAIL_BEVEL_RESOLUTION
         cu.materials.append(_material(oname, rgba, emission=True))
         obj = legend.scene_object(scene, oname, cu)
     cu = obj.data
-    cu.splines.clear()
     if len(points) < 2:
+        if len(cu.splines):
+            cu.splines.clear()
         return
-    sp = cu.splines.new("POLY")
-    sp.points.add(len(points) - 1)
     flat = []
     for p in points:
         flat += (p[0], p[1], p[2], 1.0)
+    if len(cu.splines) == 1 and len(cu.splines[0].points) == len(points):
+        cu.splines[0].points.foreach_set("co", flat)
+        cu.update_tag()
+        return
+    cu.splines.clear()
+    sp = cu.splines.new("POLY")
+    sp.points.add(len(points) - 1)
     sp.points.foreach_set("co", flat)
 
 

@@ -95,6 +95,25 @@ def test_ray_width_and_opacity_by_power(scene):
     assert {d.color[3] for d in cv.attributes[live_view.RAY_COLOR_ATTR].data} == {1.0}
 
 
+def test_a_full_trail_moves_its_points(scene):
+    """A trail at its full length is updated in place: its last point is the newest pose."""
+    from addon import live_view
+
+    view = live_view.LiveView(trail_length=3)
+    for step in range(6):
+        live_view.apply_state(scene, {"type": "state", "step": step, "time_s": 0.0, "robots": [
+            {"name": "robot1", "pose": [float(step), 2, 0, 0, 0, 0], "velocity": [0, 0]}]},
+            view)
+        splines = bpy.data.objects["ISAC_Live_robot1_trail"].data.splines
+        if step == 0:
+            assert len(splines) == 0                     # one point: no line yet
+            continue
+        assert [round(p.co[0], 6) for p in splines[0].points] == [
+            float(k) for k in range(max(0, step - 2), step + 1)]
+    cu = bpy.data.objects["ISAC_Live_robot1_trail"].data
+    assert len(cu.splines) == 1 and cu.bevel_resolution == live_view.TRAIL_BEVEL_RESOLUTION
+
+
 def test_paths_state_metrics_are_applied(scene):
     from addon import live_view
 
