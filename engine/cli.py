@@ -492,6 +492,9 @@ def _serve_args(p: argparse.ArgumentParser) -> None:
                         "recomputed after edits")
     p.add_argument("--radiomap-samples", type=int, default=200_000,
                    help="rays per access point of the streamed radio map")
+    p.add_argument("--replay", type=Path, default=None, metavar="RUN.mcap",
+                   help="drive the robots along a recording of `isac-twin record` (its time "
+                        "step and seed; the viewer sees the recorded run re-traced)")
 
 
 def _twin_factory(spec: str | None):
@@ -550,7 +553,27 @@ def cmd_serve(args) -> int:
             return 2
     factory = _twin_factory(args.twin)
     kw = {"asset_dirs": args.asset_dir} if args.asset_dir else {}
-    twin = factory.from_scene(scene_path(args), seed=args.seed, **kw)
+    seed = args.seed
+    if args.replay is not None:
+        from engine.record import read_metadata
+
+        try:
+            meta = read_metadata(args.replay)
+            kw["dt"] = float(meta.get("dt", 0.05))
+            seed = int(meta.get("seed", seed))
+        except (OSError, ValueError) as exc:
+            print(f"isac-twin: error: --replay {args.replay}: cannot read the recording "
+                  f"({exc})", file=sys.stderr)
+            return 2
+    twin = factory.from_scene(scene_path(args), seed=seed, **kw)
+    if args.replay is not None:
+        from engine.record import TrajectoryReplay
+
+        try:
+            TrajectoryReplay(twin, args.replay)
+        except ValueError as exc:
+            print(f"isac-twin: error: --replay {exc}", file=sys.stderr)
+            return 2
     feed = None
     try:
         if args.radiomap is not None:
