@@ -19,6 +19,8 @@ BAR_SIZE_M = (3.0, 0.25)
 BAR_PIXELS = 64
 #: Text size of labels, m.
 TEXT_SIZE_M = 0.22
+#: Distance of an access point's label from it towards the room's middle, m.
+AP_LABEL_OFFSET_M = 0.45
 #: Curve resolution of the glyphs (Blender's default 12 triples the cost of re-evaluating
 #: the metrics text every state; 4 reads the same at label sizes).
 TEXT_RESOLUTION = 4
@@ -179,11 +181,26 @@ def device_label(name: str, array=None) -> str:
     return f"{name} {int(array[0])}x{int(array[1])}"
 
 
-def mark_access_point(scene, name: str, position, label: str | None = None) -> list:
+def label_position(position, toward=None, offset: float = 0.1) -> tuple[float, float, float]:
+    """Where a device's flat label sits (m): ``offset`` m from ``position`` towards the
+    point ``toward`` ``(x, y)`` (the room's middle: an AP on a wall would otherwise write
+    its label inside the wall), 5 cm above it; without ``toward``, +x +y."""
+    x, y, z = (float(c) for c in position)
+    if toward is None:
+        return (x + offset, y + offset, z + 0.05)
+    import math
+
+    dx, dy = float(toward[0]) - x, float(toward[1]) - y
+    n = math.hypot(dx, dy) or 1.0
+    return (x + offset * dx / n, y + offset * dy / n, z + 0.05)
+
+
+def mark_access_point(scene, name: str, position, label: str | None = None, *,
+                      toward=None) -> list:
     """A red cone under access point ``name`` pointing at it and its label
     (``ISAC_Live_AP_<name>``, ``..._Label``) reading ``label`` (default: what the label
     already reads, else the name: a radio map's transmitter list does not erase the array
-    size the ``scene`` message gave)."""
+    size the ``scene`` message gave), placed by :func:`label_position` towards ``toward``."""
     oname = f"ISAC_Live_AP_{name}"
     mesh = bpy.data.meshes.get(oname)
     if mesh is None:
@@ -203,5 +220,9 @@ def mark_access_point(scene, name: str, position, label: str | None = None) -> l
         old = bpy.data.curves.get(oname + "_Label")
         label = old.body if old is not None else name
     label = text(scene, oname + "_Label", label,
-                 (position[0] + 0.1, position[1] + 0.1, position[2] + 0.05))
+                 label_position(position, toward, AP_LABEL_OFFSET_M if toward else 0.1))
+    # a label west of its AP ends at the anchor, so it runs away from the wall, not into it
+    align = "RIGHT" if toward is not None and float(toward[0]) < float(position[0]) else "LEFT"
+    if label.data.align_x != align:
+        label.data.align_x = align
     return [cone, label]

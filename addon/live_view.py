@@ -462,8 +462,10 @@ def apply_scene(scene, msg: dict, view: LiveView) -> None:
             legend.text(scene, f"{PREFIX}{d['name']}_Label",
                         legend.device_label(d["name"], d.get("array")), _label_at(d["position"]))
         elif d["kind"] == "access_point":
+            mid = (None if view.extent is None else
+                   ((view.extent[0] + view.extent[2]) / 2, (view.extent[1] + view.extent[3]) / 2))
             legend.mark_access_point(scene, d["name"], d["position"],
-                                     legend.device_label(d["name"], d.get("array")))
+                                     legend.device_label(d["name"], d.get("array")), toward=mid)
 
 
 def apply_state(scene, msg: dict, view: LiveView) -> None:

@@ -417,6 +417,11 @@ def test_rays_legend_follows_the_colour_mode(scene):
 
     legend.mark_access_point(scene, "AP1", (0, 3, 2))
     assert bpy.data.objects["ISAC_Live_AP_AP1_Label"].data.body == "AP1 4x8"
+    # an AP on a wall labels itself towards the room's middle (not inside the wall)
+    legend.mark_access_point(scene, "AP9", (8.0, 3.0, 2.0), toward=(4.0, 3.0))
+    lab9 = bpy.data.objects["ISAC_Live_AP_AP9_Label"]
+    assert list(lab9.location) == pytest.approx([8.0 - legend.AP_LABEL_OFFSET_M, 3.0, 2.05])
+    assert lab9.data.align_x == "RIGHT" and lab9.data.body == "AP9"
     lab = bpy.data.objects["ISAC_Live_robot1_Label"]
     assert lab.data.body == "robot1" and list(lab.location)[:2] == pytest.approx([4.15, 3.15])
     live_view.apply_state(scene, {"type": "state", "step": 0, "time_s": 0.0, "robots": [
