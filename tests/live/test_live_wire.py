@@ -250,3 +250,20 @@ def test_radiomap_faults_are_named(wire, change, match):
     dec = wire.Decoder("e2v")
     assert dec.feed(wire.frame_raw(json.dumps(dict(_radiomap_msg(), **change)).encode())) == []
     assert dec.rejections["invalid"] == 1
+
+
+_GOOD_PATH = {"points": [[0, 0, 2], [1.5, 2, 0.25]], "types": [], "power_db": -50.0,
+              "tau_s": 1e-8}
+
+
+@pytest.mark.parametrize("paths", [
+    [], [_GOOD_PATH] * 3, "x", [_GOOD_PATH, 5], [dict(_GOOD_PATH, points=[[0, 0]])],
+    [dict(_GOOD_PATH, points=[[0, 0, True]])], [dict(_GOOD_PATH, types=[1.0])],
+    [dict(_GOOD_PATH, power_db=float("nan"))], [dict(_GOOD_PATH, tau_s="1")],
+    [{k: v for k, v in _GOOD_PATH.items() if k != "types"}], [dict(_GOOD_PATH, points=5)],
+    [_GOOD_PATH, dict(_GOOD_PATH, power_db=True)],
+])
+def test_fast_paths_check_agrees_with_the_generic_one(wire, paths):
+    """The flat loop that checks a link's paths answers exactly what the field-by-field
+    check answers (None or the same reason)."""
+    assert wire._paths_list(paths) == wire._paths_generic(paths)
