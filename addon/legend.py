@@ -135,6 +135,8 @@ def text(scene, name: str, body: str, location, size: float = TEXT_SIZE_M):
     if curve.body != body:
         curve.body = body
     obj = scene_object(scene, name, curve)
+    if obj.visible_shadow:  # a label is read, not lit: its shadow on a wall doubles it
+        obj.visible_shadow = False
     obj.location = location
     if not curve.materials:
         curve.materials.append(_label_material())

@@ -422,6 +422,7 @@ def test_rays_legend_follows_the_colour_mode(scene):
     lab9 = bpy.data.objects["ISAC_Live_AP_AP9_Label"]
     assert list(lab9.location) == pytest.approx([8.0 - legend.AP_LABEL_OFFSET_M, 3.0, 2.05])
     assert lab9.data.align_x == "RIGHT" and lab9.data.body == "AP9"
+    assert not lab9.visible_shadow                      # no shadow copy of a label on a wall
     lab = bpy.data.objects["ISAC_Live_robot1_Label"]
     assert lab.data.body == "robot1" and list(lab.location)[:2] == pytest.approx([4.15, 3.15])
     live_view.apply_state(scene, {"type": "state", "step": 0, "time_s": 0.0, "robots": [
