@@ -9,6 +9,11 @@ Run with the project's interpreter (needs ``bpy``)::
    ``state`` + ``paths`` + ``metrics`` with the add-on's live view (one
    hair-curves object rebuilt), against a baseline measured in the same run:
    the naive view that rebuilds one curve object per ray.
+1b. The full view per state (``--view-only`` runs just this): the lab's ``scene`` message
+   (labelled APs and robot), a 5 cm radio map shown, 500 rays, trails at their full 500
+   points, the metrics text: decode, each ``apply_*`` and the depsgraph update (what
+   Blender evaluates before it draws) per state, median and minimum, against the same
+   view with Blender's default curve resolutions (trail bevel 4, text 12) in the same run.
 2. Latency: ``isac-twin serve`` (real Sionna tracing, box room) in a
    subprocess; time from the engine publishing a step (``state.sent_at``) to
    the add-on having applied it, over loopback.
