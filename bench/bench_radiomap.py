@@ -61,7 +61,8 @@ def bare_sionna(scene, rm, samples: int, reps: int) -> float:
         t0 = time.perf_counter()
         m = solver(sc, center=mi.Point3f((x0 + x1) / 2, (y0 + y1) / 2, float(rm.height)),
                    orientation=mi.Point3f(0, 0, 0), size=mi.Point2f(x1 - x0, y1 - y0),
-                   cell_size=mi.Point2f(float(rm.cell_size), float(rm.cell_size)), samples_per_tx=samples,
+                   cell_size=mi.Point2f(float(rm.cell_size), float(rm.cell_size)),
+                   samples_per_tx=samples,
                    max_depth=t.max_depth, los=t.los, specular_reflection=t.specular_reflection,
                    diffuse_reflection=t.diffuse_reflection, refraction=t.refraction,
                    diffraction=t.diffraction, seed=t.seed)
