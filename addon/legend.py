@@ -19,6 +19,11 @@ BAR_SIZE_M = (3.0, 0.25)
 BAR_PIXELS = 64
 #: Text size of labels, m.
 TEXT_SIZE_M = 0.22
+#: Distance of an access point's label from it towards the room's middle, m.
+AP_LABEL_OFFSET_M = 0.45
+#: Curve resolution of the glyphs (Blender's default 12 triples the cost of re-evaluating
+#: the metrics text every state; 4 reads the same at label sizes).
+TEXT_RESOLUTION = 4
 #: The live view's collection (defined here, the lowest module that needs it;
 #: ``live_view`` and ``radiomap_view`` import it).
 COLLECTION = "ISAC Live"
@@ -126,9 +131,12 @@ def text(scene, name: str, body: str, location, size: float = TEXT_SIZE_M):
     if curve is None:
         curve = bpy.data.curves.new(name, type="FONT")
         curve.size = size
+        curve.resolution_u = TEXT_RESOLUTION
     if curve.body != body:
         curve.body = body
     obj = scene_object(scene, name, curve)
+    if obj.visible_shadow:  # a label is read, not lit: its shadow on a wall doubles it
+        obj.visible_shadow = False
     obj.location = location
     if not curve.materials:
         curve.materials.append(_label_material())
@@ -168,9 +176,33 @@ def colour_bar(scene, name: str, color, lo: float, hi: float, title: str, corner
             text(scene, name + "_Max", fmt(hi), (x0 + length - 0.3, ty, z))]
 
 
-def mark_access_point(scene, name: str, position) -> list:
-    """A red cone under access point ``name`` pointing at it and its name label
-    (``ISAC_Live_AP_<name>``, ``..._Label``)."""
+def device_label(name: str, array=None) -> str:
+    """A device's label: its name and, when known, its array ``[rows, cols]`` (``AP1 4x8``)."""
+    if array is None:
+        return name
+    return f"{name} {int(array[0])}x{int(array[1])}"
+
+
+def label_position(position, toward=None, offset: float = 0.1) -> tuple[float, float, float]:
+    """Where a device's flat label sits (m): ``offset`` m from ``position`` towards the
+    point ``toward`` ``(x, y)`` (the room's middle: an AP on a wall would otherwise write
+    its label inside the wall), 5 cm above it; without ``toward``, +x +y."""
+    x, y, z = (float(c) for c in position)
+    if toward is None:
+        return (x + offset, y + offset, z + 0.05)
+    import math
+
+    dx, dy = float(toward[0]) - x, float(toward[1]) - y
+    n = math.hypot(dx, dy) or 1.0
+    return (x + offset * dx / n, y + offset * dy / n, z + 0.05)
+
+
+def mark_access_point(scene, name: str, position, label: str | None = None, *,
+                      toward=None) -> list:
+    """A red cone under access point ``name`` pointing at it and its label
+    (``ISAC_Live_AP_<name>``, ``..._Label``) reading ``label`` (default: what the label
+    already reads, else the name: a radio map's transmitter list does not erase the array
+    size the ``scene`` message gave), placed by :func:`label_position` towards ``toward``."""
     oname = f"ISAC_Live_AP_{name}"
     mesh = bpy.data.meshes.get(oname)
     if mesh is None:
@@ -186,6 +218,13 @@ def mark_access_point(scene, name: str, position) -> list:
         mesh.materials.append(_emissive("ISAC_Live_APMarker", (1.0, 0.15, 0.1, 1.0)))
     cone = scene_object(scene, oname, mesh)
     cone.location = (position[0], position[1], position[2] - 0.02)
-    label = text(scene, oname + "_Label", name,
-                 (position[0] + 0.1, position[1] + 0.1, position[2] + 0.05))
+    if label is None:
+        old = bpy.data.curves.get(oname + "_Label")
+        label = old.body if old is not None else name
+    label = text(scene, oname + "_Label", label,
+                 label_position(position, toward, AP_LABEL_OFFSET_M if toward else 0.1))
+    # a label west of its AP ends at the anchor, so it runs away from the wall, not into it
+    align = "RIGHT" if toward is not None and float(toward[0]) < float(position[0]) else "LEFT"
+    if label.data.align_x != align:
+        label.data.align_x = align
     return [cone, label]

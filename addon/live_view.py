@@ -10,7 +10,9 @@ the collection :data:`COLLECTION` and is named ``ISAC_Live_*``:
 * rays: ONE hair-curves object (``ISAC_Live_Rays``) rebuilt per ``paths``
   message: one curve per path, tx -> interaction vertices -> rx, with a
   per-point colour attribute ``ray_color`` (by path power or by interaction
-  type) read by the material, so Cycles, EEVEE and Workbench all show it;
+  type; alpha = opacity by power) read by the material, so Cycles, EEVEE and
+  Workbench all show it, and a per-point ``radius`` (width by power); the
+  strongest N paths per link;
 * radar (``[[sensing]]`` links): detections as small magenta markers in one
   mesh (``ISAC_Live_Detections``, rebuilt when a ``state`` carries them), confirmed
   tracks as larger green markers (``ISAC_Live_Tracks``) with a trail per track id;
@@ -35,12 +37,19 @@ COLLECTION = legend.COLLECTION
 PREFIX = "ISAC_Live_"
 RAYS = PREFIX + "Rays"
 RAY_COLOR_ATTR = "ray_color"
-#: Ray radius in the render, m.
+#: Ray radius in the render, m (width by power off).
 RAY_RADIUS_M = 0.004
+#: Ray radius range with width by power, m: the scale's low end -> its high end.
+RAY_RADIUS_RANGE_M = (0.0015, 0.009)
+#: Alpha of a ray at (or below) the scale's low end with opacity by power.
+RAY_ALPHA_MIN = 0.15
 #: Fixed colour scale of ray power, path gain ``10 log10 |a|^2`` in dB (low, high): the
 #: same power has the same colour in every frame and every scene (the legend shows it).
 RAY_SCALE_DB = (-110.0, -40.0)
 RAYS_LEGEND = PREFIX + "RaysLegend"
+#: Bevel resolution of the trail curves (Blender's default 4 makes 4x the vertices to
+#: evaluate per state; a 8 mm tube reads the same at 1).
+TRAIL_BEVEL_RESOLUTION = 1
 #: Text object with one line per link (SNR, Shannon and MCS rate), behind the scene's north edge.
 METRICS_TEXT = PREFIX + "Metrics"
 #: Emission strength of the rays (1: the colour map's colours, not washed out to white).
@@ -246,28 +255,68 @@ def apply_sensing(scene, msg: dict, view: LiveView) -> None:
 
 
 def _set_trail(scene, name: str, points, rgba) -> None:
-    """Poly curve ``name`` through ``points`` ``[(x, y, z), ...]`` (m)."""
+    """Poly curve ``name`` through ``points`` ``[(x, y, z), ...]`` (m); a trail at its full
+    length keeps its spline and only moves the points (no spline rebuild per state)."""
     oname = f"{PREFIX}{name}"
     obj = bpy.data.objects.get(oname)
     if obj is None:
         cu = bpy.data.curves.new(oname, "CURVE")
         cu.dimensions = "3D"
         cu.bevel_depth = 0.008
+        cu.bevel_resolution = TRAIL_BEVEL_RESOLUTION
         cu.materials.append(_material(oname, rgba, emission=True))
         obj = legend.scene_object(scene, oname, cu)
     cu = obj.data
-    cu.splines.clear()
     if len(points) < 2:
+        if len(cu.splines):
+            cu.splines.clear()
         return
-    sp = cu.splines.new("POLY")
-    sp.points.add(len(points) - 1)
     flat = []
     for p in points:
         flat += (p[0], p[1], p[2], 1.0)
+    if len(cu.splines) == 1 and len(cu.splines[0].points) == len(points):
+        cu.splines[0].points.foreach_set("co", flat)
+        cu.update_tag()
+        return
+    cu.splines.clear()
+    sp = cu.splines.new("POLY")
+    sp.points.add(len(points) - 1)
     sp.points.foreach_set("co", flat)
 
 
 # --------------------------------------------------------------------------- rays
+
+
+def _rays_material():
+    """Emission coloured by the ``ray_color`` attribute, mixed with transparency by its alpha
+    (opacity by power; alpha 1 everywhere when that is off)."""
+    name = PREFIX + "Rays"
+    mat = bpy.data.materials.get(name)
+    if mat is not None and "alpha_mix" in mat.node_tree.nodes:
+        return mat
+    if mat is None:
+        mat = bpy.data.materials.new(name)
+    mat.diffuse_color = (1.0, 1.0, 1.0, 1.0)
+    if bpy.app.version < (5, 0, 0):
+        mat.use_nodes = True
+    nt = mat.node_tree
+    nt.nodes.clear()
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    attr = nt.nodes.new("ShaderNodeAttribute")
+    attr.attribute_name = RAY_COLOR_ATTR
+    em = nt.nodes.new("ShaderNodeEmission")
+    em.inputs["Strength"].default_value = RAY_EMISSION
+    tr = nt.nodes.new("ShaderNodeBsdfTransparent")
+    mix = nt.nodes.new("ShaderNodeMixShader")
+    mix.name = "alpha_mix"
+    nt.links.new(attr.outputs["Color"], em.inputs["Color"])
+    nt.links.new(attr.outputs["Alpha"], mix.inputs["Fac"])
+    nt.links.new(tr.outputs[0], mix.inputs[1])
+    nt.links.new(em.outputs[0], mix.inputs[2])
+    nt.links.new(mix.outputs[0], out.inputs["Surface"])
+    if hasattr(mat, "surface_render_method"):
+        mat.surface_render_method = "BLENDED"
+    return mat
 
 
 def ensure_rays(scene):
@@ -275,19 +324,39 @@ def ensure_rays(scene):
     obj = bpy.data.objects.get(RAYS)
     if obj is None:
         cv = bpy.data.hair_curves.new(RAYS)
-        mat = _material(PREFIX + "Rays", (1.0, 1.0, 1.0, 1.0), emission=True,
-                        attribute=RAY_COLOR_ATTR)
-        for node in mat.node_tree.nodes:
-            if node.type == "EMISSION":
-                node.inputs["Strength"].default_value = RAY_EMISSION
-        cv.materials.append(mat)
+        cv.materials.append(_rays_material())
         obj = legend.scene_object(scene, RAYS, cv)
         obj.visible_shadow = False  # light paths, not things: no shadows on the room
     return obj
 
 
-def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0):
-    """Flatten a ``paths`` message: curve sizes, positions, colours.
+def strongest_paths(paths: list, n: int) -> list:
+    """The ``n`` strongest of a link's ``paths`` (by ``power_db``), strongest first;
+    ``n <= 0``: all of them in their order (the engine sends them strongest first)."""
+    if n <= 0:
+        return paths
+    if len(paths) <= n and all(a["power_db"] >= b["power_db"] for a, b in zip(paths, paths[1:])):
+        return paths
+    return sorted(paths, key=lambda p: -p["power_db"])[:n]
+
+
+def ray_style(power_db: float, *, width: bool = True, opacity: bool = False
+              ) -> tuple[float, float]:
+    """``(radius m, alpha)`` of a ray of path gain ``power_db`` (dB) on the fixed scale
+    :data:`RAY_SCALE_DB`: with ``width`` the radius grows linearly from
+    ``RAY_RADIUS_RANGE_M[0]`` (at or below the scale's low end) to ``[1]`` (at or above its
+    high end), else :data:`RAY_RADIUS_M`; with ``opacity`` alpha grows from
+    :data:`RAY_ALPHA_MIN` to 1 the same way, else 1."""
+    lo, hi = RAY_SCALE_DB
+    t = min(1.0, max(0.0, (power_db - lo) / (hi - lo)))
+    r0, r1 = RAY_RADIUS_RANGE_M
+    return (r0 + t * (r1 - r0) if width else RAY_RADIUS_M,
+            RAY_ALPHA_MIN + t * (1.0 - RAY_ALPHA_MIN) if opacity else 1.0)
+
+
+def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0, *,
+               width_by_power: bool = False, opacity_by_power: bool = False):
+    """Flatten a ``paths`` message: curve sizes, positions, colours, radii.
 
     Args:
         msg: a ``paths`` message.
@@ -295,36 +364,44 @@ def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0):
             or ``"TYPE"``
             (each point coloured by the interaction it is: specular blue,
             diffuse yellow, refraction green, diffraction magenta, ends white).
-        max_paths: at most this many paths per link (0 = all that were sent).
+        max_paths: at most this many paths per link, the strongest
+            (:func:`strongest_paths`; 0 = all that were sent).
+        width_by_power, opacity_by_power: radius / alpha of each path from its power
+            (:func:`ray_style`).
 
     Returns:
-        ``(sizes [C], positions [3 P] flat, colours [4 P] flat)`` as lists.
+        ``(sizes [C], positions [3 P] flat, colours [4 P] flat RGBA, radii [P] m)`` as
+        lists (C curves, P points).
     """
     links = msg["links"]
     lo, hi = RAY_SCALE_DB
     span = hi - lo
-    sizes, pos, col = [], [], []
+    sizes, pos, col, rad = [], [], [], []
     tc = TYPE_COLORS
+    styled = width_by_power or opacity_by_power
     for lk in links:
-        paths = lk["paths"][:max_paths] if max_paths > 0 else lk["paths"]
-        for p in paths:
+        for p in strongest_paths(lk["paths"], max_paths):
             pts = p["points"]
-            sizes.append(len(pts))
+            n = len(pts)
+            sizes.append(n)
             for q in pts:
                 pos += q
+            r, a = (ray_style(p["power_db"], width=width_by_power, opacity=opacity_by_power)
+                    if styled else (RAY_RADIUS_M, 1.0))
+            rad += [r] * n
             if mode == "TYPE":
-                col += tc[0]
-                for t in p["types"]:
-                    col += tc.get(t, tc[0])
-                col += tc[0]
+                cs = [tc[0]] + [tc.get(t, tc[0]) for t in p["types"]] + [tc[0]]
+                for c in cs:
+                    col += (c[0], c[1], c[2], a)
             else:
                 c = power_color((p["power_db"] - lo) / span)
-                col += c * len(pts)
-    return sizes, pos, col
+                col += (c[0], c[1], c[2], a) * n
+    return sizes, pos, col, rad
 
 
-def set_rays(scene, sizes, positions, colors, *, visible: bool = True):
-    """Rebuild the rays object from flat arrays (see :func:`ray_arrays`)."""
+def set_rays(scene, sizes, positions, colors, radii=None, *, visible: bool = True):
+    """Rebuild the rays object from flat arrays (see :func:`ray_arrays`; ``radii`` None:
+    :data:`RAY_RADIUS_M` everywhere)."""
     obj = ensure_rays(scene)
     cv = obj.data
     if len(cv.curves):
@@ -337,7 +414,8 @@ def set_rays(scene, sizes, positions, colors, *, visible: bool = True):
     cv.attributes["position"].data.foreach_set("vector", positions)
     attrs = cv.attributes
     rad = attrs.get("radius") or attrs.new("radius", "FLOAT", "POINT")
-    rad.data.foreach_set("value", [RAY_RADIUS_M] * len(cv.points))
+    rad.data.foreach_set("value", radii if radii is not None
+                         else [RAY_RADIUS_M] * len(cv.points))
     colr = attrs.get(RAY_COLOR_ATTR) or attrs.new(RAY_COLOR_ATTR, "FLOAT_COLOR", "POINT")
     colr.data.foreach_set("color", colors)
     cv.update_tag()
@@ -381,10 +459,13 @@ def apply_scene(scene, msg: dict, view: LiveView) -> None:
             obj = ensure_robot(scene, d["name"], view.robot_models[d["name"]])
             obj.location = d["position"]
             obj.rotation_euler = d.get("orientation") or (0.0, 0.0, 0.0)
-            legend.text(scene, f"{PREFIX}{d['name']}_Label", d["name"],
-                        _label_at(d["position"]))
+            legend.text(scene, f"{PREFIX}{d['name']}_Label",
+                        legend.device_label(d["name"], d.get("array")), _label_at(d["position"]))
         elif d["kind"] == "access_point":
-            legend.mark_access_point(scene, d["name"], d["position"])
+            mid = (None if view.extent is None else
+                   ((view.extent[0] + view.extent[2]) / 2, (view.extent[1] + view.extent[3]) / 2))
+            legend.mark_access_point(scene, d["name"], d["position"],
+                                     legend.device_label(d["name"], d.get("array")), toward=mid)
 
 
 def apply_state(scene, msg: dict, view: LiveView) -> None:
@@ -423,8 +504,10 @@ def apply_paths(scene, msg: dict, view: LiveView) -> None:
     mode = p.ray_color_mode if p is not None else "POWER"
     cap = p.max_paths_per_link if p is not None else 0
     visible = p.show_rays if p is not None else True
-    sizes, pos, col = ray_arrays(msg, mode, cap)
-    set_rays(scene, sizes, pos, col, visible=visible)
+    sizes, pos, col, rad = ray_arrays(
+        msg, mode, cap, width_by_power=p.ray_width_by_power if p is not None else True,
+        opacity_by_power=p.ray_opacity_by_power if p is not None else False)
+    set_rays(scene, sizes, pos, col, rad, visible=visible)
     show_rays_legend(scene, view, visible and mode == "POWER" and bool(sizes))
     view.rays_built += 1
     _set(p, "num_rays", len(sizes))

@@ -187,6 +187,9 @@ class ISAC_PT_live(_Base, bpy.types.Panel):
         col.prop(p, "show_rays")
         col.prop(p, "ray_color_mode")
         col.prop(p, "max_paths_per_link")
+        row = col.row(align=True)
+        row.prop(p, "ray_width_by_power")
+        row.prop(p, "ray_opacity_by_power")
         layout.operator("isac.live_clear", icon="TRASH")
 
 

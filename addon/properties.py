@@ -183,7 +183,13 @@ class ISAC_LiveProps(bpy.types.PropertyGroup):
     show_rays: BoolProperty(name="Show rays", default=True)
     max_paths_per_link: IntProperty(name="Rays per link", default=0, min=0,
                                     description="Draw at most this many rays per link "
-                                                "(strongest first; 0 = all sent)")
+                                                "(the strongest; 0 = all sent)")
+    ray_width_by_power: BoolProperty(name="Width by power", default=True,
+                                     description="Thicker rays for stronger paths "
+                                                 "(on the rays' dB scale)")
+    ray_opacity_by_power: BoolProperty(name="Opacity by power", default=False,
+                                       description="Weaker paths more transparent "
+                                                   "(on the rays' dB scale)")
     show_radiomap: BoolProperty(name="Show radio map", default=True,
                                 update=_radiomap_visibility,
                                 description="Show the floor radio map and its colour scale "

@@ -117,7 +117,8 @@ def show_layer(scene, msg: dict, name: str | None = None, *, visible: bool = Tru
                       (x0, y0 - LEGEND_GAP_M - legend.BAR_SIZE_M[1], z),
                       length=min(legend.BAR_SIZE_M[0], max(x1 - x0, 1.0)))
     for t in msg.get("tx", []):
-        legend.mark_access_point(scene, t["name"], t["position"])
+        legend.mark_access_point(scene, t["name"], t["position"],
+                                 toward=((x0 + x1) / 2, (y0 + y1) / 2))
     set_visible(scene, visible)
     return name
 

@@ -9,6 +9,11 @@ Run with the project's interpreter (needs ``bpy``)::
    ``state`` + ``paths`` + ``metrics`` with the add-on's live view (one
    hair-curves object rebuilt), against a baseline measured in the same run:
    the naive view that rebuilds one curve object per ray.
+1b. The full view per state (``--view-only`` runs just this): the lab's ``scene`` message
+   (labelled APs and robot), a 5 cm radio map shown, 500 rays, trails at their full 500
+   points, the metrics text: decode, each ``apply_*`` and the depsgraph update (what
+   Blender evaluates before it draws) per state, median and minimum, against the same
+   view with Blender's default curve resolutions (trail bevel 4, text 12) in the same run.
 2. Latency: ``isac-twin serve`` (real Sionna tracing, box room) in a
    subprocess; time from the engine publishing a step (``state.sent_at``) to
    the add-on having applied it, over loopback.
@@ -20,6 +25,7 @@ Run with the project's interpreter (needs ``bpy``)::
 from __future__ import annotations
 
 import argparse
+import collections
 import math
 import random
 import socket
@@ -121,6 +127,105 @@ def bench_update_cost(scene, reps: int) -> None:
           f"over {len(ts)} updates (frame {len(frames[1]) / 1024:.0f} KiB)")
     print(f"[cost] baseline, one curve object per ray (rays only): median {base * 1e3:.1f} ms "
           f"-> ratio {base / ours:.0f}x")
+
+
+def lab_scene_message() -> dict:
+    """A ``scene`` message like the bundled lab's: 2 access points, 1 robot, 8 x 6 x 3 m."""
+    return {"type": "scene", "name": "lab", "content_hash": "0" * 64, "frequency_hz": 2.4e9,
+            "objects": [{"name": "floor", "material": "concrete", "thickness": 0.2,
+                         "bounds_min": [0.0, 0.0, -0.2], "bounds_max": [8.0, 6.0, 0.0]},
+                        {"name": "walls", "material": "concrete", "thickness": 0.2,
+                         "bounds_min": [-0.2, -0.2, 0.0], "bounds_max": [8.2, 6.2, 3.0]}],
+            "devices": [{"name": "AP1", "kind": "access_point", "role": "tx",
+                         "position": [0.05, 3.0, 2.0], "array": [4, 8]},
+                        {"name": "AP2", "kind": "access_point", "role": "tx",
+                         "position": [4.0, 0.05, 2.0], "array": [1, 1]},
+                        {"name": "robot1", "kind": "robot", "role": "rx",
+                         "position": [5.5, 3.0, 0.0], "model": "burger", "array": [1, 2]}],
+            "links": [["AP1", "robot1"], ["AP2", "robot1"]]}
+
+
+def lab_radiomap_message(cell: float = 0.05, seed: int = 0) -> dict:
+    """A ``radiomap`` message of the lab's size at ``cell`` m: AP1, AP2, best, sinr layers."""
+    rng = random.Random(seed)
+    nx, ny = int(round(8.4 / cell)), int(round(6.4 / cell))
+    layers = []
+    for name, unit in (("AP1", "dBm"), ("AP2", "dBm"), ("best", "dBm"), ("sinr", "dB")):
+        vals = [None if rng.random() < 0.05 else round(rng.uniform(-90, -20), 2)
+                for _ in range(nx * ny)]
+        layers.append({"name": name, "unit": unit, "vmin": -90.0, "vmax": -20.0,
+                       "values": vals})
+    return {"type": "radiomap", "scene_hash": "0" * 64, "height": 0.25,
+            "origin": [-0.2 + cell / 2, -0.2 + cell / 2], "cell_size": cell, "shape": [ny, nx],
+            "layers": layers, "tx": [{"name": "AP1", "position": [0.05, 3.0, 2.0]},
+                                     {"name": "AP2", "position": [4.0, 0.05, 2.0]}]}
+
+
+def bench_view_cost(scene, reps: int) -> None:
+    """Per state: the full view (lab scene with labels, a 5 cm radio map shown, 500 rays,
+    trails of 500 points, metrics text), apply only and apply + depsgraph evaluation."""
+    from addon import radiomap_view
+
+    live_view.clear(scene)
+    view = live_view.LiveView()
+    dec = wire.Decoder("e2v")
+    live_view.apply_message(scene, lab_scene_message(), view)
+    rmsg = lab_radiomap_message()
+    t0 = time.perf_counter()
+    radiomap_view.apply_radiomap(scene, rmsg, view)
+    t_map = time.perf_counter() - t0
+    frames = [b"".join(wire.encode(m) for m in messages(k)) for k in range(reps)]
+    for k in range(view.trail_length):  # trails at their full length from the start
+        view.trails.setdefault("robot1", collections.deque(maxlen=view.trail_length)).append(
+            (4 + math.cos(k / 50), 3 + math.sin(k / 50), 0.01))
+        view.estimates.setdefault("robot1", collections.deque(maxlen=view.trail_length)).append(
+            (4.05 + math.cos(k / 50), 2.97 + math.sin(k / 50), 0.0))
+    for m in dec.feed(frames[0]):
+        live_view.apply_message(scene, m, view)
+    bpy.context.view_layer.update()
+
+    def run(frames):
+        per_type: dict[str, list] = collections.defaultdict(list)
+        ts, te = [], []
+        for f in frames:
+            t0 = time.perf_counter()
+            msgs = dec.feed(f)
+            per_type["decode"].append(time.perf_counter() - t0)
+            for m in msgs:
+                t1 = time.perf_counter()
+                live_view.apply_message(scene, m, view)
+                per_type[m["type"]].append(time.perf_counter() - t1)
+            t1 = time.perf_counter()
+            ts.append(t1 - t0)
+            bpy.context.view_layer.update()
+            te.append(time.perf_counter() - t0)
+            per_type["depsgraph"].append(time.perf_counter() - t1)
+        return ts, te, per_type
+
+    def ms(v):
+        return f"{statistics.median(v) * 1e3:.2f} (min {min(v) * 1e3:.2f})"
+
+    ts, te, per_type = run(frames[1:])
+    # baseline in the same run: Blender's default curve resolutions on the trails (bevel 4)
+    # and texts (12), what the view used before they were set
+    for o in bpy.data.objects:
+        if o.name.startswith(live_view.PREFIX) and o.type == "CURVE":
+            o.data.bevel_resolution = 4
+        elif o.name.startswith(live_view.PREFIX) and o.type == "FONT":
+            o.data.resolution_u = 12
+    _, tb, per_base = run(frames[1:])
+    parts = ", ".join(f"{k} {ms(v)}" for k, v in per_type.items())
+    print(f"[view] lab scene + 5 cm radio map ({rmsg['shape'][1]} x {rmsg['shape'][0]} cells, "
+          f"4 layers; applied once in {t_map * 1e3:.0f} ms) + 500 rays + labels + trails of "
+          f"{view.trail_length} points, per state over {len(ts)} states, ms: decode + apply "
+          f"{ms(ts)}, + depsgraph update {ms(te)}; target <= 5 ms")
+    print(f"[view] median ms per part: {parts}")
+    dg_ratio = (statistics.median(per_base["depsgraph"])
+                / statistics.median(per_type["depsgraph"]))
+    print(f"[view] baseline, Blender's default curve resolutions (trail bevel 4, text 12): "
+          f"depsgraph {ms(per_base['depsgraph'])}, total {ms(tb)} -> ratio "
+          f"{statistics.median(tb) / statistics.median(te):.2f}x (depsgraph {dg_ratio:.2f}x)")
+    live_view.clear(scene)
 
 
 def bench_latency(scene, steps: int) -> None:
@@ -240,11 +345,17 @@ def main(argv=None) -> int:
     ap.add_argument("--rate", type=float, default=60.0, help="updates per second (memory test)")
     ap.add_argument("--tracemalloc", action="store_true",
                     help="also trace the Python heap during the memory test (slows it ~10x)")
+    ap.add_argument("--view-only", action="store_true",
+                    help="only the full view's cost per state (radio map, rays, labels, trails)")
     args = ap.parse_args(argv)
     if not hasattr(bpy.types.Scene, "isac_live"):
         addon.register()
     scene = bpy.context.scene
+    if args.view_only:
+        bench_view_cost(scene, 200)
+        return 0
     bench_update_cost(scene, 200 if args.quick else 500)
+    bench_view_cost(scene, 200 if args.quick else 500)
     bench_latency(scene, 20 if args.quick else 50)
     bench_memory(scene, 1000 if args.quick else 10000, args.rate, args.tracemalloc)
     return 0

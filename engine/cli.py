@@ -204,8 +204,9 @@ def _radiomap_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cell", type=float, default=0.25, help="cell size, m (default 0.25)")
     p.add_argument("--height", type=float, default=None,
                    help="plane height z, m (default: the first robot's antenna height)")
-    p.add_argument("--samples", type=int, default=1_000_000,
-                   help="rays launched per access point (default 1e6)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="rays launched per access point (default: "
+                        "engine.radiomap.DEFAULT_SAMPLES, 0.5 s for the lab at 5 cm)")
     p.add_argument("--tx", action="append", default=None,
                    help="access point to map (repeatable; default: every access point)")
 
@@ -217,7 +218,7 @@ def cmd_radiomap(args) -> int:
 
     import numpy as np
 
-    from engine.radiomap import compute_radio_map, save_radio_map
+    from engine.radiomap import DEFAULT_SAMPLES, compute_radio_map, save_radio_map
     from engine.radiomap_figure import cut_footprints, save_radio_map_png
     from engine.scene import load_scene
 
@@ -225,7 +226,8 @@ def cmd_radiomap(args) -> int:
     t0 = time.perf_counter()
     try:
         rm = compute_radio_map(scene, args.tx, cell_size=args.cell, height=args.height,
-                               samples_per_tx=args.samples)
+                               samples_per_tx=DEFAULT_SAMPLES if args.samples is None
+                               else args.samples)
     except ValueError as exc:
         print(f"isac-twin: error: {exc}", file=sys.stderr)
         return 2
@@ -488,6 +490,9 @@ def _serve_args(p: argparse.ArgumentParser) -> None:
                         "recomputed after edits")
     p.add_argument("--radiomap-samples", type=int, default=200_000,
                    help="rays per access point of the streamed radio map")
+    p.add_argument("--replay", type=Path, default=None, metavar="RUN.mcap",
+                   help="drive the robots along a recording of `isac-twin record` (its time "
+                        "step and seed; the viewer sees the recorded run re-traced)")
 
 
 def _twin_factory(spec: str | None):
@@ -546,7 +551,27 @@ def cmd_serve(args) -> int:
             return 2
     factory = _twin_factory(args.twin)
     kw = {"asset_dirs": args.asset_dir} if args.asset_dir else {}
-    twin = factory.from_scene(scene_path(args), seed=args.seed, **kw)
+    seed = args.seed
+    if args.replay is not None:
+        from engine.record import read_metadata
+
+        try:
+            meta = read_metadata(args.replay)
+            kw["dt"] = float(meta.get("dt", 0.05))
+            seed = int(meta.get("seed", seed))
+        except (OSError, ValueError) as exc:
+            print(f"isac-twin: error: --replay {args.replay}: cannot read the recording "
+                  f"({exc})", file=sys.stderr)
+            return 2
+    twin = factory.from_scene(scene_path(args), seed=seed, **kw)
+    if args.replay is not None:
+        from engine.record import TrajectoryReplay
+
+        try:
+            TrajectoryReplay(twin, args.replay)
+        except ValueError as exc:
+            print(f"isac-twin: error: --replay {exc}", file=sys.stderr)
+            return 2
     feed = None
     try:
         if args.radiomap is not None:

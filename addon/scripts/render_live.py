@@ -4,6 +4,8 @@ Runs with Blender as a Python module (the PyPI ``bpy``); no GUI, no GPU::
 
     .venv/bin/python addon/scripts/render_live.py --steps 20 --every 5 --out renders/live
     .venv/bin/python addon/scripts/render_live.py --blend blend_scenes/l_office/l_office.blend
+    .venv/bin/python addon/scripts/render_live.py --replay run.mcap --steps 60 --every 1 \
+        --sequence --mp4 renders/run.mp4 --engine BLENDER_WORKBENCH
 
 It opens the .blend (default the bundled lab; the engine serves the
 ``scene/`` folder beside it unless ``--scene`` says otherwise, and the robot
@@ -16,6 +18,15 @@ until that step's state, paths and metrics are applied, and every
 of the robot with its trail; ``--no-closeup`` skips the second) (Cycles on the CPU by default; Workbench
 also works headless; EEVEE works but takes minutes per frame without a GPU).
 The engine's step log is written next to the PNGs (``steps.jsonl``).
+
+A recorded run: ``--replay RUN.mcap`` has the engine place the robots along the
+recording (``isac-twin serve --replay``) and re-trace each step; ``--sequence``
+writes one overview frame per rendered step (``frame_NNNN.png``, numbered from 1,
+no close-ups) and ``--mp4 FILE`` encodes those frames into an H.264 MP4 at
+``--fps`` with Blender's own FFmpeg (no external tool). For speed use
+``--engine BLENDER_WORKBENCH`` (flat colours: the rays' colour attribute, or
+with ``--radiomap`` the map's texture; about a second per frame on the CPU);
+Cycles stays the default for quality.
 """
 
 from __future__ import annotations
@@ -62,7 +73,69 @@ def parse_args(argv=None):
                    help="show the engine's floor radio map (cells of CELL m) with its legend")
     p.add_argument("--radiomap-layer", default="best",
                    help="radio map layer: an access point's name, best or sinr")
-    return p.parse_args(argv)
+    p.add_argument("--replay", type=Path, default=None, metavar="RUN.mcap",
+                   help="render a recorded run (isac-twin record): the engine replays it")
+    p.add_argument("--sequence", action="store_true",
+                   help="one overview frame per rendered step (frame_NNNN.png), no close-ups")
+    p.add_argument("--mp4", type=Path, default=None, metavar="FILE",
+                   help="also encode the overview frames into this MP4 (implies --sequence)")
+    p.add_argument("--fps", type=int, default=10, help="frames per second of the MP4")
+    args = p.parse_args(argv)
+    if args.replay is not None and not args.replay.is_file():
+        p.error(f"--replay {args.replay}: no such file")
+    if args.mp4 is not None:
+        args.sequence = True
+    if args.sequence:
+        args.closeup = False
+    if args.fps < 1:
+        p.error(f"--fps: expected >= 1, got {args.fps}")
+    return args
+
+
+def frames_to_mp4(frames: list, out: Path, fps: int = 10) -> Path:
+    """Encode PNG ``frames`` (same size, in order) into an H.264 MP4 ``out`` with Blender's
+    FFmpeg (the video sequencer of a scratch scene; the current scene is left as it was).
+
+    Raises:
+        ValueError: no frames.
+    """
+    if not frames:
+        raise ValueError("frames_to_mp4: no frames to encode")
+    first = bpy.data.images.load(str(frames[0]))
+    w, h = first.size
+    bpy.data.images.remove(first)
+    sc = bpy.data.scenes.new("ISAC_MP4")
+    try:
+        ed = sc.sequence_editor_create()
+        strips = ed.strips if hasattr(ed, "strips") else ed.sequences
+        strip = strips.new_image("frames", str(frames[0]), channel=1, frame_start=1)
+        for f in frames[1:]:
+            strip.elements.append(Path(f).name)
+        strip.directory = str(Path(frames[0]).parent) + "/"
+        r = sc.render
+        r.resolution_x, r.resolution_y, r.resolution_percentage = w, h, 100
+        r.fps = int(fps)
+        sc.frame_start, sc.frame_end = 1, len(frames)
+        if hasattr(r.image_settings, "media_type"):  # Blender 5: pick video before FFmpeg
+            r.image_settings.media_type = "VIDEO"
+        r.image_settings.file_format = "FFMPEG"
+        r.ffmpeg.format = "MPEG4"
+        r.ffmpeg.codec = "H264"
+        r.ffmpeg.constant_rate_factor = "HIGH"
+        r.use_sequencer = True
+        r.filepath = str(out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.unlink(missing_ok=True)
+        with bpy.context.temp_override(scene=sc):
+            bpy.ops.render.render(animation=True, scene=sc.name)
+    finally:
+        bpy.data.scenes.remove(sc)
+    # Blender appends the frame range to a movie's name when the path has no '#'
+    if not out.is_file():
+        made = sorted(out.parent.glob(out.stem + "*" + out.suffix))
+        if made:
+            made[-1].replace(out)
+    return out
 
 
 def room_bounds(scene) -> tuple[Vector, Vector]:
@@ -169,6 +242,8 @@ def main(argv=None) -> int:
     step_log = args.out / "steps.jsonl"
     step_log.unlink(missing_ok=True)
     extra = ("--radiomap", str(args.radiomap)) if args.radiomap is not None else ()
+    if args.replay is not None:
+        extra += ("--replay", str(args.replay.resolve()))
     scene.isac_live.radiomap_layer = args.radiomap_layer
     if args.radiomap is not None and args.engine == "BLENDER_WORKBENCH":
         scene.display.shading.color_type = "TEXTURE"  # the map's image (rays turn grey)
@@ -188,7 +263,7 @@ def main(argv=None) -> int:
             time.sleep(0.01)
         raise TimeoutError(f"no {what} within {args.timeout:g} s ({session.client.last_error})")
 
-    written = []
+    written, frames = [], []
     try:
         wait(lambda: session.client.connected and session.applied["scene"], "connection")
         if args.radiomap is not None:
@@ -200,9 +275,12 @@ def main(argv=None) -> int:
             if k % args.every == 0 or k == args.steps - 1:
                 t0 = time.perf_counter()
                 scene.camera = bpy.data.objects["LiveCamera"]
-                scene.render.filepath = str(args.out / f"live_{k:04d}.png")
+                name = (f"frame_{len(frames) + 1:04d}.png" if args.sequence
+                        else f"live_{k:04d}.png")
+                scene.render.filepath = str(args.out / name)
                 bpy.ops.render.render(write_still=True)
                 written.append(scene.render.filepath)
+                frames.append(scene.render.filepath)
                 if args.closeup:
                     aim_closeup(scene, bpy.data.objects.get(f"ISAC_Live_{args.robot}"))
                     scene.render.filepath = str(args.out / f"live_{k:04d}_{args.robot}.png")
@@ -213,6 +291,11 @@ def main(argv=None) -> int:
                          scene.render.filepath, time.perf_counter() - t0)
     finally:
         session.close()
+    if args.mp4 is not None:
+        t0 = time.perf_counter()
+        written.append(str(frames_to_mp4(frames, args.mp4, args.fps)))
+        log.info("encoded %d frames into %s in %.1f s", len(frames), args.mp4,
+                 time.perf_counter() - t0)
     print("\n".join(written))
     return 0
 

@@ -30,7 +30,8 @@ def scene_message(scene) -> dict:
                 "bounds_min": _vec(o.bounds_min), "bounds_max": _vec(o.bounds_max)}
                for o in scene.objects.values()]
     devices = [{"name": d.name, "kind": d.kind, "role": d.role, "position": _vec(d.position),
-                "orientation": _vec(d.orientation), "model": getattr(d, "model", None)}
+                "orientation": _vec(d.orientation), "model": getattr(d, "model", None),
+                "array": [int(d.array.rows), int(d.array.cols)]}
                for d in cfg.devices]
     return {"type": "scene", "name": cfg.scene.name, "content_hash": scene.content_hash(),
             "frequency_hz": float(cfg.scene.frequency_hz), "objects": objects,

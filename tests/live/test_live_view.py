@@ -34,15 +34,84 @@ def _paths(n_links=2, per_link=3):
 def test_ray_arrays_colour_modes(addon_module):
     from addon import live_view
 
-    sizes, pos, col = live_view.ray_arrays(_paths(), "POWER")
+    sizes, pos, col, rad = live_view.ray_arrays(_paths(), "POWER")
     assert sizes == [2, 3, 3] * 2 and len(pos) == 3 * 16 and len(col) == 4 * 16
+    assert rad == [live_view.RAY_RADIUS_M] * 16 and col[3::4] == [1.0] * 16
     lo, hi = live_view.RAY_SCALE_DB                     # -50 dB on the fixed scale
     assert tuple(col[:4]) == live_view.power_color((-50.0 - lo) / (hi - lo))
-    sizes, pos, col = live_view.ray_arrays(_paths(), "TYPE", max_paths=2)
+    sizes, pos, col, _ = live_view.ray_arrays(_paths(), "TYPE", max_paths=2)
     assert sizes == [2, 3] * 2
     # second path: tx (white), specular vertex (blue), rx (white)
     assert tuple(col[8:12]) == live_view.TYPE_COLORS[0]
     assert tuple(col[12:16]) == live_view.TYPE_COLORS[1]
+
+
+def test_strongest_paths_per_link(addon_module):
+    from addon import live_view
+
+    paths = [{"power_db": v, "k": i} for i, v in enumerate([-70.0, -50.0, -90.0, -60.0])]
+    assert [p["k"] for p in live_view.strongest_paths(paths, 2)] == [1, 3]
+    assert [p["k"] for p in live_view.strongest_paths(paths, 9)] == [1, 3, 0, 2]
+    assert live_view.strongest_paths(paths, 0) is paths            # 0: all, as sent
+    # a message out of order: the cap keeps the strongest, not the first
+    msg = _paths(1, 3)
+    msg["links"][0]["paths"].reverse()                  # -70, -60, -50 dB
+    sizes, _, col, _ = live_view.ray_arrays(msg, "POWER", max_paths=1)
+    lo, hi = live_view.RAY_SCALE_DB
+    assert sizes == [2] and tuple(col[:4]) == live_view.power_color((-50.0 - lo) / (hi - lo))
+
+
+def test_ray_width_and_opacity_by_power(scene):
+    from addon import live_view
+
+    lo, hi = live_view.RAY_SCALE_DB
+    r0, r1 = live_view.RAY_RADIUS_RANGE_M
+    assert live_view.ray_style(hi + 5) == (r1, 1.0)
+    assert live_view.ray_style(lo - 5, opacity=True) == (r0, live_view.RAY_ALPHA_MIN)
+    r, a = live_view.ray_style((lo + hi) / 2, opacity=True)
+    assert r == pytest.approx((r0 + r1) / 2) and a == pytest.approx(
+        (1 + live_view.RAY_ALPHA_MIN) / 2)
+    assert live_view.ray_style(-45.0, width=False) == (live_view.RAY_RADIUS_M, 1.0)
+    sizes, _, col, rad = live_view.ray_arrays(_paths(1, 3), "TYPE", width_by_power=True,
+                                              opacity_by_power=True)
+    # -50 dB (2 points), -60 dB and -70 dB (3 points each): thinner and fainter as they weaken
+    assert sizes == [2, 3, 3]
+    assert rad[0] > rad[2] > rad[5] and rad[0] == rad[1] and rad[2] == rad[4]
+    assert col[3] > col[11] > col[23] and (col[3], col[7]) == (col[3], col[3])
+    # applied: the rays object's radius attribute and a material mixing by the alpha
+    p = scene.isac_live
+    p.ray_width_by_power, p.ray_opacity_by_power = True, True
+    live_view.apply_paths(scene, _paths(1, 3), live_view.LiveView())
+    cv = bpy.data.objects[live_view.RAYS].data
+    got = [d.value for d in cv.attributes["radius"].data]
+    assert got == pytest.approx(rad)
+    alphas = [d.color[3] for d in cv.attributes[live_view.RAY_COLOR_ATTR].data]
+    assert alphas[0] == pytest.approx(live_view.ray_style(-50.0, opacity=True)[1])
+    nt = cv.materials[0].node_tree
+    mix = nt.nodes["alpha_mix"]
+    assert mix.inputs["Fac"].links[0].from_socket.name == "Alpha"
+    p.ray_opacity_by_power = False
+    live_view.apply_paths(scene, _paths(1, 3), live_view.LiveView())
+    assert {d.color[3] for d in cv.attributes[live_view.RAY_COLOR_ATTR].data} == {1.0}
+
+
+def test_a_full_trail_moves_its_points(scene):
+    """A trail at its full length is updated in place: its last point is the newest pose."""
+    from addon import live_view
+
+    view = live_view.LiveView(trail_length=3)
+    for step in range(6):
+        live_view.apply_state(scene, {"type": "state", "step": step, "time_s": 0.0, "robots": [
+            {"name": "robot1", "pose": [float(step), 2, 0, 0, 0, 0], "velocity": [0, 0]}]},
+            view)
+        splines = bpy.data.objects["ISAC_Live_robot1_trail"].data.splines
+        if step == 0:
+            assert len(splines) == 0                     # one point: no line yet
+            continue
+        assert [round(p.co[0], 6) for p in splines[0].points] == [
+            float(k) for k in range(max(0, step - 2), step + 1)]
+    cu = bpy.data.objects["ISAC_Live_robot1_trail"].data
+    assert len(cu.splines) == 1 and cu.bevel_resolution == live_view.TRAIL_BEVEL_RESOLUTION
 
 
 def test_paths_state_metrics_are_applied(scene):
@@ -317,8 +386,8 @@ def test_ray_colour_is_a_fixed_db_scale(addon_module):
     a = _paths(1, 3)                                  # powers -50, -60, -70 dB
     b = _paths(1, 3)
     b["links"][0]["paths"][0]["power_db"] = -80.0     # strongest is now -60 dB
-    _, _, ca = live_view.ray_arrays(a, "POWER")
-    _, _, cb = live_view.ray_arrays(b, "POWER")
+    _, _, ca, _ = live_view.ray_arrays(a, "POWER")
+    _, _, cb, _ = live_view.ray_arrays(b, "POWER")
     # path 1 (-60 dB) starts at point 2 in both
     assert tuple(ca[8:12]) == tuple(cb[8:12])
     lo, hi = live_view.RAY_SCALE_DB
@@ -332,15 +401,28 @@ def test_rays_legend_follows_the_colour_mode(scene):
     live_view.apply_scene(scene, {"type": "scene", "name": "s", "content_hash": "h",
                                   "frequency_hz": 2.4e9, "links": [],
                                   "devices": [{"name": "AP1", "kind": "access_point",
-                                               "role": "tx", "position": [0, 3, 2]},
+                                               "role": "tx", "position": [0, 3, 2],
+                                               "array": [4, 8]},
                                               {"name": "robot1", "kind": "robot", "role": "rx",
                                                "position": [4, 3, 0]}],
                                   "objects": [{"name": "W", "material": "concrete",
                                                "thickness": 0.2, "bounds_min": [-0.2, -0.3, 0],
                                                "bounds_max": [8, 6, 3]}]}, view)
     assert view.extent == (-0.2, -0.3, 8, 6)
-    assert bpy.data.objects["ISAC_Live_AP_AP1_Label"].data.body == "AP1"
+    # array sizes from the scene message (wire 1.2); a 1.1 scene without them: the name
+    assert bpy.data.objects["ISAC_Live_AP_AP1_Label"].data.body == "AP1 4x8"
     assert list(bpy.data.objects["ISAC_Live_AP_AP1"].location)[:2] == [0, 3]
+    # a radio map's transmitter list marks the AP again without erasing the array size
+    from addon import legend
+
+    legend.mark_access_point(scene, "AP1", (0, 3, 2))
+    assert bpy.data.objects["ISAC_Live_AP_AP1_Label"].data.body == "AP1 4x8"
+    # an AP on a wall labels itself towards the room's middle (not inside the wall)
+    legend.mark_access_point(scene, "AP9", (8.0, 3.0, 2.0), toward=(4.0, 3.0))
+    lab9 = bpy.data.objects["ISAC_Live_AP_AP9_Label"]
+    assert list(lab9.location) == pytest.approx([8.0 - legend.AP_LABEL_OFFSET_M, 3.0, 2.05])
+    assert lab9.data.align_x == "RIGHT" and lab9.data.body == "AP9"
+    assert not lab9.visible_shadow                      # no shadow copy of a label on a wall
     lab = bpy.data.objects["ISAC_Live_robot1_Label"]
     assert lab.data.body == "robot1" and list(lab.location)[:2] == pytest.approx([4.15, 3.15])
     live_view.apply_state(scene, {"type": "state", "step": 0, "time_s": 0.0, "robots": [

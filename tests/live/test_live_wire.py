@@ -33,7 +33,8 @@ def _all_messages(wire):
          "objects": [{"name": "Wall", "material": "concrete", "thickness": 0.2,
                       "bounds_min": [0, 0, 0], "bounds_max": [1, 1, 1]}],
          "devices": [{"name": "AP1", "kind": "access_point", "role": "tx",
-                      "position": [0, 0, 2], "orientation": [0, 0, 0], "model": None}],
+                      "position": [0, 0, 2], "orientation": [0, 0, 0], "model": None,
+                      "array": [4, 8]}],
          "links": [["AP1", "robot1"]]},
         {"type": "state", "step": 0, "time_s": 0.1, "scene_hash": "x",
          "robots": [{"name": "robot1", "pose": [1, 2, 0, 0, 0, 1.5], "velocity": [0.2, 0],
@@ -58,6 +59,19 @@ def test_every_message_type_round_trips(wire):
     dec = wire.Decoder()
     assert dec.feed(stream) == msgs
     assert not dec.rejections and dec.buffered == 0
+
+
+def test_scene_message_carries_every_devices_array(wire, box_scene_dir):
+    """1.2: ``devices[].array`` is ``[rows, cols]`` of the device's ``[devices.array]``."""
+    from engine.live.protocol import scene_message
+    from engine.scene import load_scene
+
+    scene = load_scene(box_scene_dir, load_sionna=False)
+    msg = scene_message(scene)
+    assert wire.validate(msg, "e2v") is None
+    want = {d.name: [d.array.rows, d.array.cols] for d in scene.config.devices}
+    assert {d["name"]: d["array"] for d in msg["devices"]} == want
+    assert wire.PROTOCOL_VERSION >= (1, 2)
 
 
 def test_byte_by_byte_and_split_frames(wire):
@@ -94,6 +108,10 @@ def test_engine_and_addon_share_one_definition(wire):
     (b'{"type": "command", "op": "run", "args": []}', "invalid", "field 'args' must be an object"),
     (b'{"type": "hello", "protocol": [1, 0], "role": "viewer", "capabilities": "all"}',
      "invalid", "field 'capabilities' must be a list"),
+    (b'{"type": "scene", "name": "s", "content_hash": "h", "frequency_hz": 1e9, "objects": [],'
+     b' "links": [], "devices": [{"name": "AP1", "kind": "access_point", "role": "tx",'
+     b' "position": [0, 0, 2], "array": [4, 8.5]}]}', "invalid",
+     "field 'array' must be a list of 2 integers, got [4, 8.5]"),
 ])
 def test_faults_are_rejected_with_a_reason_and_the_stream_survives(wire, caplog, payload,
                                                                     kind, reason):
@@ -232,3 +250,20 @@ def test_radiomap_faults_are_named(wire, change, match):
     dec = wire.Decoder("e2v")
     assert dec.feed(wire.frame_raw(json.dumps(dict(_radiomap_msg(), **change)).encode())) == []
     assert dec.rejections["invalid"] == 1
+
+
+_GOOD_PATH = {"points": [[0, 0, 2], [1.5, 2, 0.25]], "types": [], "power_db": -50.0,
+              "tau_s": 1e-8}
+
+
+@pytest.mark.parametrize("paths", [
+    [], [_GOOD_PATH] * 3, "x", [_GOOD_PATH, 5], [dict(_GOOD_PATH, points=[[0, 0]])],
+    [dict(_GOOD_PATH, points=[[0, 0, True]])], [dict(_GOOD_PATH, types=[1.0])],
+    [dict(_GOOD_PATH, power_db=float("nan"))], [dict(_GOOD_PATH, tau_s="1")],
+    [{k: v for k, v in _GOOD_PATH.items() if k != "types"}], [dict(_GOOD_PATH, points=5)],
+    [_GOOD_PATH, dict(_GOOD_PATH, power_db=True)],
+])
+def test_fast_paths_check_agrees_with_the_generic_one(wire, paths):
+    """The flat loop that checks a link's paths answers exactly what the field-by-field
+    check answers (None or the same reason)."""
+    assert wire._paths_list(paths) == wire._paths_generic(paths)
