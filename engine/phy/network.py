@@ -46,7 +46,8 @@ tests/engine/phy/test_network_fast.py). A robot at 0.22 m/s at 2.4 GHz
 (nu <= 1.8 Hz) with K = 14 symbols of 13.7 us gives ~1e-3 rad for one group.
 ``time_invariant_tol=0`` disables it. In this mode ``LinkSignal.h``/``w``/``p``
 repeat the group values over the symbols (read-only broadcast views for one
-group).
+group), expanded only when read (``h_by_group``/``w_by_group``/``p_by_group``
+hold one value per group).
 """
 
 from __future__ import annotations
@@ -80,14 +81,17 @@ class LinkSignal:
 
     Attributes:
         tx, rx: device names.
-        h: channel ``[K, N, Nr, Nt]`` (complex64).
-        w_by_group: precoder ``[G, N, Nt, S]`` per symbol group (``G = K`` and
-            ``group`` None unless the step is time-invariant).
+        h_by_group: channel ``[G, N, Nr, Nt]`` (complex64) per symbol group
+            (``G = K`` and ``group`` None unless the step is time-invariant);
+            :attr:`h` is the channel on every symbol.
+        w_by_group: precoder ``[G, N, Nt, S]`` per symbol group.
         p_by_group: power per RE and stream ``[G, N, S]``, W.
         group: ``[K]`` symbol -> group index, or None (one group per symbol).
-            :attr:`w` / :attr:`p` expand the group values over the symbols on
-            first access (not every step: an expansion copies ``K / G`` times the
-            data, which was 42 % of the PHY time of 4 robots, issue #19).
+            :attr:`h` / :attr:`w` / :attr:`p` expand the group values over the
+            symbols on first access, not every step: an expansion copies
+            ``K / G`` times the data (w and p were 42 % of the PHY time of 4
+            robots, h's copy for the CSI message 13-28 %, issue #19). The
+            values are those of the step; only the copy is deferred.
         mask: the transmitter's allocation ``[K, N]``.
         rate_bps: achievable rate, bit/s (interference treated as noise).
         snr_db: mean SNR over the allocation before precoding,
@@ -106,7 +110,7 @@ class LinkSignal:
 
     tx: str
     rx: str
-    h: np.ndarray
+    h_by_group: np.ndarray
     w_by_group: np.ndarray
     p_by_group: np.ndarray
     mask: np.ndarray
@@ -117,6 +121,13 @@ class LinkSignal:
     mcs_rate_bps: float = float("nan")
     mcs: tuple = ()
     group: np.ndarray | None = None
+
+    @cached_property
+    def h(self) -> np.ndarray:
+        """Channel ``[K, N, Nr, Nt]`` (complex64) on every symbol (eq. 4; with the
+        time-invariant shortcut each symbol holds its group's channel, at the
+        group's mean time)."""
+        return self.h_by_group if self.group is None else _expand(self.h_by_group, self.group)
 
     @cached_property
     def w(self) -> np.ndarray:
@@ -422,9 +433,8 @@ class NetworkPHY:
                 sinr_mean = float(np.dot(ww, sinr[ok]) / ww.sum()) if ok.any() else 0.0
             w_g = on_grid(np.asarray(d["w"]), d)
             p_g = on_grid(d["p"], d)
-            hx = _expand(hl, group) if invariant else hl
             out[(tx, rx)] = LinkSignal(
-                tx=tx, rx=rx, h=hx, w_by_group=w_g.reshape((g_, n_) + w_g.shape[1:]),
+                tx=tx, rx=rx, h_by_group=hl, w_by_group=w_g.reshape((g_, n_) + w_g.shape[1:]),
                 p_by_group=p_g.reshape((g_, n_) + p_g.shape[1:]),
                 group=group if invariant else None, mask=self.masks[tx],
                 rate_bps=bits / self.grid.step_duration_s,
@@ -467,7 +477,7 @@ class NetworkPHY:
             sinr = r.sinr[mask]
             sinr = sinr[np.isfinite(sinr) & (sinr > 0)]
             out[(tx, rx)] = LinkSignal(
-                tx=tx, rx=rx, h=hl, w_by_group=w, p_by_group=p, mask=mask,
+                tx=tx, rx=rx, h_by_group=hl, w_by_group=w, p_by_group=p, mask=mask,
                 rate_bps=r.rate_bps,
                 snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
                 sinr_db=float(10 * np.log10(sinr.mean())) if sinr.size else float("-inf"),
