@@ -106,8 +106,9 @@ def _taylor_order(x: float, max_order: int) -> int | None:
 
 def _synthesize(gains: np.ndarray, tau: np.ndarray, doppler: np.ndarray,
                 grid: ResourceGrid, dtype, times=None, delay_phase=None,
-                max_doppler: float | None = None) -> np.ndarray:
-    """Core of eq. 4: ``[L, M]`` antenna-pair gains -> ``[T, N, M]``.
+                max_doppler: float | None = None, rows=None) -> np.ndarray:
+    """Core of eq. 4: ``[L, M]`` antenna-pair gains -> ``[T, N, M]`` (``[R, N, M]``
+    with ``rows``).
 
     The time-frequency kernel ``exp(j2pi(nu t_k - f_n tau))`` is separable, so the
     Doppler phase is folded into the (small) gains and one BLAS matmul with the
@@ -125,12 +126,17 @@ def _synthesize(gains: np.ndarray, tau: np.ndarray, doppler: np.ndarray,
             (e.g. columns of one table over several links' paths).
         max_doppler: |nu| bound [Hz] that picks the Taylor order (default
             ``max |doppler|``; a larger bound only adds terms).
+        rows: indices ``[R]`` into ``times``: only these symbols are computed
+            (the method and the Taylor basis still follow all ``times``, so a
+            symbol's value does not depend on which others are requested).
     """
     num_paths, m = gains.shape
     t = grid.symbol_times if times is None else np.asarray(times, dtype=np.float64)
     k_, n_ = t.shape[0], grid.num_subcarriers
-    if num_paths == 0:
-        return np.zeros((k_, n_, m), dtype=dtype)
+    rows = np.arange(k_) if rows is None else np.asarray(rows, dtype=np.int64).reshape(-1)
+    r_ = rows.shape[0]
+    if num_paths == 0 or r_ == 0:
+        return np.zeros((r_, n_, m), dtype=dtype)
     if delay_phase is None:
         delay_phase = _delay_phase(grid, tau).astype(dtype)  # [N, L]
     t_c = 0.5 * (t.max() + t.min())
@@ -139,11 +145,11 @@ def _synthesize(gains: np.ndarray, tau: np.ndarray, doppler: np.ndarray,
     x = 2 * np.pi * nu * half
     order = _taylor_order(x, k_ // 2 - 1) if k_ >= 4 else None
     if order is None:
-        doppler_phase = np.exp(2j * np.pi * np.mod(np.outer(t, doppler), 1.0))  # [T, L]
-        g_t = doppler_phase[:, :, None] * gains[None, :, :]  # [T, L, M]
-        g_t = g_t.transpose(1, 0, 2).reshape(num_paths, k_ * m).astype(dtype)
-        out = delay_phase @ g_t  # [N, T * M]
-        return np.ascontiguousarray(out.reshape(n_, k_, m).transpose(1, 0, 2))
+        doppler_phase = np.exp(2j * np.pi * np.mod(np.outer(t[rows], doppler), 1.0))  # [R, L]
+        g_t = doppler_phase[:, :, None] * gains[None, :, :]  # [R, L, M]
+        g_t = g_t.transpose(1, 0, 2).reshape(num_paths, r_ * m).astype(dtype)
+        out = delay_phase @ g_t  # [N, R * M]
+        return np.ascontiguousarray(out.reshape(n_, r_, m).transpose(1, 0, 2))
     j = np.arange(order + 1)
     centre = np.exp(2j * np.pi * np.mod(t_c * doppler, 1.0))  # [L]
     # coef[j, l] = (j 2 pi nu_l half)^j / j!  ;  basis[k, j] = ((t_k - t_c) / half)^j
@@ -154,13 +160,14 @@ def _synthesize(gains: np.ndarray, tau: np.ndarray, doppler: np.ndarray,
     g_j = g_j.reshape(num_paths, (order + 1) * m).astype(dtype)  # [L, (J+1) M]
     xb = (delay_phase @ g_j).reshape(n_, order + 1, m).transpose(1, 0, 2)  # [J+1, N, M]
     s = (t - t_c) / half if half > 0 else np.zeros_like(t)
-    basis = (s[:, None] ** j[None, :]).astype(dtype)  # [T, J+1]
-    out = basis @ np.ascontiguousarray(xb).reshape(order + 1, n_ * m)  # [T, N * M]
-    return out.reshape(k_, n_, m)
+    basis = (s[rows, None] ** j[None, :]).astype(dtype)  # [R, J+1]
+    out = basis @ np.ascontiguousarray(xb).reshape(order + 1, n_ * m)  # [R, N * M]
+    return out.reshape(r_, n_, m)
 
 
 def synthesize_many(grid: ResourceGrid, gains, taus, dopplers, dtype=np.complex64,
-                    times=None) -> list[np.ndarray]:
+                    times=None, rows=None, max_doppler: float | None = None
+                    ) -> list[np.ndarray]:
     """Eq. 4 for several links in one pass (the batched network PHY, issue #19).
 
     One delay-phase table ``exp(-j 2 pi f_n tau)`` covers every link's paths and
@@ -173,23 +180,30 @@ def synthesize_many(grid: ResourceGrid, gains, taus, dopplers, dtype=np.complex6
         gains: per link ``[L_i, M_i]`` antenna-pair gains (complex).
         taus, dopplers: per link ``[L_i]`` delays [s] and Doppler shifts [Hz].
         times: symbol times ``[T]`` [s] (default the grid's K symbols).
+        rows: per link the indices ``[R_i]`` into ``times`` to compute (None: all),
+            e.g. only the symbols a transmitter uses; a symbol's value does not
+            depend on which others are computed with it.
+        max_doppler: |nu| bound [Hz] that picks the Taylor order (default the
+            batch's largest; pass a batch's value to extend it later).
 
     Returns:
-        per link ``[T, N, M_i]`` in ``dtype``.
+        per link ``[T, N, M_i]`` (``[R_i, N, M_i]`` with ``rows``) in ``dtype``.
     """
     gains, taus, dopplers = list(gains), list(taus), list(dopplers)
     if not gains:
         return []
+    rows = [None] * len(gains) if rows is None else list(rows)
     tau_all = np.concatenate([np.asarray(t, np.float64) for t in taus])
     nu_all = np.concatenate([np.asarray(d, np.float64) for d in dopplers])
     table = _delay_phase(grid, tau_all).astype(dtype) if tau_all.size else None
-    nu = float(np.max(np.abs(nu_all))) if nu_all.size else 0.0
+    nu = (float(np.max(np.abs(nu_all))) if nu_all.size else 0.0) if max_doppler is None \
+        else float(max_doppler)
     out, start = [], 0
-    for g, t, d in zip(gains, taus, dopplers):
+    for g, t, d, r in zip(gains, taus, dopplers, rows):
         n = len(t)
         dp = None if table is None else table[:, start:start + n]
         out.append(_synthesize(g, np.asarray(t, np.float64), np.asarray(d, np.float64),
-                               grid, dtype, times, delay_phase=dp, max_doppler=nu))
+                               grid, dtype, times, delay_phase=dp, max_doppler=nu, rows=r))
         start += n
     return out
 

@@ -81,6 +81,9 @@ def test_batched_equals_per_link(many_robots, alloc, kw):
         assert b.sinr_db == pytest.approx(r.sinr_db, abs=1e-6)
         np.testing.assert_allclose(b.h, r.h, rtol=0, atol=1e-6 * max(np.abs(r.h).max(), 1e-30))
         np.testing.assert_allclose(b.p, r.p, rtol=1e-6, atol=1e-12 * max(r.p.max(), 1e-30))
+        # precoders formed on request (no interferer at another receiver needs
+        # them here) equal the per-link ones (unit columns, complex64)
+        np.testing.assert_allclose(b.w, r.w, rtol=0, atol=1e-4)
     # The stacked pass is not a copy of one link: links differ.
     rates = [r.rate_bps for r in per_link.values() if r.rate_bps > 0]
     assert len(set(rates)) == len(rates)
