@@ -377,7 +377,8 @@ class NetworkPHY:
         every = np.arange(g_)
         # The symbols (groups) each transmitter uses: its links' channels are
         # needed there only (by its own rate and as interference).
-        rows = {tx: every for tx in txs}
+        rows = {tx: (np.flatnonzero(masks[tx].any(axis=1)) if batched else every)
+                for tx in txs}
         if batched:
             h, rest = self._channels(link_paths, times, {lk: rows[lk[0]] for lk in link_paths})
         else:
