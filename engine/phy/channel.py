@@ -69,23 +69,39 @@ def baseband_gains(a, tau, carrier_frequency_hz: float) -> np.ndarray:
     return a * ph.reshape((-1,) + (1,) * (a.ndim - 1))
 
 
-def _delay_phase(grid: ResourceGrid, tau: np.ndarray) -> np.ndarray:
-    """``exp(-j 2 pi f_n tau_l)`` ``[N, L]`` complex128, exactly (to float64 rounding).
+def _delay_phase(grid: ResourceGrid, tau: np.ndarray, dtype=np.complex128) -> np.ndarray:
+    """``exp(-j 2 pi f_n tau_l)`` ``[N, L]`` in ``dtype``, to float64 rounding.
 
     Subcarriers are uniform, ``f_n = (n0 + n) delta_f``: with ``n = B a + c`` the
     phase factors into ``exp(..(n0 + B a)..) * exp(..c..)``, two small tables of
-    ``~sqrt(N)`` exponentials per path and one complex multiply per entry (each
-    factor's phase is reduced modulo one cycle in float64 before the exponential,
-    so there is no error growth along n, unlike a running product).
+    ``~sqrt(N)`` rows per path and one complex multiply per entry, formed in
+    complex128 and rounded once to ``dtype``. Each table is a running product of
+    at most ``~sqrt(N)`` factors whose phases are reduced modulo one cycle in
+    float64 before the exponential (3 exponentials per path instead of
+    ``2 sqrt(N)``, the table's largest cost with many links, issue #19): the
+    rounding of a step's phase grows ``~sqrt(N)``-fold along a table, not along
+    the N subcarriers; measured <= 3e-14 from the direct ``exp`` for N = 1024
+    (delays to 300 ns), far below complex64 rounding (6e-8).
     """
+    tau = np.asarray(tau, np.float64)
     n = grid.num_subcarriers
     df = grid.subcarrier_spacing_hz
     n0 = float(grid.subcarrier_indices[0])
     blk = max(1, int(np.ceil(np.sqrt(n))))
     na = -(-n // blk)
-    outer = np.exp(-2j * np.pi * np.mod(np.outer((n0 + blk * np.arange(na)) * df, tau), 1.0))
-    inner = np.exp(-2j * np.pi * np.mod(np.outer(np.arange(blk) * df, tau), 1.0))
-    return (outer[:, None, :] * inner[None, :, :]).reshape(na * blk, -1)[:n]
+
+    def powers(first_cycles, step_cycles, count):
+        """``exp(-j 2 pi (first + k step))`` for k < count -> ``[count, L]``."""
+        t = np.empty((count, tau.size), np.complex128)
+        t[0] = np.exp(-2j * np.pi * np.mod(first_cycles, 1.0))
+        t[1:] = np.exp(-2j * np.pi * np.mod(step_cycles, 1.0))
+        return np.cumprod(t, axis=0, out=t)
+
+    outer = powers(n0 * df * tau, blk * df * tau, na)  # [na, L]
+    inner = powers(np.zeros_like(tau), df * tau, blk)  # [B, L]
+    out = np.empty((na, blk, tau.size), dtype)
+    np.multiply(outer[:, None, :], inner[None, :, :], out=out, casting="same_kind")
+    return out.reshape(na * blk, -1)[:n]
 
 
 #: Doppler phases are expanded in a Taylor series in time when the truncation
@@ -138,7 +154,7 @@ def _synthesize(gains: np.ndarray, tau: np.ndarray, doppler: np.ndarray,
     if num_paths == 0 or r_ == 0:
         return np.zeros((r_, n_, m), dtype=dtype)
     if delay_phase is None:
-        delay_phase = _delay_phase(grid, tau).astype(dtype)  # [N, L]
+        delay_phase = _delay_phase(grid, tau, dtype)  # [N, L]
     t_c = 0.5 * (t.max() + t.min())
     half = 0.5 * float(t.max() - t.min())
     nu = float(np.max(np.abs(doppler))) if max_doppler is None else float(max_doppler)
@@ -195,7 +211,7 @@ def synthesize_many(grid: ResourceGrid, gains, taus, dopplers, dtype=np.complex6
     rows = [None] * len(gains) if rows is None else list(rows)
     tau_all = np.concatenate([np.asarray(t, np.float64) for t in taus])
     nu_all = np.concatenate([np.asarray(d, np.float64) for d in dopplers])
-    table = _delay_phase(grid, tau_all).astype(dtype) if tau_all.size else None
+    table = _delay_phase(grid, tau_all, dtype) if tau_all.size else None
     nu = (float(np.max(np.abs(nu_all))) if nu_all.size else 0.0) if max_doppler is None \
         else float(max_doppler)
     out, start = [], 0
