@@ -296,6 +296,17 @@ class Bus:
                     t.publishers.remove(name)
                 t.subscriptions = [s for s in t.subscriptions if s.node != name]
 
+    def has_subscribers(self, topic: str) -> bool:
+        """Whether a message published on ``topic`` now would reach anyone: a
+        subscription on this bus (callback or queued), or a transport (remote
+        peers may subscribe). A publisher may skip building a costly message that
+        nobody receives (the twin's CSI, issue #19); a subscriber that arrives
+        later gets the messages published from then on, as with any topic."""
+        if self.transport is not None:
+            return True
+        t = self._topics.get(topic)
+        return t is not None and bool(t.subscriptions)
+
     def topic_type(self, topic: str) -> type:
         """The message class of a registered topic."""
         try:

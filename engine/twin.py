@@ -130,6 +130,12 @@ class Twin:
       links on this step (stage 2); on other steps the step has no links, no
       signals and no CSI. ``None`` (default) traces every step.
     * :attr:`estimators` -- stage-5 observers ``est(twin, result)``, run in order.
+    * CSI consumers -- ``/<robot>/csi`` (:class:`~engine.msgs.Csi`, the channel
+      on every symbol) is built and published only while something subscribes
+      to it on :attr:`bus` (the recorder, a bridge sharing it, the live view, an
+      estimator that needs pilots: :meth:`engine.bus.Bus.has_subscribers`); the
+      PHY keeps one channel per symbol group and
+      :attr:`~engine.phy.network.LinkSignal.h` expands it only when read.
     """
 
     def __init__(self, scene: TwinScene, *, seed: int = 0, dt: float = 0.05,
@@ -621,7 +627,9 @@ class Twin:
         result.signals = signals
         for (tx, rx), sig in signals.items():
             agent = self.agents.get(rx)
-            if agent is not None:
+            # The CSI message expands h over the symbols (a copy of K / G times
+            # the step's channel): only for a consumer (see the class doc).
+            if agent is not None and self.bus.has_subscribers(agent.topics["csi"]):
                 agent.node.publish(agent.topics["csi"], Csi(
                     header=Header(stamp=t_next, frame_id=rx), tx=tx, rx=rx, h=sig.h))
         t_sense = clock()

@@ -525,7 +525,7 @@ def _gram_rows2(h) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return a, d, re + 1j * im
 
 
-def svd_streams(h, num_streams: int, dtype=None):
+def svd_streams(h, num_streams: int, dtype=None, *, precoders: bool = True):
     """Per-RE dominant right singular vectors, exactly (closed form when
     ``min(Nr, Nt) <= 2``, LAPACK otherwise).
 
@@ -534,6 +534,9 @@ def svd_streams(h, num_streams: int, dtype=None):
         num_streams: S <= min(Nr, Nt).
         dtype: dtype of the returned W (default: complex64 for complex64 ``h``,
             else complex128).
+        precoders: False: ``w`` may be returned as None where it is extra work
+            (``Nr == 2``: ``W = H^H U Sigma^-1``, ~1/3 of the call for 32 transmit
+            antennas); ``lam`` and ``f`` are the same either way.
 
     Returns:
         ``(w [R, Nt, S], lam [R, S], f [R, Nr, S])``: orthonormal precoders,
@@ -558,16 +561,19 @@ def svd_streams(h, num_streams: int, dtype=None):
         lam, u = _eigh2(a, d, b)
         lam, u = lam[:, :s], u[:, :, :s]
         sig = np.sqrt(lam)
-        # W = H^H (U Sigma^-1): scale the small [R, 2, S] factor, not the product.
-        us = u / np.where(sig > 0, sig, 1.0)[:, None, :]
-        hc = np.conj(h).swapaxes(-1, -2)  # [R, Nt, 2]
-        w = np.matmul(hc, us.astype(h.dtype)) if h.dtype == np.complex64 \
-            else np.matmul(hc.astype(np.complex128, copy=False), us)
-        w = w.astype(dtype, copy=False)
         f = u * sig[:, None, :]
+        if precoders:
+            # W = H^H (U Sigma^-1): scale the small [R, 2, S] factor, not the product.
+            us = u / np.where(sig > 0, sig, 1.0)[:, None, :]
+            hc = np.conj(h).swapaxes(-1, -2)  # [R, Nt, 2]
+            w = np.matmul(hc, us.astype(h.dtype)) if h.dtype == np.complex64 \
+                else np.matmul(hc.astype(np.complex128, copy=False), us)
+            w = w.astype(dtype, copy=False)
+        else:
+            w = None
         if s < 2:
             zero = sig[:, 0] == 0
-            if zero.any():  # H = 0: any unit vector (LAPACK gives e_0)
+            if zero.any() and w is not None:  # H = 0: any unit vector (LAPACK gives e_0)
                 w[zero] = 0
                 w[zero, 0, 0] = 1
             return w, lam, f
@@ -580,7 +586,9 @@ def svd_streams(h, num_streams: int, dtype=None):
         zero = sig[:, 0] == 0
         tiny = (ratio < _LAPACK) & ~zero
         weak = (ratio < _REFINE) & ~tiny & ~zero
-        if zero.any():  # H = 0: lam = f = 0 already; W = [e_0, e_1] like LAPACK
+        if w is None:  # only the tiny REs' gains change below
+            weak = np.zeros_like(weak)
+        elif zero.any():  # H = 0: lam = f = 0 already; W = [e_0, e_1] like LAPACK
             w[zero] = np.eye(nt, s, dtype=w.dtype)
         if weak.any():
             rows = np.nonzero(weak)[0]
@@ -595,10 +603,11 @@ def svd_streams(h, num_streams: int, dtype=None):
             if rows.size <= _LAPACK_MAX_REs:
                 ul, sl, vh = np.linalg.svd(np.asarray(h[rows], dtype=np.complex128),
                                            full_matrices=False)
-                w[rows] = np.conj(vh[:, :s, :]).swapaxes(-1, -2).astype(w.dtype)
+                if w is not None:
+                    w[rows] = np.conj(vh[:, :s, :]).swapaxes(-1, -2).astype(w.dtype)
                 lam[rows] = sl[:, :s] ** 2
                 f[rows] = ul[:, :, :s] * sl[:, None, :s]
-            else:
+            elif w is not None:
                 # Many (near-)rank-1 REs (e.g. a single-path channel): w_1 from
                 # H^H u_1 in complex128 (accurate), w_2 = H^H u_2 orthogonalised
                 # against w_1 while it is above the rounding floor, else any unit

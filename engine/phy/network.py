@@ -46,12 +46,14 @@ tests/engine/phy/test_network_fast.py). A robot at 0.22 m/s at 2.4 GHz
 (nu <= 1.8 Hz) with K = 14 symbols of 13.7 us gives ~1e-3 rad for one group.
 ``time_invariant_tol=0`` disables it. In this mode ``LinkSignal.h``/``w``/``p``
 repeat the group values over the symbols (read-only broadcast views for one
-group).
+group), expanded only when read (``h_by_group``/``w_by_group``/``p_by_group``
+hold one value per group).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -78,16 +80,17 @@ METHODS = ("batched", "fast", "reference")
 class LinkSignal:
     """One link's PHY state in a step.
 
+    The per-RE arrays (``h``, ``w``, ``p`` and their per-group forms) are
+    computed or expanded on first read, not every step (issue #19): the rates
+    need each link's channel only on its transmitter's resource elements and
+    the precoder only where it interferes elsewhere, so the channel on the other
+    symbols (the CSI message's), the precoder and the expansion over the symbols
+    (a copy of ``K / G`` times the data: 42 % of the PHY time of 4 robots for
+    w and p, 13-28 % for h) are left to whoever reads them. The values are
+    those of the step whenever they are read.
+
     Attributes:
         tx, rx: device names.
-        h: channel ``[K, N, Nr, Nt]`` (complex64).
-        w_by_group: precoder ``[G, N, Nt, S]`` per symbol group (``G = K`` and
-            ``group`` None unless the step is time-invariant).
-        p_by_group: power per RE and stream ``[G, N, S]``, W.
-        group: ``[K]`` symbol -> group index, or None (one group per symbol).
-            :attr:`w` / :attr:`p` expand the group values over the symbols on
-            first access (not every step: an expansion copies ``K / G`` times the
-            data, which was 42 % of the PHY time of 4 robots, issue #19).
         mask: the transmitter's allocation ``[K, N]``.
         rate_bps: achievable rate, bit/s (interference treated as noise).
         snr_db: mean SNR over the allocation before precoding,
@@ -102,13 +105,14 @@ class LinkSignal:
             config's ``[link_adaptation]`` table over the allocation, with the
             transmitter EVM floor (:class:`~engine.phy.mcs.McsRate`), bit/s.
         mcs: ``[S]`` table index per stream (-1: below the lowest entry).
+        group: ``[K]`` symbol -> group index, or None (one group per symbol).
+        per_re: ``per_re(name) -> array`` for ``name`` in ``"h"``, ``"w"``,
+            ``"p"``: the per-group arrays, computed when called (read them
+            through the attributes below, which call it once).
     """
 
     tx: str
     rx: str
-    h: np.ndarray
-    w_by_group: np.ndarray
-    p_by_group: np.ndarray
     mask: np.ndarray
     rate_bps: float
     snr_db: float
@@ -117,6 +121,31 @@ class LinkSignal:
     mcs_rate_bps: float = float("nan")
     mcs: tuple = ()
     group: np.ndarray | None = None
+    per_re: Callable[[str], np.ndarray] | None = field(default=None, repr=False,
+                                                        compare=False)
+
+    @cached_property
+    def h_by_group(self) -> np.ndarray:
+        """Channel ``[G, N, Nr, Nt]`` (complex64) per symbol group (``G = K``
+        unless the step is time-invariant)."""
+        return self.per_re("h")
+
+    @cached_property
+    def w_by_group(self) -> np.ndarray:
+        """Precoder ``[G, N, Nt, S]`` per symbol group."""
+        return self.per_re("w")
+
+    @cached_property
+    def p_by_group(self) -> np.ndarray:
+        """Power per RE and stream ``[G, N, S]``, W."""
+        return self.per_re("p")
+
+    @cached_property
+    def h(self) -> np.ndarray:
+        """Channel ``[K, N, Nr, Nt]`` (complex64) on every symbol (eq. 4; with the
+        time-invariant shortcut each symbol holds its group's channel, at the
+        group's mean time)."""
+        return self.h_by_group if self.group is None else _expand(self.h_by_group, self.group)
 
     @cached_property
     def w(self) -> np.ndarray:
@@ -128,6 +157,36 @@ class LinkSignal:
     def p(self) -> np.ndarray:
         """Power per RE and stream ``[K, N, S]``, W."""
         return self.p_by_group if self.group is None else _expand(self.p_by_group, self.group)
+
+
+class _PerRE:
+    """``LinkSignal.per_re``: one zero-argument function per array name."""
+
+    __slots__ = ("fns",)
+
+    def __init__(self, **fns: Callable[[], np.ndarray]):
+        self.fns = fns
+
+    def __call__(self, name: str) -> np.ndarray:
+        fn = self.fns.get(name)
+        if fn is None:
+            raise KeyError(f"per_re: expected one of {', '.join(self.fns)}, got {name!r}")
+        return fn()
+
+
+class _Once:
+    """A value computed by ``fn()`` on the first call, then kept (shared by the
+    links of one stacked bucket)."""
+
+    __slots__ = ("fn", "value")
+
+    def __init__(self, fn: Callable[[], object]):
+        self.fn, self.value = fn, None
+
+    def __call__(self):
+        if self.fn is not None:
+            self.value, self.fn = self.fn(), None
+        return self.value
 
 
 def _array(cfg) -> PlanarArray:
@@ -218,28 +277,48 @@ class NetworkPHY:
         k = r_hat(np.asarray(theta, np.float64), np.asarray(phi, np.float64))
         return np.exp(1j * (2.0 * np.pi * (k @ hit[1].T)))
 
-    def channels(self, link_paths: dict, times=None) -> dict:
-        """Eq. 4 for every link in one pass (:func:`~engine.phy.channel.synthesize_many`):
-        ``{(tx, rx): LinkPaths}`` -> ``{(tx, rx): [K|T, N, Nr, Nt]}`` complex64;
-        equal to :meth:`channel` per link."""
+    def _pair_gains(self, lp) -> tuple[np.ndarray, int, int]:
+        """``(gains [L, Nr * Nt] complex128, Nr, Nt)``: a link's path gains times
+        both steering vectors (eq. 4 without the time-frequency kernel)."""
         from engine.pose import sionna_orientation
 
-        gains, shapes = [], []
-        for lp in link_paths.values():
-            b = baseband_gains(lp.a, lp.tau, lp.frequency_hz)
-            a_rx = self._steering(lp.rx, lp.theta_r, lp.phi_r,
-                                  sionna_orientation(lp.rx_orientation))
-            a_tx = self._steering(lp.tx, lp.theta_t, lp.phi_t,
-                                  sionna_orientation(lp.tx_orientation))
-            nr, nt = self.arrays[lp.rx].num_ant, self.arrays[lp.tx].num_ant
-            gains.append((b[:, None, None] * a_rx[:, :, None] * a_tx[:, None, :])
-                         .reshape(b.shape[0], nr * nt))
-            shapes.append((nr, nt))
-        hs = synthesize_many(self.grid, gains, [lp.tau for lp in link_paths.values()],
-                             [lp.doppler for lp in link_paths.values()], times=times)
+        b = baseband_gains(lp.a, lp.tau, lp.frequency_hz)
+        a_rx = self._steering(lp.rx, lp.theta_r, lp.phi_r, sionna_orientation(lp.rx_orientation))
+        a_tx = self._steering(lp.tx, lp.theta_t, lp.phi_t, sionna_orientation(lp.tx_orientation))
+        nr, nt = self.arrays[lp.rx].num_ant, self.arrays[lp.tx].num_ant
+        g = (b[:, None, None] * a_rx[:, :, None] * a_tx[:, None, :]).reshape(b.shape[0], nr * nt)
+        return g, nr, nt
+
+    def channels(self, link_paths: dict, times=None, rows: dict | None = None) -> dict:
+        """Eq. 4 for every link in one pass (:func:`~engine.phy.channel.synthesize_many`):
+        ``{(tx, rx): LinkPaths}`` -> ``{(tx, rx): [K|T, N, Nr, Nt]}`` complex64;
+        equal to :meth:`channel` per link. ``rows``: ``{(tx, rx): indices [R]}``
+        of the symbols (or ``times``) to compute per link -> ``[R, N, Nr, Nt]``."""
+        return self._channels(link_paths, times, rows)[0]
+
+    def _channels(self, link_paths: dict, times, rows: dict | None):
+        """:meth:`channels` and, per link, ``rest(rows) -> [R, N, Nr, Nt]`` that
+        computes other rows later exactly as this pass would have (same gains,
+        same Taylor bound; a row's value does not depend on the others)."""
+        gs = {lk: self._pair_gains(lp) for lk, lp in link_paths.items()}
+        lps = list(link_paths.values())
+        nu = max((float(np.max(np.abs(lp.doppler))) for lp in lps if len(lp.doppler)),
+                 default=0.0)
+        hs = synthesize_many(self.grid, [g for g, _, _ in gs.values()], [lp.tau for lp in lps],
+                             [lp.doppler for lp in lps], times=times, max_doppler=nu,
+                             rows=None if rows is None else [rows[lk] for lk in link_paths])
         n_ = self.grid.num_subcarriers
-        return {lk: hl.reshape(hl.shape[0], n_, nr, nt)
-                for lk, hl, (nr, nt) in zip(link_paths, hs, shapes)}
+
+        def rest(lk):
+            g, nr, nt = gs[lk]
+            lp = link_paths[lk]
+            return lambda r: synthesize_many(self.grid, [g], [lp.tau], [lp.doppler],
+                                             times=times, rows=[r], max_doppler=nu
+                                             )[0].reshape(len(r), n_, nr, nt)
+
+        return ({lk: hl.reshape(hl.shape[0], n_, nr, nt)
+                 for lk, hl, (_, nr, nt) in zip(link_paths, hs, gs.values())},
+                {lk: rest(lk) for lk in link_paths})
 
     def _groups(self, txs: tuple):
         """Symbols grouped by the pattern of all transmitters' masks (cached):
@@ -270,11 +349,15 @@ class NetworkPHY:
 
     def _fast(self, link_paths: dict, batched: bool = False) -> dict[tuple[str, str], LinkSignal]:
         """The closed-form PHY. ``batched``: channels from one synthesis pass
-        (:meth:`channels`), and the per-RE precoding / rate of all links of one
-        transmitter with the same array shapes (and, for the rate, the same
-        interferers' stream counts) stacked along the RE axis into one call each;
-        water-filling and MCS stay per link (each has its own budget and
-        allocation). Otherwise one link at a time (the per-link reference)."""
+        (:meth:`channels`) on only the symbols (groups) each transmitter uses,
+        and the per-RE precoding / rate of all links of one transmitter with the
+        same array shapes (and, for the rate, the same interferers' stream
+        counts) stacked along the RE axis into one call each; water-filling and
+        MCS stay per link (each has its own budget and allocation). Otherwise one
+        link at a time on every symbol (the per-link reference). Either way the
+        precoders are formed only where they interfere at another receiver, and
+        what the rates do not need (the channel on other symbols, the precoders,
+        the per-symbol expansion) when a :class:`LinkSignal` attribute is read."""
         k_, n_ = self.grid.shape
         txs = tuple(sorted({tx for tx, _ in link_paths}))
         invariant = (self.time_invariant_tol > 0 and k_ > 1 and bool(txs)
@@ -291,16 +374,28 @@ class NetworkPHY:
             group = None
             weights_g = None
         g_ = next(iter(masks.values())).shape[0] if masks else k_
+        every = np.arange(g_)
+        # The symbols (groups) each transmitter uses: its links' channels are
+        # needed there only (by its own rate and as interference).
+        rows = {tx: (np.flatnonzero(masks[tx].any(axis=1)) if batched else every)
+                for tx in txs}
         if batched:
-            h = self.channels(link_paths, times)  # [T, N, Nr, Nt] per link
+            h, rest = self._channels(link_paths, times, {lk: rows[lk[0]] for lk in link_paths})
         else:
             h = {lk: self.channel(lp, times) for lk, lp in link_paths.items()}
+            rest = {}
 
         def gather(hl, idx, full):
-            """Channels at the flat (group/symbol, subcarrier) REs ``idx`` -> [R, Nr, Nt]."""
+            """Channels at the flat (row, subcarrier) REs ``idx`` -> [R, Nr, Nt]."""
             t_, _, nr, nt = hl.shape
             flat = hl.reshape(t_ * n_, nr, nt)
             return flat if full else flat[idx]
+
+        # Precoders are formed where a link interferes at another receiver (its
+        # precoder aims at its own); elsewhere only on request.
+        overlap = {(a, b): bool((masks[a] & masks[b]).any()) for a in txs for b in txs}
+        need_w = {(tx2, rx2) for (tx, rx) in h for (tx2, rx2) in h
+                  if tx2 != tx and rx2 != rx and (tx2, rx) in h and overlap[(tx, tx2)]}
 
         # Transmit side: precoder, powers and effective channels, stacked per
         # (tx, Nr, Nt) bucket when batched (one bucket per link otherwise).
@@ -313,8 +408,9 @@ class NetworkPHY:
             tx = lks[0][0]
             mask = masks[tx]
             full = bool(mask.all())
-            idx = None if full else np.flatnonzero(mask)
-            hms = [gather(h[lk], idx, full) for lk in lks]
+            idx = None if full else np.flatnonzero(mask)  # REs on the grid [G * N]
+            idx_c = None if full else np.flatnonzero(mask[rows[tx]])  # REs of h's rows
+            hms = [gather(h[lk], idx_c, full) for lk in lks]
             hm = hms[0] if len(hms) == 1 else np.concatenate(hms)
             r_ = hms[0].shape[0]
             wts = None
@@ -324,7 +420,9 @@ class NetworkPHY:
             s = min(nr, nt)
             total = float(dbm_to_watt(self.devices[tx].power_dbm))
             if self.precoding == "per_re":
-                w, lam, f1 = svd_streams(hm, s)
+                w, lam, f1 = svd_streams(hm, s, precoders=any(lk in need_w for lk in lks))
+                if w is None:  # the same call with precoders, on request
+                    w = _Once(lambda hm=hm, s=s: svd_streams(hm, s)[0])
             else:
                 hd = np.asarray(hm, dtype=np.complex128)
                 w0s = [wideband_streams(hd[b * r_:(b + 1) * r_], s, wts)
@@ -353,8 +451,10 @@ class NetworkPHY:
                        ** 2, axis=1)
             for b, lk in enumerate(lks):
                 seg = slice(b * r_, (b + 1) * r_)
-                side[lk] = dict(idx=idx, full=full, w=w[seg], p=p[seg], f=f[seg], wts=wts,
-                                total=total, count=count, gain=gain_re[seg])
+                w_of = (lambda w=w, seg=seg: w()[seg]) if isinstance(w, _Once) else \
+                    (lambda w=w, seg=seg: w[seg])
+                side[lk] = dict(idx=idx, idx_c=idx_c, full=full, w=w_of, p=p[seg], f=f[seg],
+                                wts=wts, total=total, count=count, gain=gain_re[seg])
 
         def on_grid(arr, d):
             """Per-RE values of a link -> [G * N, ...] (zeros off its REs)."""
@@ -368,17 +468,16 @@ class NetworkPHY:
         interf = {}
         for (tx, rx) in h:
             d = side[(tx, rx)]
-            mask = masks[tx]
             lst = []
             for (tx2, rx2), d2 in side.items():
-                if tx2 == tx or (tx2, rx) not in h or not (masks[tx2] & mask).any():
+                if tx2 == tx or (tx2, rx) not in h or not overlap[(tx, tx2)]:
                     continue
                 if rx2 == rx:
                     fi = d2["f"]  # the same effective channel, computed once
                 else:
-                    hc = gather(h[(tx2, rx)], d2["idx"], d2["full"])
+                    hc = gather(h[(tx2, rx)], d2["idx_c"], d2["full"])
                     fi = np.matmul(np.asarray(hc, dtype=np.complex128),
-                                   np.asarray(d2["w"], dtype=np.complex128)) \
+                                   np.asarray(d2["w"](), dtype=np.complex128)) \
                         * np.sqrt(d2["p"])[:, None, :]
                 fi = on_grid(fi, d2)
                 lst.append(fi if d["full"] else fi[d["idx"]])
@@ -404,6 +503,21 @@ class NetworkPHY:
                 seg = slice(b * r_, (b + 1) * r_)
                 per_re[lk] = (se_all[seg], sinr_all[seg])
 
+        def grid_of(arr, d):
+            """Per-RE values of a link -> [G, N, ...] (zeros off its REs)."""
+            a = on_grid(np.asarray(arr), d)
+            return a.reshape((g_, n_) + a.shape[1:])
+
+        def channel_on_every_row(hl, r, more):
+            """The link's channel on all G rows (``hl`` holds rows ``r``)."""
+            if len(r) == g_:
+                return hl
+            out = np.empty((g_,) + hl.shape[1:], dtype=hl.dtype)
+            out[r] = hl
+            miss = np.setdiff1d(every, r)
+            out[miss] = more(miss)
+            return out
+
         out = {}
         for (tx, rx), hl in h.items():
             d = side[(tx, rx)]
@@ -420,13 +534,15 @@ class NetworkPHY:
             else:
                 ww = np.broadcast_to(wts[:, None], sinr.shape)[ok]
                 sinr_mean = float(np.dot(ww, sinr[ok]) / ww.sum()) if ok.any() else 0.0
-            w_g = on_grid(np.asarray(d["w"]), d)
-            p_g = on_grid(d["p"], d)
-            hx = _expand(hl, group) if invariant else hl
+
+            arrays = _PerRE(
+                h=lambda hl=hl, r=rows[tx], lk=(tx, rx): channel_on_every_row(
+                    hl, r, rest.get(lk)),
+                w=lambda d=d: grid_of(d["w"](), d),
+                p=lambda d=d: grid_of(d["p"], d))
             out[(tx, rx)] = LinkSignal(
-                tx=tx, rx=rx, h=hx, w_by_group=w_g.reshape((g_, n_) + w_g.shape[1:]),
-                p_by_group=p_g.reshape((g_, n_) + p_g.shape[1:]),
-                group=group if invariant else None, mask=self.masks[tx],
+                tx=tx, rx=rx, mask=self.masks[tx], per_re=arrays,
+                group=group if invariant else None,
                 rate_bps=bits / self.grid.step_duration_s,
                 snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
                 sinr_db=float(10 * np.log10(sinr_mean)) if sinr_mean > 0 else float("-inf"),
@@ -467,7 +583,8 @@ class NetworkPHY:
             sinr = r.sinr[mask]
             sinr = sinr[np.isfinite(sinr) & (sinr > 0)]
             out[(tx, rx)] = LinkSignal(
-                tx=tx, rx=rx, h=hl, w_by_group=w, p_by_group=p, mask=mask,
+                tx=tx, rx=rx, mask=mask,
+                per_re=_PerRE(h=lambda hl=hl: hl, w=lambda w=w: w, p=lambda p=p: p),
                 rate_bps=r.rate_bps,
                 snr_db=float(10 * np.log10(snr)) if snr > 0 else float("-inf"),
                 sinr_db=float(10 * np.log10(sinr.mean())) if sinr.size else float("-inf"),

@@ -152,3 +152,21 @@ def test_transport_protocol_bridges_two_buses():
     ta.close()
     robot.publish("/r/odom", Odometry())
     assert len(remote.drain()) == 0
+
+
+def test_has_subscribers_tells_a_publisher_whether_anyone_receives():
+    """Issue 19: the twin builds its CSI only for a consumer. A topic has
+    subscribers while a local node subscribes to it (callback or queued, until the
+    node is removed); a bus with a transport always may (remote peers)."""
+    bus = Bus()
+    pub = bus.node("pub")
+    pub.advertise("/r/scan", LaserScan)
+    assert not bus.has_subscribers("/r/scan") and not bus.has_subscribers("/never")
+    bus.node("viewer").subscribe("/r/scan", LaserScan)
+    assert bus.has_subscribers("/r/scan")
+    bus.remove_node("viewer")
+    assert not bus.has_subscribers("/r/scan")
+    seen = []
+    bus.node("cb").subscribe("/r/scan", LaserScan, seen.append)
+    assert bus.has_subscribers("/r/scan")
+    assert Bus(transport=LoopbackTransport([])).has_subscribers("/r/scan")

@@ -284,3 +284,36 @@ def test_paced_run_names_the_stage_of_each_overrun(lab):
     assert "estimate 1" in st.overrun_summary() and "caller 1" in st.table()
     with pytest.raises(ValueError, match="rate_hz"):
         list(tw.run(1, rate_hz=0))
+
+
+def test_csi_is_built_only_for_consumers_and_records_the_same(lab, tmp_path):
+    """Issue 19: without a subscriber to ``/<robot>/csi`` the twin publishes no CSI and
+    the PHY does not expand the channel over the symbols (one value per symbol
+    group is kept); an MCAP recorded with ``--csi full`` and ``compact`` holds the
+    channel the PHY computed, on every symbol, equal to the per-link synthesis
+    (``NetworkPHY.channel``) at each symbol group's mean time."""
+    from engine.record import CsiRecording, read_messages, record_twin
+
+    tw, res = _run(lab, 2)
+    assert tw.bus.registry().topic("/robot1/csi").messages == 0
+    sig = res[-1].signals[("AP1", "robot1")]
+    assert sig.time_invariant and sig.h_by_group.shape == (2, 1024, 2, 4)
+    assert "h" not in vars(sig)  # not expanded: nobody read it
+    assert sig.h.shape == (14, 1024, 2, 4)  # expanded on first read
+    for mode, csi in (("full", CsiRecording.full()), ("compact", CsiRecording())):
+        rec_tw = Twin.from_scene(lab, seed=3)
+        rec_tw.set_path("robot1", {"kind": "circle", "centre": [3.0, 2.0], "radius": 1.0})
+        out = tmp_path / f"{mode}.mcap"
+        record_twin(rec_tw, 2, out, csi=csi)
+        got = [m.decode() for m in read_messages(out, ["/robot1/csi"])]
+        assert len(got) == 4  # 2 steps x 2 links
+        for m in got:
+            step = round(m.header.stamp / tw.dt) - 1
+            s = res[step].signals[(m.tx, "robot1")]
+            np.testing.assert_array_equal(m.h, s.h[::csi.symbol_step, ::csi.subcarrier_step])
+            if mode == "full":  # the per-link synthesis, independent of the batched one
+                t = tw.phy.grid.symbol_times
+                times = np.bincount(s.group, weights=t) / np.bincount(s.group)
+                ref = tw.phy.channel(res[step].links[(m.tx, "robot1")].paths, times)[s.group]
+                np.testing.assert_allclose(m.h, ref, rtol=0,
+                                           atol=1e-5 * np.abs(ref).max())

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from engine.phy.arrays import PlanarArray
-from engine.phy.channel import OFDMChannel, _taylor_order
+from engine.phy.channel import OFDMChannel, _delay_phase, _taylor_order
 from engine.phy.ofdm import ResourceGrid
 
 
@@ -46,3 +46,17 @@ def test_taylor_order():
     assert _taylor_order(0.0, 6) == 0
     assert _taylor_order(1e-3, 6) == 3  # (1e-3)^4 / 24 < 1e-10 < (1e-3)^3 / 6
     assert _taylor_order(1.0, 6) is None
+
+
+@pytest.mark.parametrize("n", [1024, 300, 7, 1])
+def test_delay_phase_table_to_float64_rounding(n):
+    """Issue 19: the table from running products of reduced exponentials (3 per
+    path) stays at float64 rounding of the direct exp(-j 2 pi f_n tau); the
+    complex64 table is the complex128 one rounded once."""
+    grid = ResourceGrid(n, 78125.0, 14, cyclic_prefix_samples=72)
+    tau = np.random.default_rng(n).uniform(1e-9, 3e-7, 300)
+    ref = np.exp(-2j * np.pi * np.mod(np.outer(grid.subcarrier_frequencies, tau), 1.0))
+    d = _delay_phase(grid, tau)
+    assert d.shape == (n, 300) and d.dtype == np.complex128
+    assert np.abs(d - ref).max() <= 1e-13
+    np.testing.assert_array_equal(_delay_phase(grid, tau, np.complex64), d.astype(np.complex64))

@@ -177,3 +177,21 @@ def test_many_rank_one_and_zero_channels_use_the_closed_form_completion(dtype):
     np.testing.assert_allclose(g[:, 0], sv[:, 0] ** 2, rtol=1e-5)
     assert np.all(g[:, 1] <= 1e-10 * sv[:, 0] ** 2 + 1e-300)
     assert not lam[:100].any() and not f[:100].any()
+
+
+@pytest.mark.parametrize("nt", [1, 2, 32])
+def test_svd_streams_without_precoders_gives_the_same_gains(nt):
+    """Issue 19: ``precoders=False`` skips W (Nr = 2) but changes neither the
+    eigenmode gains nor the effective channels, also on weak, rank-1 (LAPACK
+    fix-up) and zero REs."""
+    rng = np.random.default_rng(7 + nt)
+    h = _channels(rng, 2, nt).astype(np.complex64)
+    a_r, a_t = _crandn(rng, 50, 2), _crandn(rng, 50, nt)
+    h[:50] = (a_r[:, :, None] * a_t[:, None, :]).astype(np.complex64)  # rank 1
+    h[50:60] = 0
+    s = min(2, nt)
+    w, lam, f = svd_streams(h, s)
+    w0, lam0, f0 = svd_streams(h, s, precoders=False)
+    assert w0 is None and w is not None
+    np.testing.assert_array_equal(lam0, lam)
+    np.testing.assert_array_equal(f0, f)

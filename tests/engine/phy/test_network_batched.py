@@ -81,6 +81,9 @@ def test_batched_equals_per_link(many_robots, alloc, kw):
         assert b.sinr_db == pytest.approx(r.sinr_db, abs=1e-6)
         np.testing.assert_allclose(b.h, r.h, rtol=0, atol=1e-6 * max(np.abs(r.h).max(), 1e-30))
         np.testing.assert_allclose(b.p, r.p, rtol=1e-6, atol=1e-12 * max(r.p.max(), 1e-30))
+        # precoders formed on request (no interferer at another receiver needs
+        # them here) equal the per-link ones (unit columns, complex64)
+        np.testing.assert_allclose(b.w, r.w, rtol=0, atol=1e-4)
     # The stacked pass is not a copy of one link: links differ.
     rates = [r.rate_bps for r in per_link.values() if r.rate_bps > 0]
     assert len(set(rates)) == len(rates)
@@ -109,6 +112,29 @@ def test_channels_one_pass_equal_per_link(many_robots):
     for lk, p in turned.items():
         np.testing.assert_allclose(phy.channels({lk: p})[lk], phy.channel(p), rtol=0,
                                    atol=1e-6 * max(np.abs(phy.channel(p)).max(), 1e-30))
+
+
+@pytest.mark.parametrize("kw", [dict(), dict(time_invariant_tol=0.0)], ids=str)
+def test_channel_off_the_allocation_is_computed_on_read(many_robots, kw):
+    """Issue 19: on disjoint symbols the step synthesises each link only on its
+    transmitter's symbols (groups); reading ``h`` adds the others, equal to one
+    pass over every symbol (Taylor basis and Doppler bound of the step's batch)."""
+    cfg, lp = many_robots
+    cfg = _masks(cfg, *ALLOCATIONS["disjoint symbols"])
+    phy = NetworkPHY(cfg, **kw)
+    sig = phy(lp)
+    g = sig[("AP1", "robot1")].group
+    times = None if g is None else np.bincount(g, weights=phy.grid.symbol_times) / np.bincount(g)
+    lp = phy.patterns(lp)  # (iso here) as the PHY applies them
+    every = phy.channels(lp, times)
+    for lk, s in sig.items():
+        assert "h_by_group" not in vars(s)
+        np.testing.assert_allclose(s.h_by_group, every[lk], rtol=0,
+                                   atol=1e-6 * max(np.abs(every[lk]).max(), 1e-30))
+    one = phy.channels(lp, times, rows={lk: [1] for lk in lp})
+    for lk in lp:  # a symbol's value does not depend on which others are computed
+        np.testing.assert_allclose(one[lk][0], every[lk][1], rtol=0,
+                                   atol=1e-6 * max(np.abs(every[lk]).max(), 1e-30))
 
 
 def test_method_refused_with_one_line(many_robots):
