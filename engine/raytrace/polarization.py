@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.phy.arrays import rotation_matrix
+from engine.pose import rotation_matrix
 
 __all__ = ["local_to_world", "rotations", "v_coefficients", "world_basis"]
 
@@ -52,12 +52,13 @@ def world_basis(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def rotations(orientations) -> np.ndarray:
-    """Rotation matrices ``[N, 3, 3]`` of Sionna orientations ``[N, 3]``
-    (``[yaw, pitch, roll]`` rad), one :func:`~engine.phy.arrays.rotation_matrix`
+    """Rotation matrices ``[N, 3, 3]`` (local -> world) of Sionna orientations
+    ``[N, 3]`` (``[yaw, pitch, roll]`` rad), one :func:`~engine.pose.rotation_matrix`
     per distinct orientation."""
     o = np.asarray(orientations, np.float64).reshape(-1, 3)
     uniq, inv = np.unique(o, axis=0, return_inverse=True)
-    mats = np.stack([rotation_matrix(u) for u in uniq]) if len(uniq) else np.zeros((0, 3, 3))
+    mats = (np.stack([rotation_matrix(u[2], u[1], u[0]) for u in uniq]) if len(uniq)
+            else np.zeros((0, 3, 3)))
     return mats[np.asarray(inv).reshape(-1)]
 
 
