@@ -41,6 +41,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from engine.addon_shared import schema as shared
 from engine.config import MODELLED_POLARIZATIONS
 from engine.phy.arrays import r_hat, rotation_matrix
 from engine.raytrace.base import sionna_orientation
@@ -49,9 +50,10 @@ from engine.raytrace.polarization import local_to_world
 __all__ = ["PATTERNS", "MODELLED_POLARIZATIONS", "SLANTS", "AntennaPatterns", "element_fields",
            "field_pattern", "num_ports", "pattern_gains", "port_coefficients"]
 
-#: polarization -> slant angles of its ports [rad] (Sionna's ``polarization_registry``).
+#: polarization -> slant angles of its ports [rad] (``addon/schema.py``, Sionna's
+#: ``polarization_registry``).
 SLANTS: dict[str, tuple[float, ...]] = {
-    "V": (0.0,), "H": (np.pi / 2,), "VH": (0.0, np.pi / 2), "cross": (-np.pi / 4, np.pi / 4)}
+    k: tuple(float(np.deg2rad(z)) for z in v) for k, v in shared.POLARIZATION_SLANTS_DEG.items()}
 
 
 

@@ -55,6 +55,18 @@ def test_link_without_transfer_matrix_refuses_h():
 rt = pytest.importorskip("sionna.rt")
 
 
+def test_slants_are_sionnas_for_every_offered_polarization():
+    from sionna.rt.antenna_pattern import polarization_registry
+
+    from engine.addon_shared import schema
+    from engine.phy.patterns import SLANTS
+
+    assert list(SLANTS) == list(schema.POLARIZATIONS)
+    assert [p for p in SLANTS if num_ports(p) == 2] == list(schema.DUAL_POLARIZATIONS)
+    for name, slants in SLANTS.items():
+        np.testing.assert_allclose(slants, polarization_registry.get(name), atol=1e-7)
+
+
 @pytest.fixture(scope="module")
 def lab_xml():
     import engine
