@@ -288,6 +288,8 @@ def cfr_at(b, tau, theta_r, phi_r, theta_t, phi_t, freqs_hz, rx_array: PlanarArr
     atx = tx_array.steering_vectors(np.asarray(theta_t, float), np.asarray(phi_t, float),
                                     tx_orientation)
     ph = np.exp(-2j * np.pi * np.mod(np.outer(freqs_hz, tau), 1.0))
+    if b.ndim == 1:
+        return np.einsum("sl,lr,lt->srt", ph * b, arx, atx, optimize=True)
     return np.einsum("sl,lrt->srt", ph, port_pair_gains(b, arx, atx), optimize=True)
 
 

@@ -52,6 +52,35 @@ def test_link_without_transfer_matrix_refuses_h():
         port_coefficients(lp, ("iso", "V"), ("iso", "H"))
 
 
+def test_port_pairs_in_eq4_and_the_snapshot_cfr():
+    """[L, Pr, Pt] gains: antenna p * E + e is port p of element e (Sionna's
+    order); cfr_at and OFDMChannel agree; one port pair reduces to [L] gains."""
+    from engine.phy import cfr_at
+    from engine.phy.channel import port_pair_gains
+
+    rng = np.random.default_rng(3)
+    n = 5
+    b = rng.standard_normal((n, 2, 2)) + 1j * rng.standard_normal((n, 2, 2))
+    a_rx = np.exp(1j * rng.uniform(0, 6, (n, 2)))
+    a_tx = np.exp(1j * rng.uniform(0, 6, (n, 3)))
+    g = port_pair_gains(b, a_rx, a_tx)
+    assert g.shape == (n, 4, 6)
+    assert g[2, 1 * 2 + 1, 0 * 3 + 2] == pytest.approx(b[2, 1, 0] * a_rx[2, 1] * a_tx[2, 2])
+    np.testing.assert_allclose(port_pair_gains(b[:, :1, :1], a_rx, a_tx),
+                               port_pair_gains(b[:, 0, 0], a_rx, a_tx))
+    grid = ResourceGrid(16, 78125.0, 1, cyclic_prefix_samples=4)
+    tau = rng.uniform(10e-9, 60e-9, n)
+    ang = [rng.uniform(0.3, 2.8, n) for _ in range(4)]
+    rx_arr, tx_arr = PlanarArray(1, 2), PlanarArray(3, 1)
+    h = OFDMChannel(grid, rx_arr, tx_arr, dtype=np.complex128)(
+        b, tau, np.zeros(n), *ang, times=[0.0])[0]
+    h0 = cfr_at(b, tau, *ang, grid.subcarrier_frequencies, rx_arr, tx_arr)
+    assert h.shape == h0.shape == (16, 4, 6)
+    np.testing.assert_allclose(h, h0, atol=1e-12)
+    with pytest.raises(ValueError, match=r"b must have shape \[L\] or \[L, Pr, Pt\]"):
+        OFDMChannel(grid, rx_arr, tx_arr)(b[:, 0], tau, np.zeros(n), *ang)
+
+
 rt = pytest.importorskip("sionna.rt")
 
 
