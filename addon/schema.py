@@ -57,6 +57,10 @@ POLARIZATIONS: dict[str, tuple[str, str]] = {
     "cross": ("Cross", "Dual: +/-45 degrees"),
 }
 DEFAULT_POLARIZATION = "V"
+#: Slant angle of each port of an element, degrees from vertical (Sionna's
+#: ``polarization_registry``): one port, or two for the dual polarizations.
+POLARIZATION_SLANTS_DEG: dict[str, tuple[float, ...]] = {
+    "V": (0.0,), "H": (90.0,), "VH": (0.0, 90.0), "cross": (-45.0, 45.0)}
 #: Polarizations with two antenna ports per element.
 DUAL_POLARIZATIONS = ("VH", "cross")
 

@@ -21,6 +21,12 @@ on time.
 
     .venv/bin/python bench/bench_twin.py [--quick] [--steps 40] [--grid FILE]
     .venv/bin/python bench/bench_twin.py --robots 1,2,4,8,16   # batched vs per-link PHY
+    .venv/bin/python bench/bench_twin.py --polarization VH    # VH access points vs V
+
+``--polarization P``: the lab with both access points' arrays set to ``P``
+(``VH`` / ``cross``: two ports per element, so AP1 has 64 ports) against the
+same lab with ``V``, same seed, default PHY; its ``[[sensing]]`` table is
+dropped in both (sensing links model V elements only).
 
 On a shared 2-core machine, ``OPENBLAS_NUM_THREADS=1`` makes every variant
 faster and steadier (OpenBLAS threads otherwise wait on descheduled peers).
@@ -63,8 +69,8 @@ def overlap_config(cfg):
 
 
 def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
-                overlap: bool = False, sensing: bool = False) -> dict:
-    tw = Twin.from_scene(engine.bundled_scene_dir(), seed=seed, tracer=tracer,
+                overlap: bool = False, sensing: bool = False, folder: Path | None = None) -> dict:
+    tw = Twin.from_scene(folder or engine.bundled_scene_dir(), seed=seed, tracer=tracer,
                          sensors=SensorOptions(lidar=True, imu=True, odometry=True,
                                                camera=False), sensing=sensing)
     cfg = overlap_config(tw.config) if overlap else tw.config
@@ -233,6 +239,48 @@ def run_sensing_variant(steps: int, warmup: int) -> dict:
     return out
 
 
+def lab_with_polarization(pol: str, folder: Path) -> Path:
+    """A copy of the bundled lab whose access points have polarization ``pol``
+    (and no ``[[sensing]]`` table)."""
+    import re
+    import shutil
+
+    shutil.copytree(engine.bundled_scene_dir(), folder)
+    p = folder / "twin.toml"
+    text = re.sub(r"\[\[sensing\]\][^\[]*", "", p.read_text())
+    blocks = text.split("[[devices]]")
+    for i, b in enumerate(blocks):
+        if 'kind = "access_point"' in b:
+            blocks[i] = b.replace('polarization = "V"', f'polarization = "{pol}"')
+    p.write_text("[[devices]]".join(blocks))
+    cfg = load_config(p)
+    assert [d.array.polarization for d in cfg.devices if d.kind == "access_point"] \
+        == [pol] * 2 and not cfg.sensing
+    return folder
+
+
+def run_polarization_variant(pol: str, steps: int, warmup: int) -> dict:
+    """The lab with ``pol`` access points against the same lab with V ones."""
+    import tempfile
+
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for p in ("V", pol):
+            r = run_variant("batched", steps, warmup,
+                            folder=lab_with_polarization(p, Path(tmp) / p))
+            out[p] = r
+            print(f"== bundled/batched, access points {p} ({steps} steps)\n{r['table']}")
+            print(f"  -> {r['steps_s']:.1f} steps/s, PHY {r['phy_ms']:.1f} ms/step, trace "
+                  f"{r['stage_ms']['trace']:.1f} ms/step; rates "
+                  + ", ".join(f"{tx}->{rx} {v / 1e6:.0f} Mbit/s"
+                              for (tx, rx), v in r["rates"].items()) + "\n", flush=True)
+    a, b = out["V"], out[pol]
+    print(f"{pol} / V: step time x{a['steps_s'] / b['steps_s']:.2f}, PHY x"
+          f"{b['phy_ms'] / a['phy_ms']:.2f}, trace x"
+          f"{b['stage_ms']['trace'] / a['stage_ms']['trace']:.2f}")
+    return out
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=40)
@@ -247,7 +295,16 @@ def main(argv: list[str] | None = None) -> None:
                     help="only the many-robot variant: comma-separated robot counts, e.g. "
                          "1,2,4,8,16 (the lab with n robots, 2n downlinks; batched vs "
                          f"per-link PHY; at most {1 + len(EXTRA_ROBOTS)} robots)")
+    ap.add_argument("--polarization", default="",
+                    help="only the polarization variant: the lab's access points with this "
+                         "polarization (H, VH, cross) against V")
     args = ap.parse_args(argv)
+    if args.polarization:
+        if args.polarization not in ("H", "VH", "cross"):
+            ap.error(f"--polarization {args.polarization!r}: expected H, VH or cross")
+        run_polarization_variant(args.polarization, 10 if args.quick else args.steps,
+                                 1 if args.quick else args.warmup)
+        return
     if args.robots:
         try:
             counts = [int(c) for c in args.robots.split(",") if c.strip()]

@@ -383,8 +383,9 @@ _ARRAY_KEYS = ("rows", "cols", "vertical_spacing", "horizontal_spacing", "patter
                "polarization")
 
 
-#: polarizations the tracer and PHY model exactly (see engine/phy/patterns.py)
-MODELLED_POLARIZATIONS = ("V",)
+#: polarizations the tracer and PHY model exactly (see engine/phy/patterns.py);
+#: sensing links, localization and path grids carry V only (refused at load).
+MODELLED_POLARIZATIONS = tuple(POLARIZATIONS)
 
 
 def _parse_array(r: _Reader, data: dict, prefix: str) -> ArrayConfig:
@@ -392,8 +393,8 @@ def _parse_array(r: _Reader, data: dict, prefix: str) -> ArrayConfig:
     pol = r.string(data, "polarization", prefix, shared.DEFAULT_POLARIZATION,
                    choices=POLARIZATIONS)
     if pol not in MODELLED_POLARIZATIONS:
-        raise r.fail(f"{prefix}polarization", f"{pol!r} is not modelled (the tracer carries "
-                     "no polarimetric transfer matrix; patterns are exact on V): use \"V\"")
+        raise r.fail(f"{prefix}polarization", f"{pol!r} is not modelled: use one of "
+                     f"{', '.join(MODELLED_POLARIZATIONS)}")
     return ArrayConfig(
         rows=r.integer(data, "rows", prefix, minimum=1, maximum=MAX_ARRAY_SIDE),
         cols=r.integer(data, "cols", prefix, minimum=1, maximum=MAX_ARRAY_SIDE),
@@ -617,6 +618,16 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
             if dev.array.pattern != "iso":
                 raise r.fail(f"sensing[{i}].{key}", f"device {dev.name!r} has pattern "
                              f"{dev.array.pattern!r}; sensing links model iso elements only")
+            if dev.array.polarization != "V":
+                raise r.fail(f"sensing[{i}].{key}", f"device {dev.name!r} has polarization "
+                             f"{dev.array.polarization!r}; sensing links model V elements only")
+    if tracer.backend == "grid":
+        for i, dev in enumerate(devices):
+            if dev.array.polarization != "V":
+                raise r.fail(f"devices[{i}] ({dev.name}).array.polarization",
+                             f"{dev.array.polarization!r} needs the paths' polarization "
+                             "transfer matrices, which a path grid does not store (V only); "
+                             'use tracer.backend = "sionna"')
     return TwinConfig(path=path, scene=scene, ofdm=ofdm, noise=noise, tracer=tracer,
                       devices=devices, links=tuple(links), schema=schema, raw=data,
                       sensing=sensing, link_adaptation=link_adaptation, room=room,
@@ -655,6 +666,10 @@ def _parse_localization(r: _Reader, data: dict, devices) -> LocalizationConfig |
         cache_dir=r.string(t, "cache_dir", pre, d.cache_dir))
     if not any(dv.kind == "robot" for dv in devices):
         raise r.fail("localization", "no robot to localize (no device of kind 'robot')")
+    for i, dv in enumerate(devices):
+        if dv.array.polarization != "V":
+            raise r.fail("localization", f"devices[{i}] ({dv.name}) has polarization "
+                         f"{dv.array.polarization!r}; fingerprints model V elements only")
     if cfg.method in ("MCA-angles", "LOS-fix") and not any(
             dv.kind == "access_point" and dv.array.rows * dv.array.cols > 1 for dv in devices):
         raise r.fail("localization.method", f"{cfg.method!r} needs an access point with more "

@@ -44,7 +44,27 @@ from engine.phy.arrays import PlanarArray
 from engine.phy.ofdm import ResourceGrid
 
 __all__ = ["OFDMChannel", "baseband_gains", "cfr_at", "cfr_from_antenna_gains",
-           "synthesize_many"]
+           "port_pair_gains", "synthesize_many"]
+
+
+def port_pair_gains(b: np.ndarray, a_rx: np.ndarray, a_tx: np.ndarray) -> np.ndarray:
+    """Per-path gains of every receive/transmit antenna pair ``[L, Nr, Nt]``.
+
+    Args:
+        b: baseband gains ``[L]`` (single-polarized ends) or ``[L, Pr, Pt]`` per
+            polarization port pair (``engine.phy.patterns``).
+        a_rx, a_tx: steering vectors ``[L, Er]`` / ``[L, Et]`` of the elements.
+
+    Returns:
+        ``[L, Pr * Er, Pt * Et]`` with antenna ``p * E + e`` (port ``p`` of
+        element ``e``, Sionna's order for dual-polarized arrays).
+    """
+    if b.ndim == 1:
+        return b[:, None, None] * a_rx[:, :, None] * a_tx[:, None, :]
+    num_paths, pr, pt = b.shape
+    g = (b[:, :, None, :, None] * a_rx[:, None, :, None, None]
+         * a_tx[:, None, None, None, :])
+    return g.reshape(num_paths, pr * a_rx.shape[1], pt * a_tx.shape[1])
 
 
 def baseband_gains(a, tau, carrier_frequency_hz: float) -> np.ndarray:
@@ -277,7 +297,8 @@ def cfr_at(b, tau, theta_r, phi_r, theta_t, phi_t, freqs_hz, rx_array: PlanarArr
     features that need a few subcarriers of one symbol (e.g. fingerprint CSI).
 
     Args:
-        b: baseband complex path gains ``[L]`` (see :func:`baseband_gains`).
+        b: baseband complex path gains ``[L]`` (see :func:`baseband_gains`), or
+            ``[L, Pr, Pt]`` per polarization port pair (:func:`port_pair_gains`).
         tau: delays ``[L]`` [s].
         theta_r, phi_r: arrival zenith/azimuth ``[L]`` [rad].
         theta_t, phi_t: departure zenith/azimuth ``[L]`` [rad].
@@ -285,17 +306,21 @@ def cfr_at(b, tau, theta_r, phi_r, theta_t, phi_t, freqs_hz, rx_array: PlanarArr
         rx_orientation, tx_orientation: ``[yaw, pitch, roll]`` [rad].
 
     Returns:
-        ``H [S, Nr, Nt]`` complex128.
+        ``H [S, Nr, Nt]`` complex128 (``Nr = Pr * rows * cols``).
     """
     tau = np.asarray(tau, float)
+    b = np.asarray(b, complex)
+    pr, pt = b.shape[1:] if b.ndim == 3 else (1, 1)
     if tau.size == 0:
-        return np.zeros((len(freqs_hz), rx_array.num_ant, tx_array.num_ant), complex)
+        return np.zeros((len(freqs_hz), pr * rx_array.num_ant, pt * tx_array.num_ant), complex)
     arx = rx_array.steering_vectors(np.asarray(theta_r, float), np.asarray(phi_r, float),
                                     rx_orientation)
     atx = tx_array.steering_vectors(np.asarray(theta_t, float), np.asarray(phi_t, float),
                                     tx_orientation)
-    ph = np.exp(-2j * np.pi * np.mod(np.outer(freqs_hz, tau), 1.0)) * np.asarray(b, complex)
-    return np.einsum("sl,lr,lt->srt", ph, arx, atx, optimize=True)
+    ph = np.exp(-2j * np.pi * np.mod(np.outer(freqs_hz, tau), 1.0))
+    if b.ndim == 1:
+        return np.einsum("sl,lr,lt->srt", ph * b, arx, atx, optimize=True)
+    return np.einsum("sl,lrt->srt", ph, port_pair_gains(b, arx, atx), optimize=True)
 
 
 class OFDMChannel:
@@ -308,7 +333,9 @@ class OFDMChannel:
         dtype: Output dtype, complex64 (default) or complex128.
 
     Call args:
-        b: Baseband complex path gains ``[L]`` (see :func:`baseband_gains`).
+        b: Baseband complex path gains ``[L]`` (see :func:`baseband_gains`), or
+            ``[L, Pr, Pt]`` per polarization port pair of dual-polarized arrays
+            (then ``Nr = Pr * rows * cols``, see :func:`port_pair_gains`).
         tau: Delays ``[L]`` [s].
         doppler: Doppler shifts ``[L]`` [Hz].
         theta_r, phi_r: Arrival zenith/azimuth ``[L]`` [rad].
@@ -338,21 +365,22 @@ class OFDMChannel:
     def __call__(self, b, tau, doppler, theta_r, phi_r, theta_t, phi_t,
                  rx_orientation=(0.0, 0.0, 0.0),
                  tx_orientation=(0.0, 0.0, 0.0), times=None) -> np.ndarray:
-        b = complex_array("b", b, ndim=1)
+        b = complex_array("b", b)
+        if b.ndim not in (1, 3):
+            raise ValueError(f"b must have shape [L] or [L, Pr, Pt], got {list(b.shape)}")
         tau = real_array("tau", tau, ndim=1)
         doppler = real_array("doppler", doppler, ndim=1)
         angles = {n: real_array(n, v, ndim=1) for n, v in
                   (("theta_r", theta_r), ("phi_r", phi_r),
                    ("theta_t", theta_t), ("phi_t", phi_t))}
-        same_length(b=b, tau=tau, doppler=doppler, **angles)
+        same_length(b=b[:, 0, 0] if b.ndim == 3 else b, tau=tau, doppler=doppler, **angles)
         a_rx = self.rx_array.steering_vectors(angles["theta_r"], angles["phi_r"],
                                               rx_orientation)  # [L, Nr]
         a_tx = self.tx_array.steering_vectors(angles["theta_t"], angles["phi_t"],
                                               tx_orientation)  # [L, Nt]
         # Outer product per path: [L, Nr * Nt] (row-major matches [Nr, Nt]).
-        pair = (b[:, None, None] * a_rx[:, :, None] * a_tx[:, None, :])
-        num_paths = b.shape[0]
-        nr, nt = a_rx.shape[1], a_tx.shape[1]
+        pair = port_pair_gains(b, a_rx, a_tx)
+        num_paths, nr, nt = pair.shape
         h = _synthesize(pair.reshape(num_paths, nr * nt), tau, doppler,
                         self.grid, self.dtype, times)
         return h.reshape(h.shape[0], self.grid.num_subcarriers, nr, nt)

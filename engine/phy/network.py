@@ -59,7 +59,7 @@ from functools import cached_property
 import numpy as np
 
 from engine.phy.arrays import PlanarArray, r_hat
-from engine.phy.channel import OFDMChannel, baseband_gains, synthesize_many
+from engine.phy.channel import OFDMChannel, baseband_gains, port_pair_gains, synthesize_many
 from engine.phy.mcs import McsRate
 from engine.phy.patterns import MODELLED_POLARIZATIONS, AntennaPatterns
 from engine.phy.link import (AchievableRate, EqualPower, Interferer, SVDPrecoder,
@@ -193,11 +193,17 @@ def _array(cfg) -> PlanarArray:
     if cfg.polarization not in MODELLED_POLARIZATIONS:
         # engine.config refuses these at load; a hand-built config gets the same line.
         raise ValueError(f"array polarization {cfg.polarization!r} is not modelled "
-                         "(patterns are exact on V only)")
-    # The element pattern is applied to the path coefficients at the array
-    # centre (engine/phy/patterns.py), as in Sionna's synthetic arrays; the
-    # steering vectors then carry the geometry only.
+                         f"(modelled: {', '.join(MODELLED_POLARIZATIONS)})")
+    # The element pattern and polarization are applied to the path coefficients
+    # at the array centre (engine/phy/patterns.py, one coefficient per port
+    # pair), as in Sionna's synthetic arrays; the steering vectors then carry
+    # the geometry only (each element's ports share its position).
     return PlanarArray(cfg.rows, cfg.cols, cfg.vertical_spacing, cfg.horizontal_spacing)
+
+
+def _gains(lp) -> np.ndarray:
+    """Baseband gains of a link: ``[L]``, or ``[L, Pr, Pt]`` per port pair."""
+    return baseband_gains(lp.extra.get("a_ports", lp.a), lp.tau, lp.frequency_hz)
 
 
 class NetworkPHY:
@@ -251,7 +257,7 @@ class NetworkPHY:
         from engine.pose import sionna_orientation
 
         syn = OFDMChannel(self.grid, self.arrays[paths.rx], self.arrays[paths.tx])
-        b = baseband_gains(paths.a, paths.tau, paths.frequency_hz)
+        b = _gains(self.patterns.apply(paths))
         return syn(b, paths.tau, paths.doppler, paths.theta_r, paths.phi_r, paths.theta_t,
                    paths.phi_t, rx_orientation=sionna_orientation(paths.rx_orientation),
                    tx_orientation=sionna_orientation(paths.tx_orientation), times=times)
@@ -282,12 +288,12 @@ class NetworkPHY:
         both steering vectors (eq. 4 without the time-frequency kernel)."""
         from engine.pose import sionna_orientation
 
-        b = baseband_gains(lp.a, lp.tau, lp.frequency_hz)
+        b = _gains(self.patterns.apply(lp))
         a_rx = self._steering(lp.rx, lp.theta_r, lp.phi_r, sionna_orientation(lp.rx_orientation))
         a_tx = self._steering(lp.tx, lp.theta_t, lp.phi_t, sionna_orientation(lp.tx_orientation))
-        nr, nt = self.arrays[lp.rx].num_ant, self.arrays[lp.tx].num_ant
-        g = (b[:, None, None] * a_rx[:, :, None] * a_tx[:, None, :]).reshape(b.shape[0], nr * nt)
-        return g, nr, nt
+        g = port_pair_gains(b, a_rx, a_tx)
+        nr, nt = g.shape[1:]
+        return g.reshape(b.shape[0], nr * nt), nr, nt
 
     def channels(self, link_paths: dict, times=None, rows: dict | None = None) -> dict:
         """Eq. 4 for every link in one pass (:func:`~engine.phy.channel.synthesize_many`):

@@ -1,24 +1,28 @@
-"""Antenna element patterns of ``twin.toml`` (``iso``, ``dipole``, ``hw_dipole``,
-``tr38901``) applied to traced paths, as Sionna RT applies them.
+"""Antenna elements of ``twin.toml`` (patterns ``iso``, ``dipole``,
+``hw_dipole``, ``tr38901``; polarizations ``V``, ``H``, ``VH``, ``cross``)
+applied to traced paths, as Sionna RT applies them.
 
-The tracer traces every device with one isotropic, vertically polarized
-element at its array centre (``LinkPaths.a``). A V-polarized element with
-pattern ``g`` radiates the iso V field scaled by the real amplitude
-``g(theta', phi')`` evaluated in the array's local frame (Sionna's
-``v_*_pattern`` functions return ``C_theta = g``, ``C_phi = 0``; both TR 38.901
-polarization models give slant angle 0 -> no phi component). The local ->
-world polarization rotation is linear, so for any orientation
+The tracer records per path the 2 x 2 field transfer matrix ``T``
+(``LinkPaths.pol``, world spherical bases; :mod:`engine.raytrace.polarization`)
+and ``a``, the coefficient of isotropic V elements in the devices'
+orientations. An element of pattern ``g`` and polarization slant ``zeta``
+radiates, in its local frame, ``(C_theta, C_phi) = g(theta', phi') (cos zeta,
+sin zeta)`` (Sionna's default polarization model ``tr38901_2``; V: ``zeta = 0``,
+H: ``pi/2``, VH: two ports ``0, pi/2``, cross: two ports ``-pi/4, +pi/4``),
+evaluated at the direction in the array's frame ``R^T k``. Every port pair
+``(m, n)`` of a link then has the coefficient (paper eq. 4's ``a_l`` per port)
 
-    a_pattern = g_tx(R_tx^T k_t) * g_rx(R_rx^T k_r) * a_iso
+    a_mn = (Q_r c_r,m)^T T (Q_t c_t,n)
 
-exactly, where ``k_t`` is the departure and ``k_r`` the arrival direction
-(``r_hat(theta, phi)``). Patterns are evaluated at the array centre, like
-Sionna's synthetic arrays (``tests/engine/phy/test_patterns.py`` checks the
-eq.-4 channel against Sionna's ``Paths.cfr`` traced with the same arrays).
-
-H, VH and cross polarization need the path's full 2 x 2 polarimetric transfer
-matrix, which the V-only trace does not carry: ``engine.config`` refuses them
-at load (:data:`MODELLED_POLARIZATIONS`).
+with ``Q`` the local -> world rotation of the spherical basis
+(:func:`~engine.raytrace.polarization.local_to_world`). For V at both ends
+this reduces to ``g_tx g_rx a`` (``T`` not needed, so V links also work with
+backends that carry no ``pol``, e.g. grids). Patterns are evaluated at the
+array centre, like Sionna's synthetic arrays; a dual-polarized array has two
+ports per element, port ``p * rows * cols + e`` (Sionna's order: all elements
+of the first polarization, then the second). ``tests/engine/phy/test_patterns.py``
+checks the eq.-4 channel against Sionna's ``Paths.cfr`` traced with the same
+arrays.
 
 Formulas (Sionna RT 2.2 ``antenna_pattern.py``):
 
@@ -37,12 +41,19 @@ from collections.abc import Callable
 
 import numpy as np
 
+from engine.addon_shared import schema as shared
 from engine.config import MODELLED_POLARIZATIONS
 from engine.phy.arrays import r_hat, rotation_matrix
 from engine.raytrace.base import sionna_orientation
+from engine.raytrace.polarization import local_to_world
 
-__all__ = ["PATTERNS", "MODELLED_POLARIZATIONS", "field_pattern", "pattern_gains",
-           "AntennaPatterns"]
+__all__ = ["PATTERNS", "MODELLED_POLARIZATIONS", "SLANTS", "AntennaPatterns", "element_fields",
+           "field_pattern", "num_ports", "pattern_gains", "port_coefficients"]
+
+#: polarization -> slant angles of its ports [rad] (``addon/schema.py``, Sionna's
+#: ``polarization_registry``).
+SLANTS: dict[str, tuple[float, ...]] = {
+    k: tuple(float(np.deg2rad(z)) for z in v) for k, v in shared.POLARIZATION_SLANTS_DEG.items()}
 
 
 
@@ -93,46 +104,107 @@ def pattern_gains(name: str, theta, phi, orientation) -> np.ndarray:
     return field_pattern(name)(th, ph)
 
 
-class AntennaPatterns:
-    """Callable: iso-traced ``{(tx, rx): LinkPaths}`` -> the same links with each
-    device's element pattern in ``a`` (see the module doc).
+def num_ports(polarization: str) -> int:
+    """Ports per element of ``polarization`` (1 or 2)."""
+    if polarization not in SLANTS:
+        raise ValueError(f"polarization: expected one of {', '.join(SLANTS)}, "
+                         f"got {polarization!r}")
+    return len(SLANTS[polarization])
 
-    Links whose two ends are ``iso`` are returned unchanged (the same object).
-    A patterned link keeps the isotropic coefficients in ``extra["a_iso"]`` and
-    the applied factor ``g_tx g_rx`` in ``extra["pattern_gain"]`` (``[L]``).
+
+def element_fields(name: str, polarization: str, theta, phi) -> np.ndarray:
+    """Local field patterns ``(C_theta, C_phi)`` ``[L, P, 2]`` (real) of the ``P``
+    ports of an element of pattern ``name`` and ``polarization`` at local angles
+    ``theta, phi [L]`` rad (polarization model ``tr38901_2``)."""
+    num_ports(polarization)
+    g = field_pattern(name)(np.asarray(theta, float), np.asarray(phi, float))
+    z = np.asarray(SLANTS[polarization])
+    # exact zeros for V/H (cos(pi/2) is 6e-17 in float64)
+    c = np.round(np.stack([np.cos(z), np.sin(z)], -1), 15)
+    return g[:, None, None] * c[None]
+
+
+def _world_fields(name, polarization, theta, phi, orientation) -> np.ndarray:
+    """Port fields ``[L, P, 2]`` in the world spherical basis at world
+    directions ``(theta, phi) [L]`` of an array with Sionna ``orientation``."""
+    th, ph, q = local_to_world(r_hat(theta, phi).reshape(-1, 3), rotation_matrix(orientation))
+    return np.einsum("lij,lpj->lpi", q, element_fields(name, polarization, th, ph))
+
+
+def port_coefficients(lp, tx: tuple[str, str], rx: tuple[str, str]) -> np.ndarray:
+    """Path coefficients ``[L, Pr, Pt]`` of every receive/transmit port pair of
+    link ``lp`` (a :class:`~engine.raytrace.base.LinkPaths`) for elements
+    ``tx = (pattern, polarization)`` and ``rx`` likewise (see the module doc).
+
+    Raises:
+        ValueError: an H, VH or cross end on a link without ``pol``.
+    """
+    if tx[1] == "V" and rx[1] == "V":
+        g = (pattern_gains(tx[0], lp.theta_t, lp.phi_t, sionna_orientation(lp.tx_orientation))
+             * pattern_gains(rx[0], lp.theta_r, lp.phi_r, sionna_orientation(lp.rx_orientation)))
+        return (np.asarray(lp.a) * g)[:, None, None]
+    if lp.pol is None:
+        raise ValueError(f"link {lp.tx}->{lp.rx}: polarization {tx[1]!r}/{rx[1]!r} needs the "
+                         "paths' transfer matrices, which this tracer backend does not "
+                         "provide (a path grid carries V only: use tracer.backend = \"sionna\")")
+    if lp.num_paths == 0:
+        return np.zeros((0, num_ports(rx[1]), num_ports(tx[1])), complex)
+    ft = _world_fields(*tx, lp.theta_t, lp.phi_t, sionna_orientation(lp.tx_orientation))
+    fr = _world_fields(*rx, lp.theta_r, lp.phi_r, sionna_orientation(lp.rx_orientation))
+    return np.einsum("lri,lij,ltj->lrt", fr, lp.pol, ft)
+
+
+class AntennaPatterns:
+    """Callable: traced ``{(tx, rx): LinkPaths}`` (iso V coefficients in ``a``,
+    transfer matrices in ``pol``) -> the same links with each device's elements
+    applied (see the module doc).
+
+    Links whose two ends are iso V are returned unchanged (the same object).
+    Otherwise ``a`` becomes the coefficient of the first port pair ``[L]``,
+    ``extra["a_ports"]`` holds every port pair ``[L, Pr, Pt]`` (what the eq.-4
+    channel uses), ``extra["a_iso"]`` the iso V coefficients.
 
     Args:
         patterns: device name -> pattern name (e.g. from a config: :meth:`from_config`).
+        polarizations: device name -> polarization (default ``"V"``).
     """
 
-    def __init__(self, patterns: dict[str, str]) -> None:
+    def __init__(self, patterns: dict[str, str],
+                 polarizations: dict[str, str] | None = None) -> None:
         for name, p in patterns.items():
             field_pattern(p)
         self.patterns = dict(patterns)
+        self.polarizations = dict(polarizations or {})
+        for pol in self.polarizations.values():
+            num_ports(pol)
 
     @classmethod
     def from_config(cls, config) -> AntennaPatterns:
-        """Patterns of every device of a :class:`~engine.config.TwinConfig`."""
-        return cls({d.name: d.array.pattern for d in config.devices})
+        """Elements of every device of a :class:`~engine.config.TwinConfig`."""
+        return cls({d.name: d.array.pattern for d in config.devices},
+                   {d.name: d.array.polarization for d in config.devices})
+
+    def element(self, name: str) -> tuple[str, str]:
+        """``(pattern, polarization)`` of device ``name`` (default iso V)."""
+        return self.patterns.get(name, "iso"), self.polarizations.get(name, "V")
 
     @property
     def active(self) -> bool:
-        """Whether any device has a non-isotropic pattern."""
-        return any(p != "iso" for p in self.patterns.values())
+        """Whether any device has a non-isotropic pattern or is not V."""
+        return (any(p != "iso" for p in self.patterns.values())
+                or any(p != "V" for p in self.polarizations.values()))
 
     def apply(self, lp):
-        """One :class:`~engine.raytrace.base.LinkPaths` with its patterns applied
-        (unchanged when already applied, i.e. ``extra`` has ``pattern_gain``)."""
-        if "pattern_gain" in lp.extra:
+        """One :class:`~engine.raytrace.base.LinkPaths` with its elements applied
+        (unchanged when already applied, i.e. ``extra`` has ``a_ports``)."""
+        if "a_ports" in lp.extra:
             return lp
-        pt = self.patterns.get(lp.tx, "iso")
-        pr = self.patterns.get(lp.rx, "iso")
-        if pt == "iso" and pr == "iso":
+        et, er = self.element(lp.tx), self.element(lp.rx)
+        if et == ("iso", "V") and er == ("iso", "V"):
             return lp
-        g = (pattern_gains(pt, lp.theta_t, lp.phi_t, sionna_orientation(lp.tx_orientation))
-             * pattern_gains(pr, lp.theta_r, lp.phi_r, sionna_orientation(lp.rx_orientation)))
-        extra = dict(lp.extra, a_iso=lp.a, pattern_gain=g)
-        return dataclasses.replace(lp, a=np.asarray(lp.a) * g, extra=extra)
+        ports = port_coefficients(lp, et, er)
+        extra = dict(lp.extra, a_iso=lp.a, a_ports=ports)
+        return dataclasses.replace(lp, a=ports[:, 0, 0].copy(), extra=extra)
 
     def __call__(self, link_paths: dict) -> dict:
         if not self.active:

@@ -11,6 +11,11 @@ Conventions (Sionna RT's, so that Sionna's own ``Paths.cfr`` is the reference):
   vertically polarized elements at the two array centres (Sionna's
   ``Paths.a``); the baseband gain of eq. 4 is ``b = a * exp(-j 2 pi f_c tau)``
   (``engine.phy.channel.baseband_gains``).
+* ``pol`` (when the backend provides it) is the path's 2 x 2 complex field
+  transfer matrix between the world spherical bases (theta-hat, phi-hat) at
+  departure (columns) and arrival (rows), from which any element's
+  coefficient follows (:mod:`engine.raytrace.polarization`); ``a`` is the
+  V-V coefficient of it in the devices' orientations.
 * ``tau`` is the absolute propagation delay in s (not normalized).
 * Zenith ``theta`` from +z in ``[0, pi]``, azimuth ``phi`` from +x towards +y in
   ``(-pi, pi]``; departure angles point away from the transmitter, arrival
@@ -69,6 +74,10 @@ class LinkPaths:
         theta_r, phi_r: arrival zenith / azimuth ``[L]``, rad.
         vertices: interaction points ``[L, D, 3]``, m (0 where ``interactions`` is NONE).
         interactions: Sionna ``InteractionType`` codes ``[L, D]``, int32, NONE (0) padding.
+        pol: transfer matrices ``[L, 2, 2]`` complex128 (rows: arrival
+            theta/phi, columns: departure theta/phi, world bases), or None when
+            the backend does not provide them (then only V elements can be
+            modelled).
     """
 
     tx: str
@@ -87,6 +96,7 @@ class LinkPaths:
     phi_r: np.ndarray
     vertices: np.ndarray
     interactions: np.ndarray
+    pol: np.ndarray | None = field(default=None, repr=False)
     extra: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -127,7 +137,7 @@ class LinkPaths:
 
     def reversed(self) -> "LinkPaths":
         """The reciprocal link ``rx -> tx``: same delays and gains (reciprocity),
-        swapped angles, vertices in reverse order."""
+        swapped angles, vertices in reverse order, transposed ``pol``."""
         # Reverse the populated interaction slots of each path, keep NONE padding last.
         n = self.num_interactions
         idx = np.tile(np.arange(self.depth), (self.num_paths, 1))
@@ -139,6 +149,7 @@ class LinkPaths:
             theta_t=self.theta_r, phi_t=self.phi_r, theta_r=self.theta_t, phi_r=self.phi_t,
             vertices=np.take_along_axis(self.vertices, rev[:, :, None], axis=1),
             interactions=np.take_along_axis(self.interactions, rev, axis=1),
+            pol=None if self.pol is None else np.swapaxes(self.pol, -1, -2),
             extra=dict(self.extra))
 
     def summary(self) -> dict:
@@ -247,4 +258,5 @@ def empty_link(tx: str, rx: str, tx_pose: DevicePose, rx_pose: DevicePose,
                      frequency_hz=float(frequency_hz), a=z.astype(complex), tau=z, doppler=z,
                      theta_t=z, phi_t=z, theta_r=z, phi_r=z,
                      vertices=np.zeros((0, depth, 3)),
-                     interactions=np.zeros((0, depth), np.int32))
+                     interactions=np.zeros((0, depth), np.int32),
+                     pol=np.zeros((0, 2, 2), complex))

@@ -315,7 +315,6 @@ class ChainTracer:
         v_rx_all = np.zeros((nt, 3)) if target_velocities is None else \
             np.asarray(target_velocities, float).reshape(nt, 3)
         per_target = self.prepare(sc, src, targets)
-        pattern = core.iso_array.antenna_pattern.patterns
         cap = core.config.max_num_paths_per_src
         counts = np.bincount(self.store.columns()["src"].astype(np.int64), minlength=ns)
         depth = core.config.max_depth
@@ -347,8 +346,7 @@ class ChainTracer:
                 core.los_test(sc.mi_scene, src, tgt, buf)
             buf.shrink()
             results.append(core.evaluate(buf, sc.mi_scene, sc.wavelength, src, tgt, src_o,
-                                         tgt_o, v_tx, v_rx, pattern, pattern, counts, cap,
-                                         depth=depth))
+                                         tgt_o, v_tx, v_rx, counts, cap, depth=depth))
         if len(results) == 1:
             return results[0]
         return concat_targets(results)

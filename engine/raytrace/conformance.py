@@ -106,6 +106,12 @@ def check_shapes(lp: LinkPaths) -> list[str]:
             errs.append(f"{k} has non-finite values")
     if not np.iscomplexobj(lp.a):
         errs.append(f"a has dtype {lp.a.dtype}, expected complex")
+    if lp.pol is not None:  # optional: the polarization transfer matrices
+        pol = np.asarray(lp.pol)
+        if pol.shape != (L, 2, 2):
+            errs.append(f"pol has shape {pol.shape}, expected ({L}, 2, 2)")
+        elif not np.iscomplexobj(pol) or not np.all(np.isfinite(pol)):
+            errs.append(f"pol must be finite complex, got dtype {pol.dtype}")
     for k in ("tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r"):
         if not np.issubdtype(getattr(lp, k).dtype, np.floating):
             errs.append(f"{k} has dtype {getattr(lp, k).dtype}, expected float")
@@ -233,6 +239,10 @@ def check_tracer(tracer, scene, poses: Mapping[str, DevicePose] | None = None,
                     errs.append(f"delay {fwd.tau[i]:.9e} vs {back.tau[j]:.9e} s")
                 if abs(abs(back.a[j]) / abs(fwd.a[i]) - 1) > 1e-4:
                     errs.append(f"|a| {abs(fwd.a[i]):.6e} vs {abs(back.a[j]):.6e}")
+                if fwd.pol is not None and back.pol is not None and (
+                        np.abs(back.pol[j] - fwd.pol[i].T).max()
+                        > 1e-4 * np.abs(fwd.pol[i]).max()):
+                    errs.append("pol of the reverse LOS path is not the transpose")
                 if _angle(_r_hat(fwd.theta_t[i], fwd.phi_t[i]),
                           _r_hat(back.theta_r[j], back.phi_r[j])) > _ANGLE_TOL:
                     errs.append("departure angle != reversed arrival angle")

@@ -28,11 +28,15 @@ import numpy as np
 
 from engine.raytrace.base import DevicePose, LinkPaths, TruncationError, empty_link
 
-__all__ = ["MATCH_DELAY_RTOL", "MATCH_VERTEX_M", "REPEAT_DELAY_S", "REPEAT_VERTEX_M",
+__all__ = ["PATH_FIELDS", "MATCH_DELAY_RTOL", "MATCH_VERTEX_M", "REPEAT_DELAY_S", "REPEAT_VERTEX_M",
            "RawPaths", "concat_targets", "find_repeats", "free_points", "grow_cap",
            "link_paths", "match_paths", "pad_paths", "to_points"]
 
 log = logging.getLogger(__name__)
+
+#: The per-path arrays of a :class:`RawPaths` (``[R, T, P, ...]``) besides ``valid``.
+PATH_FIELDS = ("a", "pol", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r",
+               "interactions", "vertices")
 
 
 @dataclass
@@ -41,7 +45,10 @@ class RawPaths:
 
     Attributes (``R`` receivers, ``T`` transmitters, ``P`` max paths, ``D`` depth):
         valid: ``[R, T, P]`` bool.
-        a: ``[R, T, P]`` complex128 passband coefficients.
+        a: ``[R, T, P]`` complex128 passband coefficients of isotropic, vertically
+            polarized elements in the devices' orientations.
+        pol: ``[R, T, P, 2, 2]`` complex128 transfer matrices in the world
+            spherical bases (:mod:`engine.raytrace.polarization`).
         tau, doppler, theta_t, phi_t, theta_r, phi_r: ``[R, T, P]`` float64.
         interactions: ``[R, T, P, D]`` int32.
         vertices: ``[R, T, P, D, 3]`` float32.
@@ -51,6 +58,7 @@ class RawPaths:
 
     valid: np.ndarray
     a: np.ndarray
+    pol: np.ndarray
     tau: np.ndarray
     doppler: np.ndarray
     theta_t: np.ndarray
@@ -72,9 +80,7 @@ class RawPaths:
         m = self.valid[r, t]
         tau = self.tau[r, t][m]
         order = np.lexsort((-np.abs(self.a[r, t][m]), tau))
-        out = {k: getattr(self, k)[r, t][m][order]
-               for k in ("a", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r",
-                         "interactions", "vertices")}
+        out = {k: getattr(self, k)[r, t][m][order] for k in PATH_FIELDS}
         return out
 
     @classmethod
@@ -82,7 +88,8 @@ class RawPaths:
               cap: int) -> "RawPaths":
         """No path for any pair (``P = 0``)."""
         z = np.zeros((num_rx, num_tx, 0))
-        return cls(valid=z.astype(bool), a=z.astype(complex), tau=z, doppler=z, theta_t=z,
+        return cls(valid=z.astype(bool), a=z.astype(complex),
+                   pol=np.zeros((num_rx, num_tx, 0, 2, 2), complex), tau=z, doppler=z, theta_t=z,
                    phi_t=z, theta_r=z, phi_r=z,
                    interactions=np.zeros((num_rx, num_tx, 0, depth), np.int32),
                    vertices=np.zeros((num_rx, num_tx, 0, depth, 3), np.float32),
@@ -134,8 +141,7 @@ def concat_targets(parts: list[RawPaths]) -> RawPaths:
     """Join :class:`RawPaths` of consecutive target groups (pads the path axis)."""
     p = max(r.valid.shape[2] for r in parts)
     kw = {k: np.concatenate([pad_paths(getattr(r, k), p) for r in parts], axis=0)
-          for k in ("valid", "a", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r",
-                    "interactions", "vertices")}
+          for k in ("valid",) + PATH_FIELDS}
     return RawPaths(**kw, candidates_per_source=parts[0].candidates_per_source,
                     cap=parts[0].cap)
 
@@ -154,8 +160,8 @@ def link_paths(raw: RawPaths, r: int, t: int, tx: str, rx: str, tx_pose: DeviceP
         tx_orientation=np.asarray(tx_pose.orientation),
         rx_orientation=np.asarray(rx_pose.orientation), frequency_hz=frequency_hz,
         vertices=d["vertices"].astype(np.float64),
-        **{k: d[k] for k in ("a", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r",
-                             "interactions")})
+        **{k: d[k] for k in ("a", "pol", "tau", "doppler", "theta_t", "phi_t", "theta_r",
+                             "phi_r", "interactions")})
 
 
 def grow_cap(trace: Callable[[int], RawPaths], cap: int, max_cap: int, *, what: str,

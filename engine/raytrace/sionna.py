@@ -2,8 +2,9 @@
 
 :class:`SionnaTracer` puts every device that appears in a requested link into
 the Sionna scene once (as a ``Transmitter`` and/or a ``Receiver`` with a
-single isotropic, vertically polarized element at the array centre,
-``synthetic_array=True``), moves them on later calls instead of recreating
+single element at the array centre with the two isotropic basis patterns
+of :func:`~engine.raytrace.solver_core.basis_patterns`, ``synthetic_array=True``:
+every path's 2 x 2 transfer matrix), moves them on later calls instead of recreating
 them, and traces through :class:`~engine.raytrace.solver_core.SolverCore`
 (Sionna's own stages; truncation detected and retried by
 :func:`~engine.raytrace.raw.grow_cap`) or, by default, through chain reuse
@@ -87,10 +88,10 @@ class SionnaTracer:
     def _sync_devices(self, sc, tx_names: list[str], rx_names: list[str],
                       poses: Mapping[str, DevicePose]) -> None:
         rt = load_sionna_rt()
-        if sc.tx_array is not self.core.iso_array:
-            sc.tx_array = self.core.iso_array
-        if sc.rx_array is not self.core.iso_array:
-            sc.rx_array = self.core.iso_array
+        if sc.tx_array is not self.core.basis_array:
+            sc.tx_array = self.core.basis_array
+        if sc.rx_array is not self.core.basis_array:
+            sc.rx_array = self.core.basis_array
         want_tx = [self._tx_name(n) for n in tx_names]
         want_rx = [self._rx_name(n) for n in rx_names]
         have_tx, have_rx = list(sc.transmitters), list(sc.receivers)
@@ -110,7 +111,8 @@ class SionnaTracer:
         for n, dev in [(n, self._tx[n]) for n in tx_names] + [(n, self._rx[n]) for n in rx_names]:
             p = poses[n]
             dev.position = p.position
-            dev.orientation = sionna_orientation(p.orientation)
+            # orientation stays zero: the trace is in world bases, the
+            # devices' orientations enter only ``a`` (SolverCore)
             dev.velocity = p.velocity
 
     def __call__(self, scene, poses: Mapping[str, DevicePose],
@@ -159,7 +161,9 @@ class SionnaTracer:
 
             def trace(cap: int) -> RawPaths:
                 if self.core.legacy:
-                    return self.core.solve_scene(sc, cap)
+                    return self.core.solve_scene(
+                        sc, cap, [sionna_orientation(poses[n].orientation) for n in tx_names],
+                        [sionna_orientation(poses[n].orientation) for n in rx_names])
                 return self.core.solve_endpoints(
                     sc, [poses[n].position for n in tx_names],
                     [poses[n].position for n in rx_names], cap,

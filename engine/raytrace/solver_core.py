@@ -49,10 +49,11 @@ from contextlib import contextmanager
 import numpy as np
 
 from engine.config import TracerConfig
+from engine.raytrace.polarization import rotations, v_coefficients
 from engine.raytrace.raw import RawPaths, to_points
 
-__all__ = ["MIN_BUFFER_PER_SRC", "SolverCore", "buffer_columns", "buffer_to_numpy",
-           "chain_buffer", "gather_pairs", "load_sionna_rt", "paths_to_numpy",
+__all__ = ["MIN_BUFFER_PER_SRC", "SolverCore", "basis_patterns", "buffer_columns",
+           "buffer_to_numpy", "chain_buffer", "gather_pairs", "load_sionna_rt", "paths_to_numpy",
            "pinned_spec_table", "spec_table_default"]
 
 #: Smallest candidate buffer per source that :class:`SolverCore` allocates
@@ -130,8 +131,31 @@ class _CountingGenerator:
                     and self.counts.max() >= self.cap)
 
 
+def _orient(v, n: int) -> np.ndarray:
+    """Orientations (None, numpy or a Mitsuba ``Point3f``) -> ``[n, 3]`` float64."""
+    if v is None:
+        return np.zeros((n, 3))
+    if hasattr(v, "x") and hasattr(v.x, "numpy"):
+        return np.stack([np.asarray(c.numpy(), np.float64) for c in (v.x, v.y, v.z)], -1)
+    return np.asarray(v, np.float64).reshape(n, 3)
+
+
+def _with_v(pol, tht, pht, thr, phr, src_i, tgt_i, src_o, tgt_o) -> np.ndarray:
+    """Iso V coefficients ``[n]`` of paths with transfer matrices ``pol [n, 2, 2]``
+    between devices of orientations ``src_o [S, 3]`` / ``tgt_o [T, 3]``."""
+    from engine.phy.arrays import r_hat
+
+    if not (np.any(src_o) or np.any(tgt_o)):
+        return pol[:, 0, 0].copy()
+    return v_coefficients(pol, r_hat(tht, pht), r_hat(thr, phr),
+                          rotations(src_o)[src_i], rotations(tgt_o)[tgt_i])
+
+
 def paths_to_numpy(paths, num_rx: int, num_tx: int, depth: int,
-                    counts: np.ndarray, cap: int) -> RawPaths:
+                    counts: np.ndarray, cap: int, src_o=None, tgt_o=None) -> RawPaths:
+    """Sionna ``Paths`` traced with :func:`basis_patterns` at both ends (two
+    ports each, orientation zero) -> :class:`RawPaths` (``a`` for iso V
+    elements in the orientations ``src_o [T, 3]`` / ``tgt_o [R, 3]``)."""
     tau = np.asarray(paths.tau.numpy(), np.float64).reshape(num_rx, num_tx, -1)
     p = tau.shape[-1]
     d = max(1, depth)
@@ -139,23 +163,28 @@ def paths_to_numpy(paths, num_rx: int, num_tx: int, depth: int,
         return RawPaths.empty(num_rx, num_tx, d, counts, cap)
     ar, ai = paths.a
     a = (np.asarray(ar.numpy(), np.float64) + 1j * np.asarray(ai.numpy(), np.float64))
+    pol = np.moveaxis(a.reshape(num_rx, 2, num_tx, 2, p), (1, 3), (3, 4))  # [R, T, P, 2, 2]
     f = lambda x: np.asarray(x.numpy(), np.float64).reshape(num_rx, num_tx, p)  # noqa: E731
     inter = np.asarray(paths.interactions.numpy()).reshape(-1, num_rx, num_tx, p)
     vert = np.asarray(paths.vertices.numpy(), np.float32).reshape(-1, num_rx, num_tx, p, 3)
     inter = np.moveaxis(inter, 0, -1).astype(np.int32)
     vert = np.array(np.moveaxis(vert, 0, -2), copy=True)
     vert[inter == 0] = 0.0  # Sionna leaves stale coordinates in unused slots
+    ang = {k: f(getattr(paths, k)) for k in ("theta_t", "phi_t", "theta_r", "phi_r")}
+    r, t, _ = np.meshgrid(np.arange(num_rx), np.arange(num_tx), np.arange(p), indexing="ij")
+    v = _with_v(pol.reshape(-1, 2, 2), *(ang[k].ravel() for k in ("theta_t", "phi_t",
+                                                                  "theta_r", "phi_r")),
+                t.ravel(), r.ravel(), _orient(src_o, num_tx), _orient(tgt_o, num_rx))
     return RawPaths(
         valid=np.asarray(paths.valid.numpy(), bool).reshape(num_rx, num_tx, p),
-        a=a.reshape(num_rx, num_tx, p), tau=tau, doppler=f(paths.doppler),
-        theta_t=f(paths.theta_t), phi_t=f(paths.phi_t),
-        theta_r=f(paths.theta_r), phi_r=f(paths.phi_r),
+        a=v.reshape(num_rx, num_tx, p), pol=pol, tau=tau, doppler=f(paths.doppler),
         interactions=inter, vertices=vert,
-        candidates_per_source=counts, cap=cap)
+        candidates_per_source=counts, cap=cap, **ang)
 
 
 def buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
-                     depth: int, counts: np.ndarray, cap: int) -> RawPaths:
+                     depth: int, counts: np.ndarray, cap: int, src_o=None,
+                     tgt_o=None) -> RawPaths:
     """Flat ``PathsBuffer`` (after ``discard_invalid``) -> :class:`RawPaths`.
 
     Equivalent to building Sionna's ``Paths`` (synthetic single-element arrays)
@@ -166,6 +195,12 @@ def buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
     quantities (angles and Doppler as in ``Paths._build_from_buffer``) are
     evaluated in one ``dr.eval`` and arranged into ``[R, T, P]`` with numpy;
     within a link, paths keep their buffer order. Invalid slots are zero.
+
+    The buffer holds the coefficients of :func:`basis_patterns` at both ends
+    at orientation zero (``buf.a[i][j]``): they become ``pol``; ``a`` is the iso
+    V coefficient in the devices' orientations ``src_o [T, 3]`` / ``tgt_o
+    [R, 3]`` (Sionna ``[yaw, pitch, roll]``, default 0), see
+    :mod:`engine.raytrace.polarization`.
     """
     import drjit as dr
     import mitsuba as mi
@@ -184,13 +219,16 @@ def buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
     v_tx = dr.gather(mi.Vector3f, src_vel, src_i)
     v_rx = dr.gather(mi.Vector3f, tgt_vel, tgt_i)
     doppler = buf.doppler + dr.dot(k_tx, v_tx) / wavelength - dr.dot(-k_rx, v_rx) / wavelength
-    a = buf.a[0][0]
-    out = [src_i, tgt_i, dr.real(a), dr.imag(a), buf.tau, doppler, theta_t, phi_t,
+    comps = [buf.a[i][j] for i in range(2) for j in range(2)]
+    parts = [f(c) for c in comps for f in (dr.real, dr.imag)]
+    out = [src_i, tgt_i, buf.tau, doppler, theta_t, phi_t,
            theta_r, phi_r, buf.interaction_types.array, buf.vertices_x.array,
-           buf.vertices_y.array, buf.vertices_z.array]
+           buf.vertices_y.array, buf.vertices_z.array, *parts]
     dr.eval(*out)
-    (src_i, tgt_i, ar, ai, tau, dop, tht, pht, thr, phr, inter, vx, vy, vz) = \
+    (src_i, tgt_i, tau, dop, tht, pht, thr, phr, inter, vx, vy, vz, *parts) = \
         [x.numpy() for x in out]
+    pol = (np.stack(parts[0::2], -1).astype(np.float64)
+           + 1j * np.stack(parts[1::2], -1).astype(np.float64)).reshape(n, 2, 2)
     pair = tgt_i.astype(np.int64) * num_tx + src_i.astype(np.int64)
     order = np.argsort(pair, kind="stable")
     per_pair = np.bincount(pair, minlength=num_rx * num_tx)
@@ -209,14 +247,36 @@ def buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
     vert = np.stack([vx, vy, vz], -1).reshape(n, d, 3).astype(np.float32)
     vert[inter == 0] = 0.0  # Sionna leaves stale coordinates in unused slots
     f64 = np.float64
+    v = _with_v(pol, tht, pht, thr, phr, src_i.astype(np.int64), tgt_i.astype(np.int64),
+                _orient(src_o, num_tx), _orient(tgt_o, num_rx))
     return RawPaths(
         valid=place(np.ones(n, bool), bool),
-        a=place(ar.astype(f64) + 1j * ai.astype(f64), np.complex128),
+        a=place(v, np.complex128), pol=place(pol, np.complex128),
         tau=place(tau, f64), doppler=place(dop, f64),
         theta_t=place(tht, f64), phi_t=place(pht, f64),
         theta_r=place(thr, f64), phi_r=place(phr, f64),
         interactions=place(inter, np.int32), vertices=place(vert, np.float32),
         candidates_per_source=counts, cap=cap)
+
+
+def basis_patterns() -> list:
+    """Two isotropic element patterns for Sionna's field calculator: the unit
+    vectors ``(C_theta, C_phi) = (1, 0)`` and ``(0, 1)`` of the local
+    spherical basis (exactly; Sionna's ``"VH"`` computes ``cos(pi/2)`` in
+    float32). Traced at orientation zero at both ends, the coefficients
+    ``a[i][j]`` are the path's transfer matrix (:mod:`engine.raytrace.polarization`)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    def unit(i: int):
+        def f(theta, phi):
+            n = dr.shape(theta)[0]
+            one, zero = dr.ones(mi.Float, n), dr.zeros(mi.Float, n)
+            return (mi.Complex2f(one if i == 0 else zero, 0),
+                    mi.Complex2f(zero if i == 0 else one, 0))
+        return f
+
+    return [unit(0), unit(1)]
 
 
 class SolverCore:
@@ -258,16 +318,19 @@ class SolverCore:
         self._counter = _CountingGenerator(self.solver._candidate_generator)
         # The one hook into Sionna internals: count candidates per source.
         self.solver._candidate_generator = self._counter
-        self._iso = None
+        self._basis = None
 
     @property
-    def iso_array(self):
-        """Sionna ``PlanarArray(1, 1, "iso", "V")``."""
-        if self._iso is None:
-            self._iso = load_sionna_rt().PlanarArray(num_rows=1, num_cols=1, vertical_spacing=0.5,
-                                          horizontal_spacing=0.5, pattern="iso",
-                                          polarization="V")
-        return self._iso
+    def basis_array(self):
+        """Sionna ``PlanarArray(1, 1, "iso", "VH")`` whose two patterns are
+        :func:`basis_patterns` (what every trace uses at both ends)."""
+        if self._basis is None:
+            arr = load_sionna_rt().PlanarArray(num_rows=1, num_cols=1, vertical_spacing=0.5,
+                                               horizontal_spacing=0.5, pattern="iso",
+                                               polarization="VH")
+            arr.antenna_pattern.patterns = basis_patterns()
+            self._basis = arr
+        return self._basis
 
     def solver_kwargs(self, cap: int) -> dict:
         c = self.config
@@ -278,7 +341,7 @@ class SolverCore:
                     diffraction=c.diffraction, seed=c.seed)
 
     def _trace(self, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
-               src_patterns, tgt_patterns, cap: int) -> RawPaths:
+               cap: int) -> RawPaths:
         """The stages of ``PathSolver.__call__`` (Sionna 2.2), then
         :func:`_buffer_to_numpy` instead of building ``Paths``.
 
@@ -286,14 +349,14 @@ class SolverCore:
         buffer actually allocated is smaller (see the class doc)."""
         import drjit as dr
 
-        dr.make_opaque(src, tgt, src_o, tgt_o)
+        dr.make_opaque(src, tgt)
         table = self.spec_table_size or spec_table_default(cap)
         buf_cap = min(int(cap), max(MIN_BUFFER_PER_SRC,
                                     1 << int(4 * max(1, self.candidates_seen) - 1).bit_length()))
         while True:
             with pinned_spec_table(table):
                 raw = self._trace_once(mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
-                                       src_patterns, tgt_patterns, cap, buf_cap)
+                                       cap, buf_cap)
             self.candidates_seen = max(self.candidates_seen, int(raw.candidates_per_source.max(
                 initial=0)))
             if buf_cap >= cap or raw.candidates_per_source.max(initial=0) < buf_cap:
@@ -304,11 +367,11 @@ class SolverCore:
             buf_cap = min(int(cap), 8 * buf_cap)
 
     def _trace_once(self, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
-                    src_patterns, tgt_patterns, cap: int, buf_cap: int) -> RawPaths:
+                    cap: int, buf_cap: int) -> RawPaths:
         buf = self.generate(mi_scene, src, tgt, buf_cap)
         # (the counting wrapper has scheduled and evaluated the buffer)
         return self.evaluate(buf, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
-                             src_patterns, tgt_patterns, self._counter.counts, cap)
+                             self._counter.counts, cap)
 
     def generate(self, mi_scene, src, tgt, buf_cap: int, *, max_depth: int | None = None,
                  los: bool | None = None):
@@ -341,15 +404,19 @@ class SolverCore:
         return self._counter.counts
 
     def evaluate(self, buf, mi_scene, wavelength, src, tgt, src_o, tgt_o, v_tx, v_rx,
-                 src_patterns, tgt_patterns, counts: np.ndarray, cap: int,
-                 depth: int | None = None) -> RawPaths:
+                 counts: np.ndarray, cap: int, depth: int | None = None) -> RawPaths:
         """Image method and field calculator on candidates -> :class:`RawPaths`.
 
         ``buf``: candidates whose ``valid`` flag is False (valid entries, e.g.
         line-of-sight paths, skip the image method); ``depth``: the buffer's
-        max depth (default the configured one).
+        max depth (default the configured one). The field calculator runs
+        with :func:`basis_patterns` at orientation zero at both ends (the
+        transfer matrix ``pol``); the orientations ``src_o`` / ``tgt_o`` (Sionna
+        ``[yaw, pitch, roll]``) only enter ``a`` (iso V elements), computed
+        from ``pol`` in numpy.
         """
         import drjit as dr
+        import mitsuba as mi
 
         kw = self.solver_kwargs(cap)
         s = self.solver
@@ -357,30 +424,40 @@ class SolverCore:
         buf = s._image_method(scene=mi_scene, paths=buf, src_positions=src,
                               tgt_positions=tgt, diffraction=kw["diffraction"],
                               diffraction_lit_region=True)
+        pattern = self.basis_array.antenna_pattern.patterns
         buf = s._field_calculator(
             wavelength=wavelength, paths=buf, samples_per_src=kw["samples_per_src"],
             diffraction=kw["diffraction"], src_positions=src, tgt_positions=tgt,
-            src_orientations=src_o, tgt_orientations=tgt_o,
-            src_antenna_patterns=src_patterns, tgt_antenna_patterns=tgt_patterns)
+            src_orientations=dr.zeros(mi.Point3f, dr.width(src)),
+            tgt_orientations=dr.zeros(mi.Point3f, dr.width(tgt)),
+            src_antenna_patterns=pattern, tgt_antenna_patterns=pattern)
         buf.discard_invalid()
         return buffer_to_numpy(buf, v_tx, v_rx, wavelength, dr.width(tgt), dr.width(src),
                                 self.config.max_depth if depth is None else depth,
-                                counts, cap)
+                                counts, cap, _orient(src_o, dr.width(src)),
+                                _orient(tgt_o, dr.width(tgt)))
 
-    def solve_scene(self, sionna_scene, cap: int) -> RawPaths:
-        """Trace the Sionna scene's own transmitters and receivers."""
+    def solve_scene(self, sionna_scene, cap: int, source_orientations=None,
+                    target_orientations=None) -> RawPaths:
+        """Trace the Sionna scene's own transmitters and receivers.
+
+        The scene's arrays must be :attr:`basis_array` and its devices at
+        orientation zero (the transfer matrix is in the world basis); the
+        devices' orientations ``[T|R, 3]`` (Sionna ``[yaw, pitch, roll]``) are
+        given here and enter only ``a``."""
+        nt, nr = len(sionna_scene.transmitters), len(sionna_scene.receivers)
         if self.legacy:
             paths = self.solver(sionna_scene, synthetic_array=True,
                                 **self.solver_kwargs(cap))
-            return paths_to_numpy(paths, len(sionna_scene.receivers),
-                                   len(sionna_scene.transmitters), self.config.max_depth,
-                                   self._counter.counts, cap)
+            return paths_to_numpy(paths, nr, nt, self.config.max_depth,
+                                   self._counter.counts, cap, source_orientations,
+                                   target_orientations)
         sionna_scene.all_set(radio_map=False)
-        src, src_o, _, v_tx = sionna_scene.sources(True, True)
-        tgt, tgt_o, _, v_rx = sionna_scene.targets(True, True)
-        return self._trace(sionna_scene.mi_scene, sionna_scene.wavelength, src, tgt, src_o,
-                           tgt_o, v_tx, v_rx, sionna_scene.tx_array.antenna_pattern.patterns,
-                           sionna_scene.rx_array.antenna_pattern.patterns, cap)
+        src, _, _, v_tx = sionna_scene.sources(True, True)
+        tgt, _, _, v_rx = sionna_scene.targets(True, True)
+        return self._trace(sionna_scene.mi_scene, sionna_scene.wavelength, src, tgt,
+                           _orient(source_orientations, nt), _orient(target_orientations, nr),
+                           v_tx, v_rx, cap)
 
     def solve_endpoints(self, sionna_scene, sources: np.ndarray, targets: np.ndarray,
                         cap: int, source_orientations: np.ndarray | None = None,
@@ -416,9 +493,8 @@ class SolverCore:
         v_tx = arr(source_velocities, ns, mi.Vector3f)
         v_rx = arr(target_velocities, nt, mi.Vector3f)
         if not self.legacy:
-            pattern = self.iso_array.antenna_pattern.patterns
             return self._trace(sionna_scene.mi_scene, sionna_scene.wavelength, src, tgt,
-                               src_o, tgt_o, v_tx, v_rx, pattern, pattern, cap)
+                               src_o, tgt_o, v_tx, v_rx, cap)
         return self._solve_endpoints_legacy(sionna_scene, src, tgt, src_o, tgt_o, v_tx, v_rx,
                                             cap)
 
@@ -431,7 +507,7 @@ class SolverCore:
 
         ns, nt = dr.width(src), dr.width(tgt)
         rel_tx, rel_rx = dr.zeros(mi.Point3f, ns), dr.zeros(mi.Point3f, nt)
-        pattern = self.iso_array.antenna_pattern.patterns
+        pattern = self.basis_array.antenna_pattern.patterns
         dr.make_opaque(src, tgt, src_o, tgt_o)
         kw = self.solver_kwargs(cap)
         s = self.solver
@@ -452,20 +528,19 @@ class SolverCore:
         buf = s._field_calculator(
             wavelength=sionna_scene.wavelength, paths=buf,
             samples_per_src=kw["samples_per_src"], diffraction=kw["diffraction"],
-            src_positions=src, tgt_positions=tgt, src_orientations=src_o,
-            tgt_orientations=tgt_o, src_antenna_patterns=pattern,
-            tgt_antenna_patterns=pattern)
+            src_positions=src, tgt_positions=tgt,
+            src_orientations=dr.zeros(mi.Point3f, ns), tgt_orientations=dr.zeros(mi.Point3f, nt),
+            src_antenna_patterns=pattern, tgt_antenna_patterns=pattern)
         buf.discard_invalid()
         # Paths only reads these attributes of the scene.
         stand_in = types.SimpleNamespace(
-            tx_array=self.iso_array, rx_array=self.iso_array, transmitters=range(ns),
+            tx_array=self.basis_array, rx_array=self.basis_array, transmitters=range(ns),
             receivers=range(nt), wavelength=sionna_scene.wavelength,
             frequency=sionna_scene.frequency)
         paths = Paths(stand_in, src, tgt, v_tx, v_rx, True, buf, rel_tx, rel_rx)
         return paths_to_numpy(paths, nt, ns, self.config.max_depth,
-                               self._counter.counts, cap)
-
-
+                               self._counter.counts, cap, _orient(src_o, ns),
+                               _orient(tgt_o, nt))
 
     def los_test(self, mi_scene, src, tgt, buf) -> None:
         """Sionna's line-of-sight test: appends the visible LoS paths of every

@@ -37,11 +37,31 @@ def test_loads_and_derives(folder):
     assert [(lk.tx, lk.rx) for lk in cfg.links] == [("AP1", "robot1")]
 
 
-def test_dual_polarization_is_refused_at_load(folder):
-    # no polarimetric transfer matrix in the trace: engine/phy/patterns.py
+def test_every_polarization_loads_and_dual_doubles_the_ports(folder):
+    for pol, ports in (("V", 4), ("H", 4), ("VH", 8), ("cross", 8)):
+        p = folder / "twin.toml"
+        p.write_text(re.sub(r'polarization = "\w+"', f'polarization = "{pol}"',
+                            p.read_text(), count=1))
+        ap = load_config(folder).device("AP1")
+        assert (ap.array.polarization, ap.array.num_ant) == (pol, ports)
+
+
+@pytest.mark.parametrize("table,culprit", [
+    ('[tracer]\nbackend = "grid"\ngrid_file = "g.npz"',
+     r"devices\[0\] \(AP1\)\.array\.polarization: 'cross' needs the paths' polarization"),
+    ('[[sensing]]\ntx = "AP1"\nrx = "AP1"\nrho = 0.25',
+     r"sensing\[0\]\.tx: device 'AP1' has polarization 'cross'; sensing links model V"),
+    ("[localization]\nmethod = \"MCA\"",
+     r"localization: devices\[0\] \(AP1\) has polarization 'cross'; fingerprints"),
+])
+def test_polarization_refused_where_only_v_is_modelled(folder, table, culprit):
+    """Path grids, sensing links and fingerprints carry V elements only: one line."""
     _edit(folder, 'polarization = "V"', 'polarization = "cross"')
-    with pytest.raises(ConfigError, match=r"array\.polarization: 'cross' is not modelled"):
+    p = folder / "twin.toml"
+    p.write_text(p.read_text() + "\n" + table + "\n")
+    with pytest.raises(ConfigError, match=culprit) as e:
         load_config(folder)
+    assert "\n" not in str(e.value)
 
 
 @pytest.mark.parametrize("old,new,culprit", [

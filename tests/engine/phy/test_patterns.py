@@ -134,14 +134,20 @@ def test_directional_ap_changes_traced_gains_and_rates(room, tmp_path):
     assert lt.rate_bps != pytest.approx(li.rate_bps, rel=1e-3)
 
 
-def test_unmodelled_polarization_is_refused_at_load_with_one_line(room, capsys):
+def test_dual_polarization_loads_and_what_is_not_modelled_is_refused_in_one_line(room,
+                                                                                capsys):
     from engine.cli import main
 
     _set_pattern(room, "dipole", "VH")
+    assert main(["info", str(room)]) == 0
+    assert "2x2 VH (8 ports)" in capsys.readouterr().out
+    # a path grid stores no transfer matrices: refused at load, one line
+    p = room / "twin.toml"
+    p.write_text(p.read_text() + '\n[tracer]\nbackend = "grid"\ngrid_file = "g.npz"\n')
     assert main(["info", str(room)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
-    assert "devices[0] (AP1).array.polarization: 'VH' is not modelled" in err
+    assert "devices[0] (AP1).array.polarization: 'VH' needs the paths' polarization" in err
 
 
 @pytest.mark.slow

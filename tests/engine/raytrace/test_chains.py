@@ -81,6 +81,10 @@ def test_chains_equal_sionna_direct_paths_with_identical_values(room_scene):
             np.testing.assert_allclose(np.abs(got.a[m[hit]]), np.abs(ref.a[hit]), rtol=2e-4)
             np.testing.assert_allclose(got.a[m[hit]], ref.a[hit], rtol=3e-4, atol=1e-12)
             np.testing.assert_allclose(got.tau[m[hit]], ref.tau[hit], rtol=1e-6)
+            # the transfer matrices too (same tolerance, relative to each path's)
+            scale = np.abs(ref.pol[hit]).max(axis=(1, 2))
+            assert np.all(np.abs(got.pol[m[hit]] - ref.pol[hit]).max(axis=(1, 2))
+                          <= 3e-4 * scale + 1e-12), (pos, lk)
     assert confirmed <= 3  # a handful of weak paths, each confirmed above
 
 
@@ -251,6 +255,8 @@ def test_uplink_traced_as_reversed_downlink(room_scene):
                 # reciprocity, each direction computed in float32 by Sionna:
                 # up to 1.3e-3 was seen on a multi-bounce path in this room
                 assert g.a[j[0]] == pytest.approx(r.a[i], rel=5e-3, abs=1e-12)
+                # the reversed downlink's transfer matrix is the uplink's (T^T)
+                assert np.abs(g.pol[j[0]] - r.pol[i]).max() <= 5e-3 * np.abs(r.pol[i]).max()
                 np.testing.assert_allclose(g.vertices[j[0]], r.vertices[i], atol=1e-3)
             los = np.flatnonzero(g.num_interactions == 0)
             assert los.size == 1

@@ -54,6 +54,8 @@ def test_check_shapes_flags_bad_arrays(good, room_scene):
     assert any("shape" in e for e in check_shapes(replace(lp, doppler=lp.doppler[:-1])))
     assert any("sorted" in e for e in check_shapes(replace(lp, tau=lp.tau[::-1])))
     assert any("theta_t" in e for e in check_shapes(replace(lp, theta_t=lp.theta_t + 4)))
+    assert lp.pol.shape == (lp.num_paths, 2, 2)
+    assert any("pol has shape" in e for e in check_shapes(replace(lp, pol=lp.pol[:-1])))
 
 
 # ------------------------------------------------------------- exact path sets
@@ -81,8 +83,8 @@ class _Mangled:
                 keep = np.sort(np.r_[keep, i])
             elif self.how == "drop":
                 keep = np.delete(keep, i)
-            sub = {k: getattr(lp, k)[keep] for k in ("a", "tau", "doppler", "theta_t", "phi_t",
-                                                      "theta_r", "phi_r", "vertices",
+            sub = {k: getattr(lp, k)[keep] for k in ("a", "pol", "tau", "doppler", "theta_t",
+                                                      "phi_t", "theta_r", "phi_r", "vertices",
                                                       "interactions")}
             if self.how == "invent":  # the strongest reflection once more, 1 m longer
                 for k in sub:

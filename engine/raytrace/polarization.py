@@ -1,0 +1,108 @@
+r"""Polarimetric path records: the 2 x 2 field transfer matrix of a path and
+the local -> world rotation of an element's polarization.
+
+The tracer records for every path the transfer matrix ``T`` (``pol [..., 2, 2]``,
+complex) between the spherical unit vectors of the *world* frame at the two
+ends: row ``i`` is the receive component (0: theta-hat, 1: phi-hat at the
+arrival direction ``r_hat(theta_r, phi_r)``), column ``j`` the transmit
+component (same at the departure direction ``r_hat(theta_t, phi_t)``). It is
+Sionna RT's channel coefficient ``a[i][j]`` of two isotropic elements whose
+field patterns are the unit vectors ``(C_theta, C_phi) = (1, 0)`` and
+``(0, 1)`` at orientation zero (``SolverCore`` traces exactly these; Sionna's
+own ``"VH"`` polarization gives the same up to ``cos(pi/2)`` in float32).
+
+Any element of any orientation then follows exactly (Sionna's
+``antenna_pattern_to_world_implicit`` is linear in ``(C_theta, C_phi)``):
+
+.. math::
+
+    a = (Q_r c_r)^T \, T \, (Q_t c_t)
+
+with ``c = (C_theta, C_phi)`` the element's field pattern evaluated at the
+direction in the array's local frame (``R^T k``) and ``Q`` (:func:`local_to_world`)
+the 2 x 2 rotation from the local spherical basis (rotated into the world by
+``R``) to the world spherical basis at ``k``. A vertically polarized
+isotropic element has ``c = (1, 0)``: :func:`v_coefficients` gives the
+coefficient the tracer records in ``a``.
+
+Reciprocity: the reversed link (``rx -> tx``) has ``T^T`` (the channel
+between two given antennas is symmetric).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from engine.pose import rotation_matrix
+
+__all__ = ["local_to_world", "rotations", "v_coefficients", "world_basis"]
+
+
+def world_basis(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Spherical unit vectors ``theta_hat, phi_hat [..., 3]`` at unit
+    directions ``k [..., 3]`` (Sionna's ``theta_hat`` / ``phi_hat``; at the
+    poles ``phi = 0``)."""
+    k = np.asarray(k, np.float64)
+    th = np.arctan2(np.hypot(k[..., 0], k[..., 1]), k[..., 2])
+    ph = np.arctan2(k[..., 1], k[..., 0])
+    ct, st, cp, sp = np.cos(th), np.sin(th), np.cos(ph), np.sin(ph)
+    t_hat = np.stack([ct * cp, ct * sp, -st], -1)
+    p_hat = np.stack([-sp, cp, np.zeros_like(ph)], -1)
+    return t_hat, p_hat
+
+
+def rotations(orientations) -> np.ndarray:
+    """Rotation matrices ``[N, 3, 3]`` (local -> world) of Sionna orientations
+    ``[N, 3]`` (``[yaw, pitch, roll]`` rad), one :func:`~engine.pose.rotation_matrix`
+    per distinct orientation."""
+    o = np.asarray(orientations, np.float64).reshape(-1, 3)
+    uniq, inv = np.unique(o, axis=0, return_inverse=True)
+    mats = (np.stack([rotation_matrix(u[2], u[1], u[0]) for u in uniq]) if len(uniq)
+            else np.zeros((0, 3, 3)))
+    return mats[np.asarray(inv).reshape(-1)]
+
+
+def local_to_world(k: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The element frame seen from world directions.
+
+    Args:
+        k: world unit directions ``[L, 3]`` (away from the array).
+        rot: array rotation ``[3, 3]`` or per direction ``[L, 3, 3]`` (local -> world).
+
+    Returns:
+        ``(theta_local [L], phi_local [L], Q [L, 2, 2])``: the direction in the
+        array's frame (where its pattern is evaluated) and ``Q`` with
+        ``[e_theta, e_phi]_world = Q @ [C_theta, C_phi]_local``.
+    """
+    k = np.asarray(k, np.float64).reshape(-1, 3)
+    rot = np.broadcast_to(np.asarray(rot, np.float64), (len(k), 3, 3))
+    k_loc = np.einsum("lji,lj->li", rot, k)  # R^T k
+    th = np.arctan2(np.hypot(k_loc[:, 0], k_loc[:, 1]), k_loc[:, 2])
+    ph = np.arctan2(k_loc[:, 1], k_loc[:, 0])
+    tl, pl = world_basis(k_loc)
+    tl_w = np.einsum("lij,lj->li", rot, tl)
+    pl_w = np.einsum("lij,lj->li", rot, pl)
+    tw, pw = world_basis(k)
+    q = np.empty((len(k), 2, 2))
+    q[:, 0, 0] = np.sum(tw * tl_w, -1)
+    q[:, 0, 1] = np.sum(tw * pl_w, -1)
+    q[:, 1, 0] = np.sum(pw * tl_w, -1)
+    q[:, 1, 1] = np.sum(pw * pl_w, -1)
+    return th, ph, q
+
+
+def v_coefficients(pol: np.ndarray, k_t: np.ndarray, k_r: np.ndarray, rot_t: np.ndarray,
+                   rot_r: np.ndarray) -> np.ndarray:
+    """Path coefficients ``[L]`` of isotropic, vertically polarized elements in
+    the given orientations from transfer matrices ``pol [L, 2, 2]``.
+
+    Args:
+        k_t, k_r: departure / arrival unit directions ``[L, 3]``.
+        rot_t, rot_r: ``[3, 3]`` or ``[L, 3, 3]`` array rotations.
+    """
+    pol = np.asarray(pol)
+    if len(pol) == 0:
+        return np.zeros(0, np.complex128)
+    qt = local_to_world(k_t, rot_t)[2][:, :, 0]  # the V unit vector, world components
+    qr = local_to_world(k_r, rot_r)[2][:, :, 0]
+    return np.einsum("li,lij,lj->l", qr, pol, qt)
