@@ -250,3 +250,17 @@ def test_cli_tools_on_the_bundled_l_office(tmp_path):
     assert m["paper_mode"]["path"]["closed"] is True
     assert m["database"]["frequency_hz"] == 5.8e9
     assert (out / "trajectories_closed_loop.png").stat().st_size > 10000
+
+
+@pytest.mark.parametrize("cmd", ["grid", "fingerprints"])
+def test_cluster_options_are_refused_in_one_line(lab, tmp_path, capsys, cmd):
+    out = ["--out", str(tmp_path / "g.npz")] if cmd == "grid" else []
+    for extra, why in ((["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"],
+                        "--workers and --scheduler"),
+                       (["--workers", "0"], "--workers 0: expected at least 1"),
+                       (["--tile-size", "8"], "--tile-size: only with"),
+                       (["--workers", "1", "--tile-size", "0"], "--tile-size 0")):
+        assert main([cmd, str(lab), *out, *extra]) == 2
+        err = capsys.readouterr().err
+        assert why in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "g.npz").exists()
