@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from engine.cli import main
@@ -264,3 +265,19 @@ def test_cluster_options_are_refused_in_one_line(lab, tmp_path, capsys, cmd):
         err = capsys.readouterr().err
         assert why in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "g.npz").exists()
+
+
+@pytest.mark.slow
+def test_fingerprints_on_two_workers_equal_the_single_process_database(lab, tmp_path):
+    from engine.localization.fingerprints import load_database
+
+    base = ["fingerprints", str(lab), "--spacing", "0.5"]
+    assert main([*base, "--cache-dir", str(tmp_path / "one")]) == 0
+    assert main([*base, "--cache-dir", str(tmp_path / "two"), "--workers", "2"]) == 0
+    (a,), (b,) = (list((tmp_path / d).iterdir()) for d in ("one", "two"))
+    assert a.name == b.name  # same cache file name: scene hash, frequency, spacing
+    da, db = load_database(a), load_database(b)
+    assert db.meta["tracer"]["method"] == "chains"
+    np.testing.assert_array_equal(db.arrays["num_paths"], da.arrays["num_paths"])
+    for k, v in da.arrays.items():  # same paths, to float32 rounding (see tests/engine/scaleout)
+        np.testing.assert_allclose(db.arrays[k], v, rtol=1e-5, equal_nan=True, err_msg=k)
