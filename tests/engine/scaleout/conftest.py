@@ -45,8 +45,9 @@ def single_grid(room_scene):
     return trace_grid(room_scene, spacing=SPACING, chunk_size=CHUNK, progress=False, verify=0)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="package")
 def client():
+    """One local cluster for the whole package (a start costs seconds)."""
     from engine.scaleout.cluster import cluster_client
 
     with cluster_client(workers=2) as c:
