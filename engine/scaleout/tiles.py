@@ -177,13 +177,14 @@ def plan_grid(scene, tx_names: Sequence[str] | None, spacing: float, height: flo
 
 # --------------------------------------------------------------------------- worker side
 
-#: Per worker process: cache key -> (TwinScene, ChainTracer). One entry: a
+#: Per worker process: cache key -> (TwinScene, ChainTracer, [replayed probes]). One entry: a
 #: worker serves one grid at a time, and a scene holds ~100 MB.
 _STATE: dict[str, tuple] = {}
 
 
 def worker_state(job: TileJob):
-    """The loaded scene and chain tracer of this process for ``job`` (cached).
+    """The loaded scene, the chain tracer and ``[probes replayed, not yet
+    reported]`` of this process for ``job`` (cached).
 
     Raises:
         ValueError: the scene folder on this worker hashes otherwise than the
@@ -215,7 +216,8 @@ def worker_state(job: TileJob):
     ct = ChainTracer(core, job.probe_spacing, max_cap=job.max_cap)
     if job.probes == "grid":
         replay_probes(ct, scene.sionna, job)
-    _STATE[key] = (scene, ct)
+    # probes traced before the first tile (the replay): reported by that tile
+    _STATE[key] = (scene, ct, [ct.probes_traced])
     log.info("worker %d: loaded %s (%s)", os.getpid(), job.scene_folder, have[:12])
     return _STATE[key]
 
@@ -251,8 +253,9 @@ def trace_tile(job: TileJob, index: int, points: np.ndarray) -> dict:
         ``{"index", "parts": [dict of [t, S, P] arrays as sorted_chunk returns],
         "cap", "retries", "probes", "pid"}``.
     """
-    scene, ct = worker_state(job)
-    probes0, retries0 = ct.probes_traced, ct.truncation_retries
+    scene, ct, replayed = worker_state(job)
+    probes0, retries0 = ct.probes_traced - replayed[0], ct.truncation_retries
+    replayed[0] = 0
     parts = []
     for start in range(0, len(points), job.chunk_size):
         raw = ct.trace(scene.sionna, job.src, points[start:start + job.chunk_size],

@@ -57,6 +57,9 @@ def test_tiled_grid_and_database_equal_the_single_process_ones(room_scene, singl
     assert so["tiles"] == len(range(0, int(single_grid.free.sum()), TILE)) > 4
     assert so["workers"] == 2 and so["tiles_traced"] == so["tiles"]
     assert_equal_grids(single_grid, got)
+    # every worker that traced a tile replayed all of the single process's probes
+    single = single_grid.meta["tracer"]["chains"]["probes_traced"]
+    assert got.meta["tracer"]["chains"]["probes_traced"] in (single, 2 * single)
     da, db = from_grid(single_grid, room_scene), from_grid(got, room_scene)
     for k, v in da.arrays.items():
         np.testing.assert_allclose(db.arrays[k], v, rtol=1e-5, equal_nan=True, err_msg=k)

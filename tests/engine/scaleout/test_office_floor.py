@@ -39,9 +39,11 @@ def test_rooms_doors_and_aps(floor):
 def test_a_coarse_grid_of_the_floor_traces_on_the_cluster(floor, client):
     from engine.scaleout.cluster import trace_grid_tiled
 
-    g = trace_grid_tiled(floor, spacing=3.0, client=client, tile_size=4, probes="tile",
+    g = trace_grid_tiled(floor, spacing=4.0, client=client, tile_size=4, probes="tile",
                          progress=False)
-    assert g.shape == (6, 4) and g.tx_names == ["AP1", "AP2", "AP3", "AP4"]
+    assert g.shape == (5, 3) and g.tx_names == ["AP1", "AP2", "AP3", "AP4"]
     assert g.meta["scaleout"]["tiles"] == -(-int(g.free.sum()) // 4)
     n = g.arrays["num_paths"][g.free]
-    assert n.shape[1] == 4 and (n > 0).all()  # every free point reaches every AP
+    # walls block: a point need not reach every AP, but every point reaches one
+    # and every AP is reached
+    assert n.shape[1] == 4 and (n.max(axis=1) > 0).all() and (n.max(axis=0) > 0).all()
