@@ -226,6 +226,12 @@ def cmd_grid(args) -> int:
     scene = load_scene(scene_path(args))
     t0 = time.perf_counter()
     distributed = args.workers is not None or args.scheduler is not None
+    method = args.method or scene.config.tracer.method
+    uses_chains = scene.config.tracer.uses_chains if method == "auto" else method == "chains"
+    if distributed and not uses_chains:  # before a cluster starts
+        print("isac-twin: error: --workers/--scheduler trace grids with chain reuse only "
+              f"(method {method!r}); trace 'sbr' grids without them", file=sys.stderr)
+        return 2
     tracer = trace_grid
     if distributed:
         from engine.scaleout.checkpoint import checkpoint_dir

@@ -264,6 +264,10 @@ def test_cluster_options_are_refused_in_one_line(lab, tmp_path, capsys, cmd):
         assert main([cmd, str(lab), *out, *extra]) == 2
         err = capsys.readouterr().err
         assert why in err and len(err.strip().splitlines()) == 1, err
+    if cmd == "grid":  # shoot-and-bounce per point is not tiled: refused before a cluster starts
+        assert main([cmd, str(lab), *out, "--workers", "2", "--method", "sbr"]) == 2
+        err = capsys.readouterr().err
+        assert "chain reuse only" in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "g.npz").exists()
 
 
