@@ -161,6 +161,47 @@ def _grid_args(p: argparse.ArgumentParser) -> None:
                    help="re-trace this many points one per call and report missing paths")
     p.add_argument("--compress", action="store_true", help="write a compressed NPZ")
     p.add_argument("--out", type=Path, required=True, help="output grid file (.npz)")
+    _cluster_args(p)
+
+
+def _cluster_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="trace tiles on a local Dask cluster of N single-threaded worker "
+                        "processes (see docs/scaleout.md)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="trace tiles on a running Dask cluster (e.g. tcp://host:8786); the "
+                        "scene folder must be at the same path on every worker")
+    p.add_argument("--tile-size", type=int, default=None,
+                   help="free points per tile (--workers/--scheduler; a multiple of the "
+                        "1024-point chunk, default one chunk)")
+
+
+def cluster_options(args) -> str | None:
+    """Why ``--workers``/``--scheduler``/``--tile-size`` are refused (None: fine)."""
+    from engine.scaleout.cluster import check_cluster_args
+
+    try:
+        check_cluster_args(args.workers, args.scheduler)
+    except ValueError as exc:
+        return str(exc)
+    if args.tile_size is not None and args.tile_size < 1:
+        return f"--tile-size {args.tile_size}: expected at least 1 point per tile"
+    if args.tile_size is not None and args.workers is None and args.scheduler is None:
+        return "--tile-size: only with --workers or --scheduler"
+    return None
+
+
+def tiled_tracer(args, checkpoints: Path):
+    """``trace_grid``'s stand-in that traces on the cluster of ``--workers`` /
+    ``--scheduler`` (started, or connected to, only when a grid is traced)."""
+    from engine.scaleout.cluster import cluster_client, trace_grid_tiled
+
+    def trace(*a, **kw):
+        with cluster_client(args.workers, args.scheduler) as client:
+            return trace_grid_tiled(*a, client=client, checkpoints=checkpoints,
+                                    tile_size=args.tile_size, **kw)
+
+    return trace
 
 
 @command("grid", "trace a floor grid of receiver positions and store it (NPZ)", _grid_args)
@@ -171,14 +212,30 @@ def cmd_grid(args) -> int:
     from engine.raytrace.grid import grid_summary, save_grid, trace_grid
     from engine.scene import load_scene
 
+    refused = cluster_options(args)
+    if refused:
+        print(f"isac-twin: error: {refused}", file=sys.stderr)
+        return 2
     scene = load_scene(scene_path(args))
     t0 = time.perf_counter()
+    distributed = args.workers is not None or args.scheduler is not None
+    method = args.method or scene.config.tracer.method
+    uses_chains = scene.config.tracer.uses_chains if method == "auto" else method == "chains"
+    if distributed and not uses_chains:  # before a cluster starts
+        print("isac-twin: error: --workers/--scheduler trace grids with chain reuse only "
+              f"(method {method!r}); trace 'sbr' grids without them", file=sys.stderr)
+        return 2
+    tracer = trace_grid
+    if distributed:
+        from engine.scaleout.checkpoint import checkpoint_dir
+
+        tracer = tiled_tracer(args, checkpoint_dir(args.out))
     try:
-        g = trace_grid(scene, args.tx, spacing=args.spacing, height=args.height,
-                       margin=args.margin, chunk_size=args.chunk_size,
-                       method=args.method,
-                       deterministic=True if args.deterministic else None,
-                       verify=args.verify)
+        g = tracer(scene, args.tx, spacing=args.spacing, height=args.height,
+                   margin=args.margin, chunk_size=args.chunk_size,
+                   method=args.method,
+                   deterministic=True if args.deterministic else None,
+                   verify=args.verify)
     except (ValueError, TruncationError) as exc:
         print(f"isac-twin: error: {exc}", file=sys.stderr)
         return 2
@@ -189,6 +246,11 @@ def cmd_grid(args) -> int:
           f"paths per link on average (max {s['max_paths_per_link']}), "
           f"{s['truncation_retries']} truncation retries, {time.perf_counter() - t0:.1f} s")
     v = s["verification"]
+    if distributed:
+        so = g.meta["scaleout"]
+        print(f"traced on {so['workers']} workers: {so['tiles_traced']} tiles of "
+              f"{so['tile_size']} points ({so['tiles_resumed']} resumed from checkpoints); "
+              "no verification re-trace on a cluster")
     if v.get("points"):
         print(f"verification: {v['points']} points re-traced one per call: "
               f"{v['paths_missing']} of {v['paths_single_calls']} paths missing in the grid, "
@@ -301,21 +363,36 @@ def _fingerprint_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cache-dir", type=Path, default=Path("out/cache"),
                    help="where databases are cached (default out/cache)")
     p.add_argument("--rebuild", action="store_true", help="trace again even if cached")
+    _cluster_args(p)
 
 
 @command("fingerprints", "build (or find in the cache) the fingerprint database of a scene: "
          "the multipath delay profile of every AP on a floor grid", _fingerprint_args)
 def cmd_fingerprints(args) -> int:
-    from engine.localization.fingerprints import cached_database
+    from engine.localization.fingerprints import cache_path, cached_database
     from engine.scene import load_scene
 
     if not args.spacing > 0:
         print(f"isac-twin: error: --spacing {args.spacing}: expected a positive size in m",
               file=sys.stderr)
         return 2
+    refused = cluster_options(args)
+    if refused:
+        print(f"isac-twin: error: {refused}", file=sys.stderr)
+        return 2
     scene = load_scene(scene_path(args))
-    db = cached_database(scene, spacing=args.spacing, cache_dir=args.cache_dir,
-                         rebuild=args.rebuild)
+    kw = {}
+    if args.workers is not None or args.scheduler is not None:
+        from engine.scaleout.checkpoint import checkpoint_dir
+
+        kw = {"progress": True, "grid_tracer": tiled_tracer(
+            args, checkpoint_dir(cache_path(scene, args.spacing, args.cache_dir)))}
+    try:
+        db = cached_database(scene, spacing=args.spacing, cache_dir=args.cache_dir,
+                             rebuild=args.rebuild, **kw)
+    except ValueError as exc:
+        print(f"isac-twin: error: {exc}", file=sys.stderr)
+        return 2
     free = int(db.arrays["free"].sum())
     print(f"{db.path}: {free} free points of a {args.spacing:g} m grid, APs "
           f"{', '.join(db.ap_names)}, scene hash {db.scene_hash[:16]}")

@@ -267,7 +267,8 @@ def from_grid(grid, scene, *, max_paths: int = DEFAULT_MAX_PATHS) -> Fingerprint
 def build_database(scene, *, spacing: float = DEFAULT_SPACING, height: float | None = None,
                    max_paths: int = DEFAULT_MAX_PATHS, margin: float = 0.0,
                    tracer_config=None, ap_names=None, progress: bool = False,
-                   verify: int = 4, out: str | Path | None = None) -> FingerprintDB:
+                   verify: int = 4, out: str | Path | None = None,
+                   grid_tracer=None) -> FingerprintDB:
     """Trace the floor grid of ``scene`` and keep the strongest paths.
 
     Args:
@@ -281,13 +282,18 @@ def build_database(scene, *, spacing: float = DEFAULT_SPACING, height: float | N
         progress: tqdm progress bar.
         verify: points re-traced one per call to check the chunked trace.
         out: also save the database there.
+        grid_tracer: what traces the grid, called like
+            :func:`~engine.raytrace.grid.trace_grid` (default that one; e.g. a
+            ``functools.partial`` of
+            :func:`engine.scaleout.cluster.trace_grid_tiled` for a Dask cluster).
 
     Returns:
         The :class:`FingerprintDB`.
     """
-    from engine.raytrace.grid import trace_grid
+    if grid_tracer is None:
+        from engine.raytrace.grid import trace_grid as grid_tracer
 
-    grid = trace_grid(scene, ap_names, spacing=spacing, height=height, margin=margin,
+    grid = grid_tracer(scene, ap_names, spacing=spacing, height=height, margin=margin,
                       config=tracer_config, progress=progress, verify=verify)
     db = from_grid(grid, scene, max_paths=max_paths)
     if out is not None:

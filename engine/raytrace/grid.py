@@ -433,8 +433,7 @@ def _trace_by_chains(core, sc, plan: _GridPlan, chunk_size: int, max_cap: int | 
     """Job 2 (chain reuse): the transmitters' chains first, then the points chunk by chunk."""
     from tqdm import tqdm
 
-    ct = ChainTracer(core, max_cap=max_cap)
-    ct.prepare(sc, plan.src, plan.points[plan.todo][:1])  # enumerates the chains
+    ct = ChainTracer(core, max_cap=max_cap)  # its first trace enumerates the chains
     pieces = []
     with tqdm(total=len(plan.todo), unit="pt", desc="grid", disable=not progress) as bar:
         for start in range(0, len(plan.todo), chunk_size):

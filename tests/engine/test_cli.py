@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from engine.cli import main
@@ -250,3 +251,37 @@ def test_cli_tools_on_the_bundled_l_office(tmp_path):
     assert m["paper_mode"]["path"]["closed"] is True
     assert m["database"]["frequency_hz"] == 5.8e9
     assert (out / "trajectories_closed_loop.png").stat().st_size > 10000
+
+
+@pytest.mark.parametrize("cmd", ["grid", "fingerprints"])
+def test_cluster_options_are_refused_in_one_line(lab, tmp_path, capsys, cmd):
+    out = ["--out", str(tmp_path / "g.npz")] if cmd == "grid" else []
+    for extra, why in ((["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"],
+                        "--workers and --scheduler"),
+                       (["--workers", "0"], "--workers 0: expected at least 1"),
+                       (["--tile-size", "8"], "--tile-size: only with"),
+                       (["--workers", "1", "--tile-size", "0"], "--tile-size 0")):
+        assert main([cmd, str(lab), *out, *extra]) == 2
+        err = capsys.readouterr().err
+        assert why in err and len(err.strip().splitlines()) == 1, err
+    if cmd == "grid":  # shoot-and-bounce per point is not tiled: refused before a cluster starts
+        assert main([cmd, str(lab), *out, "--workers", "2", "--method", "sbr"]) == 2
+        err = capsys.readouterr().err
+        assert "chain reuse only" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "g.npz").exists()
+
+
+@pytest.mark.slow
+def test_fingerprints_on_two_workers_equal_the_single_process_database(lab, tmp_path):
+    from engine.localization.fingerprints import load_database
+
+    base = ["fingerprints", str(lab), "--spacing", "0.5"]
+    assert main([*base, "--cache-dir", str(tmp_path / "one")]) == 0
+    assert main([*base, "--cache-dir", str(tmp_path / "two"), "--workers", "2"]) == 0
+    (a,), (b,) = (list((tmp_path / d).iterdir()) for d in ("one", "two"))
+    assert a.name == b.name  # same cache file name: scene hash, frequency, spacing
+    da, db = load_database(a), load_database(b)
+    assert db.meta["tracer"]["method"] == "chains"
+    np.testing.assert_array_equal(db.arrays["num_paths"], da.arrays["num_paths"])
+    for k, v in da.arrays.items():  # same paths, to float32 rounding (see tests/engine/scaleout)
+        np.testing.assert_allclose(db.arrays[k], v, rtol=1e-5, equal_nan=True, err_msg=k)

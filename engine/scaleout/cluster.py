@@ -1,0 +1,301 @@
+"""Trace a floor grid on a Dask cluster: tiles out, arrays back, one grid file.
+
+:func:`trace_grid_tiled` is :func:`engine.raytrace.grid.trace_grid` (chain
+reuse) with the free points split into tiles (:mod:`engine.scaleout.tiles`)
+that the workers of a ``distributed.Client`` trace; the client assembles the
+same :class:`~engine.raytrace.grid.PathGrid` (arrays and metadata) that the
+single-process trace gives. :func:`cluster_client` starts a local cluster of
+``N`` spawned single-threaded worker processes or connects to a scheduler.
+
+Nothing is lost:
+
+- a tile whose worker dies (killed, out of memory) is re-run on another worker
+  by the scheduler (``distributed.scheduler.allowed-failures``, default 3
+  deaths per task, then ``KilledWorker``); a local cluster's nanny restarts
+  the dead worker process;
+- every finished tile is written to a checkpoint folder
+  (:mod:`engine.scaleout.checkpoint`), so a build that was interrupted
+  (Ctrl-C, the client machine rebooted) resumes with the missing tiles only;
+- a tqdm progress bar counts finished tiles.
+
+What differs from ``trace_grid``: no ``meta["verification"]`` re-trace (it
+records ``{"points": 0, "skipped": ...}``; trace one process with ``verify``
+for it), and ``meta["scaleout"]`` says how the grid was
+built (tiles, tile size, workers, tiles resumed from checkpoints).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime as _dt
+import logging
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from engine.config import TracerConfig
+from engine.raytrace.chains import CHAIN_REUSE_VERSION
+from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_FORMAT, GRID_FORMAT_VERSION,
+                                  GRID_SPEC_TABLE_SIZE, PathGrid, save_grid)
+from engine.raytrace.raw import pad_paths
+from engine.scaleout.checkpoint import TileCheckpoints, checkpoint_key
+from engine.scaleout.tiles import (DEFAULT_WORKER_THREADS, GridPlan, TileJob, plan_grid,
+                                   scene_folder, trace_tile)
+
+log = logging.getLogger(__name__)
+
+_PATH_KEYS = ("valid", "a", "tau", "theta_t", "phi_t", "theta_r", "phi_r", "interactions",
+              "vertices")
+
+
+def check_cluster_args(workers: int | None, scheduler: str | None) -> None:
+    """Refuse ``workers`` together with ``scheduler``, and ``workers < 1``.
+
+    Raises:
+        ValueError: one line saying which.
+    """
+    if workers is not None and scheduler is not None:
+        raise ValueError("--workers and --scheduler: give one of them (a local cluster of "
+                         "N workers, or the address of a running scheduler), not both")
+    if workers is not None and int(workers) < 1:
+        raise ValueError(f"--workers {workers}: expected at least 1 worker process")
+    if scheduler is not None and not str(scheduler).strip():
+        raise ValueError("--scheduler: expected an address such as tcp://host:8786")
+
+
+def _check_spawn() -> None:
+    import dask
+
+    method = dask.config.get("distributed.worker.multiprocessing-method", "spawn")
+    if method == "fork":
+        raise ValueError("dask config distributed.worker.multiprocessing-method is 'fork': "
+                         "Dr.Jit must not be forked after it initialised; set it to 'spawn'")
+
+
+@contextlib.contextmanager
+def cluster_client(workers: int | None = None, scheduler: str | None = None, *,
+                   memory_limit: str | float = "auto") -> Iterator:
+    """A ``distributed.Client``: a local cluster of ``workers`` spawned
+    single-threaded worker processes (closed on exit), or connected to the
+    scheduler at ``scheduler`` (left running).
+
+    Args:
+        workers: worker processes of a local cluster (one thread each).
+        scheduler: address of a running scheduler (``tcp://host:8786``).
+        memory_limit: per local worker (Dask's ``memory_limit``; a worker that
+            exceeds 95 % of it is restarted and its tile re-run).
+
+    Raises:
+        ValueError: both or neither given, ``workers < 1``, or a fork start method.
+    """
+    from distributed import Client, LocalCluster
+
+    check_cluster_args(workers, scheduler)
+    if workers is None and scheduler is None:
+        raise ValueError("cluster_client: give workers or scheduler")
+    if scheduler is not None:
+        with Client(scheduler) as client:
+            yield client
+        return
+    _check_spawn()
+    with LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                      dashboard_address=":0", memory_limit=memory_limit,
+                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+        yield client
+
+
+def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.05,
+                     height: float | None = None, margin: float = 0.0, *, client,
+                     config: TracerConfig | None = None, tile_size: int | None = None,
+                     checkpoints: str | Path | None = None, progress: bool = True,
+                     keep_strongest: int | None = None,
+                     method: str | None = None, deterministic: bool | None = None,
+                     max_cap: int | None = None, chunk_size: int | None = None,
+                     worker_threads: int = DEFAULT_WORKER_THREADS, verify: int = 0,
+                     out: str | Path | None = None,
+                     on_tile: Callable[[dict], None] | None = None) -> PathGrid:
+    """Trace a floor grid on the workers of ``client`` (see the module doc).
+
+    Args:
+        scene: the :class:`~engine.scene.TwinScene`; workers load its folder
+            (same path on every worker) and must get the same content hash.
+        tx_names, spacing (m), height (m), margin (m), config, keep_strongest,
+            method, deterministic, max_cap, chunk_size: as
+            :func:`~engine.raytrace.grid.trace_grid` (``method`` must be chain reuse).
+        client: a ``distributed.Client`` (see :func:`cluster_client`).
+        tile_size: free points per tile (a task), a multiple of ``chunk_size``
+            (default: one chunk, 1024 points): a point's paths may depend on
+            which points share its image-method calls (float32 near a
+            validity edge), so tiles keep ``trace_grid``'s chunks.
+        checkpoints: the checkpoint folder (None: no checkpoints); finished
+            tiles are kept there until the grid is complete.
+        progress: tqdm progress bar over tiles.
+        worker_threads: Dr.Jit threads per worker process.
+        verify: accepted for the signature of ``trace_grid``; not run here
+            (logged when > 0).
+        out: also write the grid NPZ there.
+        on_tile: called in the client with each finished tile's summary
+            (``index``, ``pid``, ``chains``, ``retries``) as it arrives.
+
+    Returns:
+        The :class:`~engine.raytrace.grid.PathGrid`.
+
+    Raises:
+        ValueError: bad arguments, an ``sbr`` method, or a worker whose scene
+            folder differs.
+        distributed.KilledWorker: a tile killed its workers too often.
+    """
+    from distributed import as_completed
+    from tqdm import tqdm
+
+    config = config or scene.config.tracer
+    det = bool(deterministic) if deterministic is not None else False
+    chunk = CHAIN_CHUNK_SIZE if chunk_size is None else int(chunk_size)
+    if chunk < 1:
+        raise ValueError(f"chunk_size: expected >= 1, got {chunk_size}")
+    if tile_size is None:
+        tile_size = chunk
+    if int(tile_size) < 1 or int(tile_size) % chunk:
+        raise ValueError(f"tile_size {tile_size}: a tile must be a whole number of chunks "
+                         f"({chunk} points), or its points share image-method calls with other "
+                         "points than in one process and the paths can differ")
+    plan = plan_grid(scene, tx_names, spacing, height, margin, config, method, tile_size)
+    job = TileJob(scene_folder=str(scene_folder(scene)), scene_hash=scene.content_hash(),
+                  config=config, src=plan.src, src_orient=plan.src_orient, deterministic=det,
+                  spec_table_size=GRID_SPEC_TABLE_SIZE, max_cap=max_cap,
+                  keep_strongest=None if keep_strongest is None else int(keep_strongest),
+                  chunk_size=chunk, worker_threads=int(worker_threads))
+    if verify:
+        log.info("tiled grid: the %d-point verification re-trace is not run on a cluster",
+                 verify)
+    key = checkpoint_key({**job.settings(), "spacing": float(spacing), "height": plan.height,
+                          "margin": float(margin), "tx_names": plan.tx_names,
+                          "points": len(plan.points), "tile_size": plan.tile_size})
+    ckpt = TileCheckpoints(checkpoints, key) if checkpoints is not None else None
+    tiles = plan.tiles
+    done: dict[int, list[dict]] = {}
+    infos: dict[int, dict] = {}
+    for k, idx in enumerate(tiles):
+        hit = ckpt.load(k, plan.points[idx]) if ckpt else None
+        if hit is not None:
+            done[k], infos[k] = hit
+    resumed = len(done)
+    if resumed:
+        log.info("resuming: %d of %d tiles from %s", resumed, len(tiles), ckpt.dir)
+    workers = len(client.scheduler_info().get("workers", {}))
+    log.info("tracing %d x %d grid (%d free points) in %d tiles of %d on %d workers",
+             *plan.shape, len(plan.todo), len(tiles), plan.tile_size, workers)
+    futures = [client.submit(trace_tile, job, k, plan.points[idx], pure=False,
+                             key=f"isac-tile-{key}-{k}")
+               for k, idx in enumerate(tiles) if k not in done]
+    try:
+        with tqdm(total=len(tiles), initial=resumed, unit="tile", desc="grid tiles",
+                  disable=not progress) as bar:
+            for fut in as_completed(futures):
+                res = fut.result()
+                fut.release()
+                k = res.pop("index")
+                parts = res.pop("parts")
+                info = {"cap": res["cap"], "retries": res["retries"], "chains": res["chains"]}
+                if ckpt:
+                    ckpt.save(k, plan.points[tiles[k]], parts, info)
+                done[k], infos[k] = parts, info
+                bar.update(1)
+                if on_tile is not None:
+                    on_tile({"index": k, **res})
+    except BaseException:
+        client.cancel(futures)
+        raise
+    arrays = assemble(plan, [(tiles[k], done[k]) for k in sorted(done)], max(1, config.max_depth))
+    meta = grid_meta(scene, config, plan, spacing, margin, {
+        **dataclasses.asdict(config), "deterministic": det,
+        "max_num_paths_per_src_used": max([int(i["cap"]) for i in infos.values()],
+                                          default=config.max_num_paths_per_src),
+        "chunk_size": chunk,
+        "truncation_retries": sum(int(i["retries"]) for i in infos.values()),
+        "spec_table_size": GRID_SPEC_TABLE_SIZE, "keep_strongest": job.keep_strongest,
+        "method": "chains",
+        "chains": {"version": CHAIN_REUSE_VERSION, "rays_per_source": config.samples_per_src,
+                   "chains": max((int(i.get("chains", 0)) for i in infos.values()),
+                                 default=0)}},
+        {"points": 0, "skipped": "not run on a cluster"})
+    meta["scaleout"] = {"tiles": len(tiles), "tile_size": plan.tile_size, "workers": workers,
+                        "tiles_resumed": resumed, "tiles_traced": len(tiles) - resumed,
+                        "checkpoint_key": key}
+    grid = PathGrid(meta=meta, arrays=arrays)
+    if out is not None:
+        save_grid(grid, out)
+    if ckpt:
+        ckpt.remove()
+    return grid
+
+
+def assemble(plan: GridPlan, tiles: list[tuple[np.ndarray, list[dict]]],
+             depth: int) -> dict[str, np.ndarray]:
+    """The grid arrays (:data:`~engine.raytrace.grid.GRID_ARRAYS`) from traced tiles.
+
+    Args:
+        plan: the raster.
+        tiles: ``(point indices [T], parts)``; a part is a ``sorted_chunk`` dict
+            ``[t, S, P']``, the parts of a tile cover its points in order.
+        depth: interaction slots ``D``.
+    """
+    pieces = []
+    for idx, parts in tiles:
+        off = 0
+        for part in parts:
+            n = part["num_paths"].shape[0]
+            pieces.append((idx[off:off + n], part))
+            off += n
+        if off != len(idx):
+            raise ValueError(f"a tile returned {off} points, expected {len(idx)}")
+    s = len(plan.tx_names)
+    p = max([part["valid"].shape[2] for _, part in pieces], default=0)
+    n_all = len(plan.points)
+    arrays = {
+        "points": plan.points, "free": plan.free, "tx_positions": plan.src,
+        "tx_orientations": plan.src_orient_cfg,
+        "num_paths": np.zeros((n_all, s), np.int32),
+        "valid": np.zeros((n_all, s, p), bool),
+        "a": np.zeros((n_all, s, p), np.complex64),
+        "tau": np.zeros((n_all, s, p), np.float64),
+        **{k: np.zeros((n_all, s, p), np.float32) for k in ("theta_t", "phi_t", "theta_r",
+                                                            "phi_r")},
+        "interactions": np.zeros((n_all, s, p, depth), np.uint8),
+        "vertices": np.zeros((n_all, s, p, depth, 3), np.float32),
+    }
+    for idx, part in pieces:
+        arrays["num_paths"][idx] = part["num_paths"]
+        for k in _PATH_KEYS:
+            arrays[k][idx] = pad_paths(part[k], p).astype(arrays[k].dtype)
+    return arrays
+
+
+def grid_meta(scene, config: TracerConfig, plan: GridPlan, spacing: float, margin: float,
+              tracer_meta: dict, verification: dict) -> dict:
+    """The grid metadata, as ``trace_grid`` writes it (see ``docs/tracers.md``)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    import mitsuba as mi
+    import sionna.rt
+
+    sionna_version = getattr(sionna.rt, "__version__", None)
+    if sionna_version is None:
+        try:
+            sionna_version = version("sionna-rt")
+        except PackageNotFoundError:
+            sionna_version = "unknown"
+    cfg = scene.config
+    return {
+        "format": GRID_FORMAT, "version": GRID_FORMAT_VERSION,
+        "scene_name": cfg.scene.name, "scene_hash": scene.content_hash(),
+        "frequency_hz": cfg.scene.frequency_hz,
+        "origin": plan.origin.tolist(), "spacing": float(spacing), "shape": list(plan.shape),
+        "height": plan.height, "margin": float(margin),
+        "tx_names": plan.tx_names, "num_free": int(plan.free.sum()),
+        "tracer": tracer_meta, "verification": verification,
+        "sionna_version": sionna_version, "mitsuba_variant": mi.variant(),
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
