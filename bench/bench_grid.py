@@ -12,8 +12,8 @@ All in one process:
    one-receiver-per-call traces (``--verify-points``).
 2. **Baseline**: a random subsample traced one point per solver call (the
    ratio the issue asks for), extrapolated to the grid.
-3. **Full grid, chain reuse** (``trace_grid`` default: probes of a 0.5 m
-   lattice, Sionna's image method for every point), timed; its verification
+3. **Full grid, chain reuse** (``trace_grid`` default: every chain of the
+   APs enumerated once, Sionna's image method for every point), timed; its verification
    (random points re-traced directly, one per call: missing paths among all
    and among the 24 strongest per link).
 4. Optional ``--full-sbr`` / ``--full-old``: the full grid by chunked
@@ -164,8 +164,8 @@ def main(argv=None) -> int:
     s = grid_summary(g)
     ch = g.meta["tracer"]["chains"]
     print(f"3. full grid, chain reuse (default): {t_grid:.1f} s "
-          f"({t_grid / max(1, s['free']) * 1e3:.2f} ms per free point; {ch['probes_traced']} "
-          f"probes every {ch['probe_spacing']} m, {ch['chains']} chains), truncation retries "
+          f"({t_grid / max(1, s['free']) * 1e3:.2f} ms per free point; {ch['chains']} chains "
+          f"from {ch['rays_per_source']:.0e} rays per source), truncation retries "
           f"{s['truncation_retries']}, paths per link mean {s['mean_paths_per_link']:.1f}, "
           f"max {s['max_paths_per_link']}")
     print(f"   verification (direct traces, one point per call): {g.meta['verification']}")

@@ -2,7 +2,7 @@
 
 For ``--points`` random free floor points of the bundled lab where a robot
 fits (no obstacle within ``--clearance`` m at the antenna height and near the
-floor) plus points on the probe lattice's lines, each backend traces both
+floor) plus points at round coordinates, each backend traces both
 AP -> robot links and is compared, link by link, with a reference traced by
 Sionna RT's public ``PathSolver`` (one receiver per call, ``--reference``
 rays per source) and its ``Paths.cfr`` (:mod:`engine.raytrace.conformance`):
@@ -80,7 +80,7 @@ def main(argv=None) -> int:
             miss = np.concatenate([c.missing_db for c in comps])
             rep = check_path_sets(comps)
             print(f"\n{method} at {sps:.0e} rays: {dt * 1e3:.0f} ms per call "
-                  f"(chains: probes included)")
+                  f"(chains: their enumeration included)")
             print("  " + str(rep).replace("\n", "\n  "))
             print(f"  strongest missing path: "
                   f"{miss.max():.1f} dB" if miss.size else "  no path missing")

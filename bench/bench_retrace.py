@@ -9,9 +9,9 @@ a shared machine hits both alike):
 - ``legacy``: ``SionnaTracer(legacy=True)``, i.e. ``PathSolver.__call__`` and
   Sionna's ``Paths`` (the code path before the optimization);
 - ``chains``: chain reuse (``tracer.method = "chains"``, the default; see
-  ``engine/raytrace/chains.py``): probes of the 0.5 m lattice are traced when
-  the robot enters a new cell, every step runs only Sionna's image method and
-  field calculator. Its mean includes the probe steps.
+  ``engine/raytrace/chains.py``): the APs' chains are enumerated at the first
+  step (warm-up), every step runs only Sionna's image method and field
+  calculator over all of them.
 
 and checks that ``new`` and ``legacy`` give identical paths at every step and
 that chain reuse finds the 24 strongest paths per link of the direct trace. Per step it also
@@ -156,18 +156,14 @@ def main(argv=None) -> int:
             tr(scene, {**poses, robot: track[i]})
     rows = {k: [] for k in tracers}
     identical, npaths, npaths_c = 0, [], []
-    probe_steps = []
     found = [0, 0]
     for i in range(steps):
         p = {**poses, robot: track[3 + i]}
         res = {}
         for k, tr in (tracers.items() if i % 2 else reversed(tracers.items())):
-            before = tr.chains.probes_traced if tr.chains else 0
             with KernelStats() as ks:
                 res[k] = tr(scene, p)
             rows[k].append(ks)
-            if tr.chains and tr.chains.probes_traced > before:
-                probe_steps.append(i)
         identical += same_paths(res["new"], res["legacy"])
         npaths.append(sum(lp.num_paths for lp in res["new"].values()))
         npaths_c.append(sum(lp.num_paths for lp in res["chains"].values()))
@@ -184,10 +180,9 @@ def main(argv=None) -> int:
     ms = {k: [r.wall_ms for r in v] for k, v in rows.items()}
     med = {k: statistics.median(v) for k, v in ms.items()}
     mean_c = statistics.mean(ms["chains"])
-    print(f"  chains: mean {mean_c:.1f} ms/step; {len(probe_steps)} of {steps} steps traced new "
-          f"probes (robot entered a new lattice cell; max {max(ms['chains']):.1f} ms); "
-          f"{tracers['chains'].chains.probes_traced} probes, "
-          f"{len(tracers['chains'].chains.store)} chains so far")
+    print(f"  chains: mean {mean_c:.1f} ms/step (max {max(ms['chains']):.1f} ms); "
+          f"{len(tracers['chains'].chains.store)} chains of "
+          f"{tracers['chains'].chains.sources_shot} sources")
     print(f"  chains vs direct: {found[0]}/{found[1]} of the {TOP_N} strongest paths per link "
           "of the direct trace found (same gain and delay)")
     print(f"ratio legacy / chains: {med['legacy'] / med['chains']:.2f}x, "

@@ -473,8 +473,8 @@ def compare_path_sets(results: Iterable[Mapping[Link, LinkPaths]], reference: Si
             "complete" means).
         freqs_hz: baseband subcarrier offsets for the channel comparison
             (default: 64 offsets over +-40 MHz).
-        cache: a dict that keeps reference traces between calls (keyed by the
-            two poses; the same ``freqs_hz`` must be used).
+        cache: a dict that keeps reference (and confirmation) traces between
+            calls (keyed by the two poses; the same ``freqs_hz`` must be used).
         confirm: a reference with more rays, asked only about links with paths
             that ``reference`` lacks: those it holds are real paths that
             ``reference``'s rays missed (``found_more_db``), not extra.
@@ -509,7 +509,10 @@ def compare_path_sets(results: Iterable[Mapping[Link, LinkPaths]], reference: Si
             db = lambda a: 20 * np.log10(np.maximum(np.abs(a), 1e-300) / top)  # noqa: E731
             missing, extra, more = db(ref.a[m < 0]), db(lp.a[~hit]), np.zeros(0)
             if extra.size and confirm is not None:
-                big, _ = confirm([tx], rx, freqs_hz)[0]
+                ck = ("confirm", confirm.samples_per_src, key(tx), key(rx))
+                if ck not in cache:
+                    cache[ck] = confirm([tx], rx, freqs_hz)[0]
+                big, _ = cache[ck]
                 seen = np.zeros(lp.num_paths, bool)
                 mb = match_paths(lp, big)
                 seen[mb[mb >= 0]] = True
