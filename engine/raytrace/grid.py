@@ -529,13 +529,19 @@ class _Paths:
         self.interactions, self.vertices = d["interactions"], d["vertices"]
 
 
+#: Ray-count factors (over ``samples_per_src``) of the traces that confirm a grid
+#: path the verification's direct trace lacks, tried in turn for such links only.
+CONFIRM_FACTORS = (10, 100)
+
+
 def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
             cap: int, top_n: int = VERIFY_TOP_N, keep_strongest: int | None = None) -> dict:
     """Re-trace ``n`` random free points one per solver call (Sionna's own
     shoot-and-bounce, the grid's settings) and compare path by path: paths
     the grid lacks (all, and among the ``top_n`` strongest per link), paths
-    the direct trace lacks (extra, unless a trace with 10x the rays holds them:
-    ``paths_found_more``, real paths the direct trace's rays missed), and
+    the direct trace lacks (extra, unless a trace with 10x, then 100x the rays
+    holds them: ``paths_found_more``, real paths the direct trace's rays
+    missed; chain reuse finds paths that Sionna's own traces at 10x miss), and
     repeated paths in the grid."""
     if n <= 0 or len(todo) == 0:
         return {"points": 0}
@@ -545,7 +551,7 @@ def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
     rng = np.random.default_rng(seed)
     pick = rng.choice(todo, size=min(n, len(todo)), replace=False)
     single = missing = extra = more = repeats = n_top_missing = top_checked = differing = 0
-    confirm = None
+    confirm: dict[int, object] = {}
     links = 0
     for i in pick:
         raw = core.solve_endpoints(sc, src, points[i:i + 1], cap, src_orient)
@@ -559,12 +565,14 @@ def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
             m = match_paths(_Paths(stored), _Paths(ref))
             found = np.zeros(k, bool)
             found[m[m >= 0]] = True
-            if not found.all():  # more rays: real paths the direct trace's rays missed?
-                if confirm is None:
-                    confirm = SolverCore(dataclasses.replace(
-                        core.config, samples_per_src=10 * core.config.samples_per_src),
+            for factor in CONFIRM_FACTORS:  # more rays: real paths the direct trace missed?
+                if found.all():
+                    break
+                if factor not in confirm:
+                    confirm[factor] = SolverCore(dataclasses.replace(
+                        core.config, samples_per_src=factor * core.config.samples_per_src),
                         deterministic=True)
-                big = confirm.solve_endpoints(sc, src, points[i:i + 1], cap, src_orient)
+                big = confirm[factor].solve_endpoints(sc, src, points[i:i + 1], cap, src_orient)
                 mb = match_paths(_Paths(stored), _Paths(big.link(0, s)))
                 real = np.zeros(k, bool)
                 real[mb[mb >= 0]] = True
