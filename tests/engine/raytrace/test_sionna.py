@@ -56,12 +56,13 @@ def test_metal_reflector_image_source(tmp_path):
 
 @pytest.mark.slow
 def test_truncation_detected_and_grown(room_scene):
-    tiny = replace(room_scene.config.tracer, max_num_paths_per_src=5)
+    """Direct shoot-and-bounce (chain reuse enumerates its chains uncapped)."""
+    tiny = replace(room_scene.config.tracer, max_num_paths_per_src=5, method="sbr")
     poses = device_poses(room_scene.config)
     with pytest.raises(TruncationError, match="max_num_paths_per_src"):
         SionnaTracer(tiny, on_truncation="raise")(room_scene, poses)
     grown = SionnaTracer(tiny)(room_scene, poses)
-    full = SionnaTracer(room_scene.config.tracer)(room_scene, poses)
+    full = SionnaTracer(replace(room_scene.config.tracer, method="sbr"))(room_scene, poses)
     for lk in full:
         assert grown[lk].num_paths == full[lk].num_paths
         np.testing.assert_allclose(grown[lk].tau, full[lk].tau, rtol=1e-6)
