@@ -7,13 +7,19 @@ centre is :func:`engine.pose.antenna_pose` of it), fits the chosen
 parameters with :class:`engine.calibration.Calibrator`, and writes
 
 * ``DIR/scene/``: a copy of the scene folder with the fitted object offsets
-  applied to the meshes (it loads like any other folder);
+  applied to the meshes and the fitted materials written as custom radio
+  materials (``<bsdf type="radio-material">``, docs/config.md) that the
+  objects of the fitted material now use (it loads like any other folder and
+  gives the calibrated channel);
 * ``DIR/calibration.json``: every parameter before/after with its
   sensitivity, the mismatch before/after, the residual per snapshot, what
   the measurements did not see, convergence, time per gradient step.
 
-Fitted material parameters are reported but not written into the folder:
-the scene-folder format (``docs/config.md``) names ITU materials only.
+A fitted ITU material ``T`` becomes the custom material ``T-calibrated``
+(``T-<thickness>-calibrated`` when objects use it at several thicknesses),
+holding the fitted permittivity and conductivity (the ITU value at the carrier
+for one not fitted) and the objects' thickness; a fitted custom material keeps
+its name and gets the fitted values.
 """
 
 from __future__ import annotations
@@ -178,9 +184,86 @@ class RunOutput:
     report: dict
 
 
+def calibrated_materials(scene, result) -> tuple[dict[str, dict[str, float]], dict[str, str]]:
+    """The custom materials a calibration writes and the objects that use them.
+
+    Args:
+        scene: the scene that was calibrated (its objects and materials as loaded).
+        result: :class:`~engine.calibration.CalibrationResult`.
+
+    Returns:
+        ``(materials, assign)``: ``name -> {"relative_permittivity", "conductivity" (S/m),
+        "thickness" (m)}`` and ``object -> material name``, for every object whose
+        material (ITU type or custom name) had a parameter fitted.
+    """
+    from sionna.rt.radio_materials.itu import itu_material
+
+    fitted: dict[str, dict[str, float]] = {}
+    for name, val in zip(result.names, result.final):
+        target, kind = name.rsplit(".", 1)
+        if kind in MATERIAL_KINDS:
+            key = "relative_permittivity" if kind == "permittivity" else "conductivity"
+            fitted.setdefault(target, {})[key] = float(val)
+    f = scene.config.scene.frequency_hz
+    materials: dict[str, dict[str, float]] = {}
+    assign: dict[str, str] = {}
+    for target, vals in fitted.items():
+        users = [o for o in scene.objects.values() if o.material == target]
+        if target in scene.custom_materials:
+            materials[target] = {**scene.custom_materials[target], **vals}
+            assign.update({o.name: target for o in users})
+            continue
+        eps, sigma = (float(np.asarray(v).reshape(-1)[0]) for v in itu_material(target, f))
+        thicknesses = sorted({o.thickness for o in users})
+        for d in thicknesses:
+            mname = (f"{target}-calibrated" if len(thicknesses) == 1 else
+                     f"{target}-{d:g}-calibrated")
+            materials[mname] = {"relative_permittivity": vals.get("relative_permittivity", eps),
+                                "conductivity": vals.get("conductivity", sigma),
+                                "thickness": float(d)}
+            assign.update({o.name: mname for o in users if o.thickness == d})
+    return materials, assign
+
+
+def _write_materials(xml_path: Path, scene, materials: dict, assign: dict) -> None:
+    """Rewrite ``xml_path`` (a copy of ``scene``'s scene.xml): the objects in ``assign``
+    refer to their custom material, written as Sionna's ``radio-material`` bsdf; ITU
+    bsdfs no object refers to any more are dropped."""
+    import xml.etree.ElementTree as ET
+
+    from engine.addon_shared import schema
+    from engine.synthetic import exporter
+
+    fmt = exporter("numbers").fmt_float
+    prefix = schema.MATERIAL_ID_PREFIX
+    tree = ET.parse(xml_path)
+    root = tree.getroot()
+    shapes = list(root.iter("shape"))
+    for s in shapes:
+        sid = s.get("id", "")
+        name = sid[5:] if sid.startswith("mesh-") else sid
+        if name in assign:
+            next(s.iter("ref")).set("id", prefix + assign[name])
+    used = {r.get("id") for s in shapes for r in s.iter("ref")}
+    parent = {c: p for p in root.iter() for c in p}
+    for b in list(root.iter("bsdf")):
+        if b.get("id") not in used or (b.get("type") == schema.CUSTOM_MATERIAL_PLUGIN
+                                       and b.get("id")[len(prefix):] in materials):
+            parent[b].remove(b)
+    at = list(root).index(shapes[0]) if shapes else len(root)
+    for mname in sorted(materials, reverse=True):
+        b = ET.Element("bsdf", {"type": schema.CUSTOM_MATERIAL_PLUGIN, "id": prefix + mname})
+        for key in schema.CUSTOM_MATERIAL_PROPERTIES:
+            ET.SubElement(b, "float", {"name": key, "value": fmt(materials[mname][key])})
+        root.insert(at, b)
+    ET.indent(tree, "\t")
+    tree.write(xml_path, encoding="utf-8")
+
+
 def write_calibrated_scene(scene, result, out_dir: Path) -> Path:
     """Copy ``scene``'s folder to ``out_dir`` with the fitted x/y/yaw offsets applied to
-    the objects' meshes (rotation about the mesh's bounding-box centre); return it."""
+    the objects' meshes (rotation about the mesh's bounding-box centre) and the fitted
+    materials written (:func:`calibrated_materials`); return it."""
     from engine.meshes import read_ply
     from engine.synthetic import write_ply
 
@@ -188,6 +271,10 @@ def write_calibrated_scene(scene, result, out_dir: Path) -> Path:
     if out_dir.exists():
         shutil.rmtree(out_dir)
     shutil.copytree(src, out_dir)
+    materials, assign = calibrated_materials(scene, result)
+    if materials:
+        _write_materials(out_dir / Path(scene.config.scene.file).relative_to(src), scene,
+                         materials, assign)
     offsets: dict[str, dict[str, float]] = {}
     for name, val in zip(result.names, result.final):
         target, kind = name.rsplit(".", 1)
@@ -248,6 +335,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     result = min(fits, key=lambda r: r.mismatch_final)
     out.mkdir(parents=True, exist_ok=True)
     scene_out = write_calibrated_scene(scene, result, out / "scene")
+    materials, assign = calibrated_materials(scene, result)
     report = {"scene": str(Path(scene_dir)), "recording": str(Path(recording)),
               "link": list(lk), "snapshots": int(len(meas.rx_positions)),
               "subcarriers": int(len(meas.subcarrier_offsets_hz)),
@@ -255,9 +343,8 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
               "fits_from_starts": [{"start": [float(v) for v in x], "final": r.final.tolist(),
                                     "mismatch_db2": r.mismatch_final, "converged": r.converged}
                                    for x, r in zip(starts, fits)],
-              "materials_written": False,
-              "materials_note": "fitted material parameters are reported only: the scene "
-                                "folder names ITU materials",
+              "materials_written": materials,
+              "material_of_objects": assign,
               **result.to_json()}
     report_path = out / "calibration.json"
     report_path.write_text(json.dumps(report, indent=2))

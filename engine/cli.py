@@ -880,6 +880,9 @@ def cmd_calibrate(args) -> int:
           f"{r['evaluations']} evaluations at {r['seconds_per_step']:.2f} s")
     if r["unobserved"]:
         print(f"not seen by the measurements: {', '.join(r['unobserved'])}")
+    for name, mat in r["materials_written"].items():
+        print(f"material {name}: eps_r {mat['relative_permittivity']:.6g}, sigma "
+              f"{mat['conductivity']:.6g} S/m, {mat['thickness']:g} m")
     print(f"wrote {run.scene_dir} and {run.report_path}")
     return 0
 

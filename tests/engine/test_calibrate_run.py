@@ -163,3 +163,43 @@ def test_parameter_choice_is_checked(tmp_path):
         default_parameters(scene, ("poses",), ["Sofa"])
     with pytest.raises(CalibrationError, match="'colours' is not one of"):
         default_parameters(scene, ("colours",), [])
+
+
+@pytest.mark.slow
+def test_calibrated_folder_gives_the_calibrators_channel_at_the_fitted_values(recording,
+                                                                               tmp_path):
+    """The folder written holds the fitted materials (custom radio materials) and poses:
+    loaded anew, its channel is the calibrator's model at the fitted values."""
+    _, _, run = recording
+    twin = room(tmp_path / "twin", "concrete")
+    scene = load_scene(twin)
+    _, meas = measurements_from_recording(run, scene.config, max_snapshots=4,
+                                          max_subcarriers=8)
+    params = [Parameter("permittivity", "concrete"), Parameter("conductivity", "concrete"),
+              Parameter("x", "Cabinet"), Parameter("y", "Cabinet"), Parameter("yaw", "Cabinet")]
+    settings = SolverSettings.from_tracer(scene.config.tracer)
+    cal = Calibrator(scene, meas, params, settings)
+    fitted = np.array([4.3, 0.07, 0.013, -0.021, np.radians(1.7)])
+    _, _, model = cal.evaluate(fitted, grad=False)
+    res = CalibrationResult(names=[p.name for p in params], initial=cal.initial, final=fitted,
+                            gradient_initial=np.ones(5), unobserved=[], mismatch_initial=1.0,
+                            mismatch_final=0.0, residual_db=np.zeros(4), converged=True,
+                            message="", evaluations=1, seconds_per_step=0.0)
+    out = write_calibrated_scene(load_scene(twin, load_sionna=False), res, tmp_path / "out")
+    xml = (out / "scene.xml").read_text()
+    assert 'type="radio-material" id="mat-concrete-calibrated"' in xml
+    assert "mat-concrete-0.2" not in xml  # no object refers to ITU concrete any more
+    cscene = load_scene(out)
+    assert cscene.custom_materials == {"concrete-calibrated": {
+        "relative_permittivity": pytest.approx(4.3), "conductivity": pytest.approx(0.07),
+        "thickness": pytest.approx(0.2)}}
+    assert {o.material for o in cscene.objects.values()} == {"concrete-calibrated", "metal"}
+    again = Calibrator(cscene, meas, [Parameter("permittivity", "concrete-calibrated")],
+                       settings)
+    assert again.initial[0] == pytest.approx(4.3, rel=1e-6)
+    _, _, model2 = again.evaluate(again.initial, grad=False)
+    assert np.ptp(model) > 5  # dB: a channel with structure, not a constant
+    np.testing.assert_allclose(model2, model, atol=1e-3)  # dB
+    # and away from the fitted values it differs (the check can fail)
+    _, _, model0 = cal.evaluate(cal.initial, grad=False)
+    assert np.abs(model0 - model).max() > 0.1
