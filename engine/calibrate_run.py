@@ -11,6 +11,7 @@ parameters with :class:`engine.calibration.Calibrator`, and writes
   materials (``<bsdf type="radio-material">``, docs/config.md) that the
   objects of the fitted material now use (it loads like any other folder and
   gives the calibrated channel);
+* ``DIR/calibration.png``: :func:`engine.calibration_figure.plot_report` of it;
 * ``DIR/calibration.json``: every parameter before/after with its
   sensitivity, the mismatch before/after, the residual per snapshot, what
   the measurements did not see, convergence, time per gradient step.
@@ -36,6 +37,7 @@ import numpy as np
 
 from engine.calibration import (MATERIAL_KINDS, CalibrationError, Calibrator, Measurements,
                                 Parameter, SolverSettings)
+from engine.calibration_figure import plot_report
 from engine.config import TwinConfig
 from engine.msgs import Csi
 from engine.phy.ofdm import ResourceGrid
@@ -348,4 +350,5 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
               **result.to_json()}
     report_path = out / "calibration.json"
     report_path.write_text(json.dumps(report, indent=2))
+    plot_report(report, out / "calibration.png")
     return RunOutput(scene_out, report_path, report)

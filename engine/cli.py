@@ -694,6 +694,9 @@ def _record_args(p: argparse.ArgumentParser) -> None:
                         "wall clock (Unix epoch of the start + simulated s)")
     p.add_argument("--csi", choices=("compact", "full"), default="compact",
                    help="CSI: 1 symbol in 14, 1 subcarrier in 16 (default) or everything")
+    p.add_argument("--csi-snr", type=float, default=None, metavar="DB",
+                   help="add white Gaussian noise to the recorded CSI at this SNR (dB; "
+                        "seeded by --seed): a measured channel estimate")
     p.add_argument("--connect", action="append", default=None,
                    help="zenoh endpoint of real robots to mirror (repeatable), "
                         "e.g. tcp/127.0.0.1:7448")
@@ -716,6 +719,12 @@ def cmd_record(args) -> int:
         print("isac-twin: error: --share needs --connect (the zenoh router or peer to "
               "publish to)", file=sys.stderr)
         return 2
+    try:
+        noise = {"snr_db": args.csi_snr, "seed": args.seed}
+        csi = CsiRecording(**noise) if args.csi == "compact" else CsiRecording.full(**noise)
+    except ValueError as exc:
+        print(f"isac-twin: error: --csi-snr: {exc}", file=sys.stderr)
+        return 2
     twin = Twin.from_scene(scene_path(args), seed=args.seed)
     bridge = None
     if args.connect:
@@ -734,7 +743,7 @@ def cmd_record(args) -> int:
         rec = record_twin(twin, args.steps, args.out, rate_hz=args.rate,
                           compression=args.compression, bridge=bridge,
                           stamp_epoch_s=time.time() if args.stamps == "wall" else 0.0,
-                          csi=CsiRecording() if args.csi == "compact" else CsiRecording.full())
+                          csi=csi)
     finally:
         if bridge is not None:
             bridge.close()

@@ -83,6 +83,9 @@ def test_cli_recovers_brick_walls(recording, capsys):
     # the scan saw more than one slab resonance: a single start could end elsewhere
     assert len(rep["permittivity_scans"]["concrete.permittivity"]["starts"]) > 1
     assert load_scene(d / "out" / "scene").objects.keys() == load_scene(twin).objects.keys()
+    assert (d / "out" / "calibration.png").read_bytes()[:4] == b"\x89PNG"
+    before = rep["residual_db_per_measurement_initial"]
+    assert min(before) > 10 * max(rep["residual_db_per_measurement"])
 
 
 @pytest.mark.slow
@@ -148,6 +151,10 @@ def test_cli_refuses_bad_input(tmp_path, capsys):
                  "--out", str(tmp_path / "o")]) == 2
     assert "expected TX,RX" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+    assert main(["record", str(twin), "--steps", "1", "--out", str(tmp_path / "r.mcap"),
+                 "--csi-snr", "nan"]) == 2
+    assert "--csi-snr: CsiRecording.snr_db: expected a finite number" in capsys.readouterr().err
+    assert not (tmp_path / "r.mcap").exists()
 
 
 def test_parameter_choice_is_checked(tmp_path):
