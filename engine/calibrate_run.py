@@ -135,13 +135,33 @@ def measurements_from_recording(path: str | Path, config: TwinConfig, *,
     return (tx, rx), meas
 
 
-def default_parameters(scene, what: tuple[str, ...], objects: list[str]) -> list[Parameter]:
-    """Parameters for ``what`` (``"materials"``: permittivity and conductivity of every
-    ITU material of the scene but :data:`NOT_FITTED_BY_DEFAULT`; ``"poses"``: x, y, yaw
-    of each object in ``objects``)."""
+def material_users(scene, target: str) -> list:
+    """The objects (:class:`~engine.scene.ObjectInfo`) whose material is ``target``: an ITU
+    type or custom name (``"wood"``), or Sionna's name of one ITU material at one
+    thickness (``"wood-0.03"``, the bsdf id without ``mat-``)."""
+    return [o for o in scene.objects.values()
+            if o.material == target or (o.material not in scene.custom_materials
+                                        and f"{o.material}-{o.thickness:g}" == target)]
+
+
+def default_parameters(scene, what: tuple[str, ...], objects: list[str],
+                       materials: list[str] | None = None) -> list[Parameter]:
+    """Parameters for ``what`` (``"materials"``: permittivity and conductivity of each of
+    ``materials`` (names as :func:`material_users` takes them), default every material
+    of the scene but :data:`NOT_FITTED_BY_DEFAULT`; ``"poses"``: x, y, yaw of each
+    object in ``objects``)."""
     params: list[Parameter] = []
     for w in what:
         if w == "materials":
+            if materials:
+                for mat in materials:
+                    if not material_users(scene, mat):
+                        have = sorted({o.material for o in scene.objects.values()})
+                        raise CalibrationError(f"calibrate: --materials: no object has material "
+                                               f"{mat!r} (have: {', '.join(have)}; or "
+                                               "'<type>-<thickness>')")
+                    params += [Parameter(k, mat) for k in MATERIAL_KINDS]
+                continue
             for mat in sorted({o.material for o in scene.objects.values()}):
                 if mat not in NOT_FITTED_BY_DEFAULT:
                     params += [Parameter(k, mat) for k in MATERIAL_KINDS]
@@ -164,8 +184,7 @@ def permittivity_grid(scene, material: str, eps0: float, factor: float = 2.0,
     (at least 1), uniform in ``sqrt(eps)`` with ``per_period`` points per period
     ``wavelength / (2 d)`` of the thickest slab ``d`` (m) of ``material``."""
     lam = 299_792_458.0 / scene.config.scene.frequency_hz
-    d = max((o.thickness for o in scene.objects.values() if o.material == material),
-            default=0.1)
+    d = max((o.thickness for o in material_users(scene, material)), default=0.1)
     lo, hi = math.sqrt(max(1.0, eps0 / factor)), math.sqrt(eps0 * factor)
     n = int(math.ceil((hi - lo) / (lam / (2 * d) / per_period))) + 1
     return np.linspace(lo, hi, max(n, 2)) ** 2
@@ -210,16 +229,18 @@ def calibrated_materials(scene, result) -> tuple[dict[str, dict[str, float]], di
     materials: dict[str, dict[str, float]] = {}
     assign: dict[str, str] = {}
     for target, vals in fitted.items():
-        users = [o for o in scene.objects.values() if o.material == target]
+        users = material_users(scene, target)
         if target in scene.custom_materials:
             materials[target] = {**scene.custom_materials[target], **vals}
             assign.update({o.name: target for o in users})
             continue
-        eps, sigma = (float(np.asarray(v).reshape(-1)[0]) for v in itu_material(target, f))
+        itu = users[0].material
+        eps, sigma = (float(np.asarray(v).reshape(-1)[0]) for v in itu_material(itu, f))
         thicknesses = sorted({o.thickness for o in users})
         for d in thicknesses:
-            mname = (f"{target}-calibrated" if len(thicknesses) == 1 else
-                     f"{target}-{d:g}-calibrated")
+            mname = (f"{target}-calibrated" if len(thicknesses) == 1 and target != itu
+                     else f"{itu}-calibrated" if len(thicknesses) == 1 else
+                     f"{itu}-{d:g}-calibrated")
             materials[mname] = {"relative_permittivity": vals.get("relative_permittivity", eps),
                                 "conductivity": vals.get("conductivity", sigma),
                                 "thickness": float(d)}
@@ -301,13 +322,15 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                         link: tuple[str, str] | None = None, max_snapshots: int = 6,
                         max_subcarriers: int = 16, max_steps: int = 30,
                         solver: SolverSettings | None = None, scan: bool = True,
-                        multistart: int = 3) -> RunOutput:
+                        multistart: int = 3, materials: list[str] | None = None) -> RunOutput:
     """Fit the scene at ``scene_dir`` to ``recording``; write ``out/scene`` and
     ``out/calibration.json`` (see the module doc). ``solver``: default the scene's
     ``[tracer]`` settings (:meth:`SolverSettings.from_tracer`). ``scan``: start each
     permittivity from the best of :func:`permittivity_grid` (the mismatch has a local
     minimum per slab resonance, see :meth:`Calibrator.scan`) and fit from the
-    ``multistart`` best local minima of the scans; the fit with the lowest mismatch wins."""
+    ``multistart`` best local minima of the scans; the fit with the lowest mismatch wins.
+    ``materials``: the materials fitted with ``"materials"`` (default all but metal; see
+    :func:`default_parameters`)."""
     from engine.scene import load_scene
 
     out = Path(out)
@@ -315,7 +338,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     lk, meas = measurements_from_recording(recording, scene.config, link=link,
                                            max_snapshots=max_snapshots,
                                            max_subcarriers=max_subcarriers)
-    params = default_parameters(scene, tuple(what), list(objects or []))
+    params = default_parameters(scene, tuple(what), list(objects or []), materials)
     cal = Calibrator(scene, meas, params, solver or SolverSettings.from_tracer(scene.config.tracer))
     starts, scans = [cal.initial.copy()], {}
     if scan:

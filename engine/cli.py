@@ -842,6 +842,10 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                    help="comma-separated: materials, poses (default materials)")
     p.add_argument("--objects", default="", help="comma-separated objects whose x, y, yaw "
                                                  "offsets are fitted (with --params poses)")
+    p.add_argument("--materials", default="",
+                   help="comma-separated materials fitted with --params materials: ITU "
+                        "type, custom name or TYPE-THICKNESS such as wood-0.03 (default: "
+                        "every material but metal)")
     p.add_argument("--link", default=None, metavar="TX,RX",
                    help="the recorded link to use (default: the first one)")
     p.add_argument("--snapshots", type=int, default=6, help="CSI messages used (default 6)")
@@ -876,7 +880,9 @@ def cmd_calibrate(args) -> int:
         run = calibrate_recording(scene_path(args), args.measurements, args.out, what=what,
                                   objects=objects, link=link, max_snapshots=args.snapshots,
                                   max_subcarriers=args.subcarriers, max_steps=args.max_steps,
-                                  scan=not args.no_scan)
+                                  scan=not args.no_scan,
+                                  materials=[m.strip() for m in args.materials.split(",")
+                                             if m.strip()] or None)
     except CalibrationError as exc:
         print(f"isac-twin: error: {exc}", file=sys.stderr)
         return 2

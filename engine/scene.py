@@ -178,6 +178,23 @@ class TwinScene:
         self.object_poses[name] = new
         self.revision += 1
 
+    def define_material(self, name: str, values: dict) -> None:
+        """Add custom radio material ``name`` (``{"relative_permittivity",
+        "conductivity" (S/m), "thickness" (m)}`` at the carrier) that objects may then be
+        given with :meth:`set_material`; redefining one in use is refused.
+
+        Raises:
+            ValueError: a bad name or value (``schema.custom_material_problems``), or
+                ``name`` is already defined.
+        """
+        problems = schema.custom_material_problems(name, values, itu_materials())
+        if problems:
+            raise ValueError(f"define_material: {problems[0]}")
+        if name in self.custom_materials:
+            raise ValueError(f"define_material: custom material {name!r} exists")
+        self.custom_materials[name] = {k: float(values[k])
+                                       for k in schema.CUSTOM_MATERIAL_PROPERTIES}
+
     def check_material(self, material: str, thickness: float | None, what: str) -> float:
         """Validate ``material`` (an ITU type defined at the carrier, or one of
         :attr:`custom_materials`) with ``thickness`` (m; ``None``: the custom material's,

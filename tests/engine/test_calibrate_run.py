@@ -170,6 +170,33 @@ def test_parameter_choice_is_checked(tmp_path):
         default_parameters(scene, ("poses",), ["Sofa"])
     with pytest.raises(CalibrationError, match="'colours' is not one of"):
         default_parameters(scene, ("colours",), [])
+    # one material at one thickness, by Sionna's name of it
+    names = [p.name for p in default_parameters(scene, ("materials",), [], ["metal-0.002"])]
+    assert names == ["metal-0.002.permittivity", "metal-0.002.conductivity"]
+    with pytest.raises(CalibrationError, match="no object has material 'wood'"):
+        default_parameters(scene, ("materials",), [], ["wood"])
+
+
+def test_a_material_at_one_thickness_is_written_for_its_objects_only(tmp_path):
+    from engine.calibrate_run import calibrated_materials
+
+    objs = syn.room_objects((5.0, 4.0, 3.0), {"Shelf": ((3.0, 2.5, 0.0), (3.6, 3.0, 1.5),
+                                                        "concrete", 0.05)})
+    devs = [syn.SyntheticDevice("AP1", "access_point", "tx", (0.5, 0.5, 2.0))]
+    scene = load_scene(syn.write_scene_folder(tmp_path / "r", objs, devs, []),
+                       load_sionna=False)
+    res = CalibrationResult(names=["concrete-0.05.permittivity"], initial=np.array([5.24]),
+                            final=np.array([6.0]), gradient_initial=np.ones(1), unobserved=[],
+                            mismatch_initial=1.0, mismatch_final=0.0, residual_db=np.zeros(1),
+                            converged=True, message="", evaluations=1, seconds_per_step=0.0)
+    mats, assign = calibrated_materials(scene, res)
+    assert assign == {"Shelf": "concrete-0.05-calibrated"}
+    assert mats["concrete-0.05-calibrated"]["relative_permittivity"] == 6.0
+    assert mats["concrete-0.05-calibrated"]["thickness"] == pytest.approx(0.05)
+    out = write_calibrated_scene(scene, res, tmp_path / "out")
+    back = load_scene(out, load_sionna=False)
+    assert back.objects["Shelf"].material == "concrete-0.05-calibrated"
+    assert back.objects["floor"].material == "concrete"  # 0.2 m concrete untouched
 
 
 @pytest.mark.slow
