@@ -140,3 +140,38 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
             "seconds_per_step": rep["seconds_per_step"], "record_s": t_rec,
             "calibration_s": t_cal, "calibrated_scene": str(run.scene_dir),
             "report": str(run.report_path)}
+
+
+def localization_errors(folder, calibrated_folder, *, seed: int = 1,
+                        changed_material: str = "wood-0.03", permittivity_factor: float = 1.3,
+                        spacing: float = 0.1, dt: float = 0.5, steps: int | None = None,
+                        snr_db: float = 20.0, method: str = "MCA",
+                        cache_dir: str | Path = "out/cache") -> dict:
+    """Localization errors against the truth in the real room (:func:`real_room`), in the
+    realistic mode (MDP from pilots received there at ``snr_db``, the localizer on the
+    twin's fingerprint database), once with the original twin's database and once with
+    the calibrated twin's. Returns ``{"original": summary, "calibrated": summary}``
+    (:func:`engine.localization.deployment.summarize` of the per-step
+    ``estimate_vs_truth`` errors, m) plus the database build times."""
+    from engine.localization.deployment import (Deployment, DeploymentSettings, errors,
+                                                summarize)
+    from engine.localization.fingerprints import cached_database
+
+    out: dict = {}
+    for label, f in (("original", folder), ("calibrated", calibrated_folder)):
+        t0 = time.perf_counter()
+        db = cached_database(load_scene(f), spacing=spacing, cache_dir=cache_dir)
+        t_db = time.perf_counter() - t0
+        real, _ = real_room(folder, seed=seed, changed_material=changed_material,
+                            permittivity_factor=permittivity_factor)
+        settings = DeploymentSettings(source="real", mode="pilots", snr_db=snr_db,
+                                      method=method)
+        t0 = time.perf_counter()
+        dep = Deployment(f, db, settings, seed=seed, dt=dt, rate_every=10 ** 9,
+                         real_scene=real)
+        n = steps if steps is not None else dep.lap_steps()
+        dep.run(n)
+        err = errors(dep.records)["estimate_vs_truth"]
+        out[label] = {**summarize(err), "steps": n, "database_s": t_db,
+                      "run_s": time.perf_counter() - t0}
+    return out

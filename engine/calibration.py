@@ -401,7 +401,7 @@ class Calibrator:
         dr, mi = self._dr, self._mi
         vars_ = []
         for v in values:
-            x = mi.Float(float(v))
+            x = dr.opaque(mi.Float, float(v))  # a literal would recompile every kernel
             if grad:
                 dr.enable_grad(x)
             vars_.append(x)
