@@ -82,7 +82,8 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
                      permittivity_factor: float = 1.3, objects: list[str] | None = None,
                      dt: float = 1.0, laps: float = 1.0, snr_db: float | None = None,
                      snapshots: int = 8, subcarriers: int = 16, max_steps: int = 40,
-                     solver: SolverSettings | None = None, multistart: int = 1) -> dict:
+                     solver: SolverSettings | None = None, multistart: int = 1,
+                     pose_scan: bool = False) -> dict:
     """Record one lap in the perturbed room, calibrate the twin at ``folder``, compare.
 
     Args:
@@ -91,7 +92,8 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
         objects: the objects whose poses are fitted (default the room's furniture).
         dt: twin step of the recording, s (only the snapshots used matter).
         snr_db: noise of the recorded CSI (None: the twin's exact channel).
-        snapshots, subcarriers, max_steps, solver, multistart: of the calibration.
+        snapshots, subcarriers, max_steps, solver, multistart, pose_scan: of the
+            calibration (:func:`engine.calibrate_run.calibrate_recording`).
 
     Returns:
         A JSON-serialisable dict: ``objects`` (per object: truth and fitted dx, dy cm,
@@ -115,7 +117,8 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
     run = calibrate_recording(folder, mcap, out / "calibration", what=("materials", "poses"),
                               objects=objects, materials=[changed_material],
                               max_snapshots=snapshots, max_subcarriers=subcarriers,
-                              max_steps=max_steps, solver=solver, multistart=multistart)
+                              max_steps=max_steps, solver=solver, multistart=multistart,
+                              pose_scan=pose_scan)
     t_cal = time.perf_counter() - t0
     rep = run.report
     got = {p["name"]: p["final"] for p in rep["parameters"]}

@@ -190,6 +190,17 @@ def permittivity_grid(scene, material: str, eps0: float, factor: float = 2.0,
     return np.linspace(lo, hi, max(n, 2)) ** 2
 
 
+def pose_grid(p: Parameter, wavelength: float, per_wavelength: int = 8) -> np.ndarray:
+    """Start values for a pose scan, ``[S]``: x/y offsets over the parameter's bounds in
+    steps of ``wavelength / per_wavelength`` (m); yaw in 1 deg steps within +-5 deg."""
+    lo, hi = p.limits
+    if p.kind == "yaw":
+        lo, hi = max(lo, -math.radians(5)), min(hi, math.radians(5))
+        return np.linspace(lo, hi, int(round(math.degrees(hi - lo))) + 1)
+    lo, hi = max(lo, -0.1), min(hi, 0.1)
+    return np.linspace(lo, hi, int(math.ceil((hi - lo) / (wavelength / per_wavelength))) + 1)
+
+
 def local_minima(f: np.ndarray) -> np.ndarray:
     """Indices of the local minima of ``f [S]`` (ends included), lowest first."""
     f = np.asarray(f, float)
@@ -322,7 +333,8 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                         link: tuple[str, str] | None = None, max_snapshots: int = 6,
                         max_subcarriers: int = 16, max_steps: int = 30,
                         solver: SolverSettings | None = None, scan: bool = True,
-                        multistart: int = 3, materials: list[str] | None = None) -> RunOutput:
+                        multistart: int = 3, materials: list[str] | None = None,
+                        pose_scan: bool = False) -> RunOutput:
     """Fit the scene at ``scene_dir`` to ``recording``; write ``out/scene`` and
     ``out/calibration.json`` (see the module doc). ``solver``: default the scene's
     ``[tracer]`` settings (:meth:`SolverSettings.from_tracer`). ``scan``: start each
@@ -330,7 +342,9 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     minimum per slab resonance, see :meth:`Calibrator.scan`) and fit from the
     ``multistart`` best local minima of the scans; the fit with the lowest mismatch wins.
     ``materials``: the materials fitted with ``"materials"`` (default all but metal; see
-    :func:`default_parameters`)."""
+    :func:`default_parameters`). ``pose_scan``: before fitting, set each pose offset in
+    turn to the best of :func:`pose_grid` (the magnitude mismatch has a local minimum
+    about every half wavelength of an object's shift); costs one trace per grid point."""
     from engine.scene import load_scene
 
     out = Path(out)
@@ -356,6 +370,18 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                         y[i] = grid[j]
                         new.append(y)
                 starts = new[:multistart]
+    pose_scans = {}
+    if pose_scan:
+        lam = 299_792_458.0 / scene.config.scene.frequency_hz
+        for x in starts:  # each coordinate in turn, the others where the scans left them
+            for i, p in enumerate(params):
+                if p.kind in ("x", "y", "yaw"):
+                    grid = pose_grid(p, lam)
+                    f = cal.scan(i, grid, x)
+                    x[i] = grid[int(np.argmin(f))]
+                    pose_scans.setdefault(p.name, []).append(
+                        {"values": grid.tolist(), "mismatch_db2": f.tolist(),
+                         "start": float(x[i])})
     fits = [cal.fit(max_steps=max_steps, start=x) for x in starts]
     result = min(fits, key=lambda r: r.mismatch_final)
     out.mkdir(parents=True, exist_ok=True)
@@ -364,7 +390,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     report = {"scene": str(Path(scene_dir)), "recording": str(Path(recording)),
               "link": list(lk), "snapshots": int(len(meas.rx_positions)),
               "subcarriers": int(len(meas.subcarrier_offsets_hz)),
-              "permittivity_scans": scans,
+              "permittivity_scans": scans, "pose_scans": pose_scans,
               "fits_from_starts": [{"start": [float(v) for v in x], "final": r.final.tolist(),
                                     "mismatch_db2": r.mismatch_final, "converged": r.converged}
                                    for x, r in zip(starts, fits)],

@@ -852,6 +852,9 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--subcarriers", type=int, default=16,
                    help="recorded subcarriers used (default 16)")
     p.add_argument("--max-steps", type=int, default=30, help="optimiser iterations per start")
+    p.add_argument("--pose-scan", action="store_true",
+                   help="scan each fitted x/y/yaw offset (lambda/8 steps within +-10 cm, "
+                        "1 deg within +-5 deg) before fitting, against local minima")
     p.add_argument("--no-scan", action="store_true",
                    help="start at the scene's permittivities (no scan, single start)")
 
@@ -880,7 +883,7 @@ def cmd_calibrate(args) -> int:
         run = calibrate_recording(scene_path(args), args.measurements, args.out, what=what,
                                   objects=objects, link=link, max_snapshots=args.snapshots,
                                   max_subcarriers=args.subcarriers, max_steps=args.max_steps,
-                                  scan=not args.no_scan,
+                                  scan=not args.no_scan, pose_scan=args.pose_scan,
                                   materials=[m.strip() for m in args.materials.split(",")
                                              if m.strip()] or None)
     except CalibrationError as exc:

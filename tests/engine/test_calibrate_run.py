@@ -133,6 +133,18 @@ def test_calibrated_scene_moves_the_fitted_object(tmp_path):
     load_scene(out, load_sionna=False)
 
 
+def test_pose_grid_steps():
+    from engine.calibrate_run import pose_grid
+
+    g = pose_grid(Parameter("y", "Cabinet"), 0.125)  # lambda at 2.4 GHz
+    assert g[0] == pytest.approx(-0.1) and g[-1] == pytest.approx(0.1)
+    assert np.diff(g).max() <= 0.125 / 8 + 1e-12 and len(g) == 14
+    y = pose_grid(Parameter("yaw", "Cabinet"), 0.125)
+    assert np.degrees(y).round(6).tolist() == list(range(-5, 6))
+    narrow = pose_grid(Parameter("x", "Cabinet", bounds=(-0.02, 0.03)), 0.125)
+    assert narrow[0] == pytest.approx(-0.02) and narrow[-1] == pytest.approx(0.03)
+
+
 def test_local_minima():
     assert local_minima(np.array([3.0, 1.0, 2.0, 0.5, 0.7, 0.2])).tolist() == [5, 3, 1]
 
