@@ -378,7 +378,8 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                 if p.kind in ("x", "y", "yaw"):
                     grid = pose_grid(p, lam)
                     f = cal.scan(i, grid, x)
-                    x[i] = grid[int(np.argmin(f))]
+                    if np.ptp(f) > 1e-6 * max(float(f.max()), 1e-12):  # else: not seen
+                        x[i] = grid[int(np.argmin(f))]
                     pose_scans.setdefault(p.name, []).append(
                         {"values": grid.tolist(), "mismatch_db2": f.tolist(),
                          "start": float(x[i])})
