@@ -663,7 +663,8 @@ class EditTracker:
         for name in set(names) - self._known:
             obj = scene.objects[name]
             if (name.startswith(PREFIX) or obj.type != "MESH" or obj.isac.device_kind != "NONE"
-                    or obj.isac.itu_material == materials.NO_MATERIAL
+                    or (obj.isac.itu_material == materials.NO_MATERIAL
+                        and not obj.isac.custom_material)
                     or not obj.isac.export_geometry):
                 continue  # not (yet) radio geometry: looked at again when tagged
             wname = safe_name(name)
