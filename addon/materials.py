@@ -97,7 +97,8 @@ def band_warnings(scene, objects=None) -> list[str]:
     out = []
     for obj in sorted(objs, key=lambda o: o.name):
         props = getattr(obj, "isac", None)
-        if props is None or obj.type != "MESH" or props.device_kind != "NONE":
+        if (props is None or obj.type != "MESH" or props.device_kind != "NONE"
+                or props.custom_material):  # a custom material has no band
             continue
         mat = props.itu_material
         if mat != NO_MATERIAL and not is_defined_at(mat, freq):
