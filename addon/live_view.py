@@ -637,6 +637,12 @@ def clear(scene) -> None:
 
 
 def _mat_key(obj) -> tuple[str, float]:
+    """(material, thickness m) the engine is told: a custom radio material of the scene
+    (its own thickness; the engine knows it when its scene.xml defines it) or the ITU tag."""
+    custom = obj.isac.custom_material and bpy.context.scene.isac.radio_materials.get(
+        obj.isac.custom_material)
+    if custom:
+        return (custom.name, round(float(custom.thickness), 9))
     return (obj.isac.itu_material, round(float(obj.isac.thickness), 9))
 
 
@@ -740,13 +746,14 @@ class EditTracker:
         for name in set(names) - self._known:
             obj = scene.objects[name]
             if (name.startswith(PREFIX) or obj.type != "MESH" or obj.isac.device_kind != "NONE"
-                    or obj.isac.itu_material == materials.NO_MATERIAL
+                    or (obj.isac.itu_material == materials.NO_MATERIAL
+                        and not obj.isac.custom_material)
                     or not obj.isac.export_geometry):
                 continue  # not (yet) radio geometry: looked at again when tagged
             wname = safe_name(name)
             data = ply_bytes(world_mesh(obj, bpy.context.evaluated_depsgraph_get(), wname))
-            out.append(wire.edit("add", wname, material=obj.isac.itu_material,
-                                 thickness=obj.isac.thickness, mesh_ply=data))
+            mat, thick = _mat_key(obj)
+            out.append(wire.edit("add", wname, material=mat, thickness=thick, mesh_ply=data))
             self._track_object(obj, wname)
             self._known.add(name)
             self._new.add(name)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from typing import Iterable
 
+from . import schema
+
 # material name -> valid frequency bands as (min, max) in GHz, inclusive,
 # in the same order as Sionna's table.
 ITU_MATERIALS: dict[str, tuple[tuple[float, float], ...]] = {
@@ -95,7 +97,8 @@ def band_warnings(scene, objects=None) -> list[str]:
     out = []
     for obj in sorted(objs, key=lambda o: o.name):
         props = getattr(obj, "isac", None)
-        if props is None or obj.type != "MESH" or props.device_kind != "NONE":
+        if (props is None or obj.type != "MESH" or props.device_kind != "NONE"
+                or props.custom_material):  # a custom material has no band
             continue
         mat = props.itu_material
         if mat != NO_MATERIAL and not is_defined_at(mat, freq):
@@ -128,5 +131,50 @@ def tag_objects(objects, material: str, thickness: float = DEFAULT_THICKNESS_M) 
             continue
         obj.isac.itu_material = material
         obj.isac.thickness = thickness
+        obj.isac.custom_material = ""  # the ITU tag is what the object now uses
         n += 1
+    return n
+
+
+def custom_table(scene) -> dict[str, dict[str, float]]:
+    """The scene's custom radio materials, ``name -> {property: value}``
+    (``schema.CUSTOM_MATERIAL_PROPERTIES``; permittivity, S/m, m)."""
+    return {m.name: {k: float(getattr(m, k)) for k in schema.CUSTOM_MATERIAL_PROPERTIES}
+            for m in scene.isac.radio_materials}
+
+
+def set_custom_material(scene, name: str, values: dict) -> object:
+    """Add custom radio material ``name`` to ``scene`` or update it; return its item.
+
+    Args:
+        values: every key of ``schema.CUSTOM_MATERIAL_PROPERTIES`` (permittivity,
+            conductivity S/m, thickness m).
+
+    Raises:
+        ValueError: a bad name or value (the schema's message).
+    """
+    problems = schema.custom_material_problems(name, values, ITU_MATERIALS)
+    if problems:
+        raise ValueError(problems[0])
+    coll = scene.isac.radio_materials
+    item = coll.get(name)
+    if item is None:
+        item = coll.add()
+        item.name = name
+    for k in schema.CUSTOM_MATERIAL_PROPERTIES:
+        setattr(item, k, float(values[k]))
+    return item
+
+
+def assign_custom_material(objects, scene, name: str) -> int:
+    """Make ``objects`` (meshes; others skipped) use custom material ``name`` of ``scene``;
+    return how many. Raises ValueError when the scene has no such material."""
+    if scene.isac.radio_materials.get(name) is None:
+        raise ValueError(f"No custom radio material '{name}' in the scene (have: "
+                         f"{', '.join(m.name for m in scene.isac.radio_materials) or 'none'})")
+    n = 0
+    for obj in objects:
+        if obj.type == "MESH":
+            obj.isac.custom_material = name
+            n += 1
     return n

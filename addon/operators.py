@@ -8,7 +8,8 @@ import bpy
 from bpy.props import (EnumProperty, FloatProperty, FloatVectorProperty, IntProperty,
                        IntVectorProperty, StringProperty)
 
-from . import devices, live, live_view, materials, modelling, placement, radiomap_view, schema
+from . import (calibration, devices, live, live_view, materials, modelling, placement,
+               radiomap_view, schema)
 from .exporter import ExportError, export_scene
 from .properties import (PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES, ROOM_PARTS,
                          addon_preferences)
@@ -293,6 +294,26 @@ class ISAC_OT_export_scene(_Reporting, bpy.types.Operator):
             self.report({"WARNING"}, line)
 
 
+class ISAC_OT_apply_calibration(_Reporting, bpy.types.Operator):
+    """Move objects and set materials as fitted by `isac-twin calibrate --out DIR`"""
+
+    bl_idname = "isac.apply_calibration"
+    bl_label = "Apply Calibration"
+    bl_options = _OPTS
+
+    directory: StringProperty(name="Calibration folder", subtype="DIR_PATH",
+                              description="The --out folder of isac-twin calibrate "
+                                          "(calibration.json and scene/)")
+
+    def invoke(self, context, event):
+        context.window_manager.fileselect_add(self)
+        return {"RUNNING_MODAL"}
+
+    def run(self, context):
+        for line in calibration.apply_calibration(context.scene, self.directory):
+            self.report({"INFO"}, line)
+
+
 def _store_placement(context) -> list[str]:
     lines = placement.placement_warnings(context.scene, context.evaluated_depsgraph_get())
     context.scene.isac.placement_warnings = "\n".join(lines)
@@ -413,7 +434,7 @@ CLASSES = (ISAC_OT_add_room, ISAC_OT_add_room_polygon, ISAC_OT_add_box, ISAC_OT_
            ISAC_OT_add_access_point, ISAC_OT_add_robot, ISAC_OT_robot_path_preset,
            ISAC_OT_tag_material,
            ISAC_OT_add_link, ISAC_OT_remove_link, ISAC_OT_export_scene,
-           ISAC_OT_check_placement)
+           ISAC_OT_check_placement, ISAC_OT_apply_calibration)
 #: Live-link operators: not undoable (they talk to a process, not to the scene's data).
 LIVE_CLASSES = (ISAC_OT_live_connect, ISAC_OT_live_disconnect, ISAC_OT_live_start_engine,
                 ISAC_OT_live_command, ISAC_OT_live_radiomap_layer, ISAC_OT_live_clear)

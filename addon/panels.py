@@ -49,6 +49,7 @@ class ISAC_PT_scene(_Base, bpy.types.Panel):
         layout.operator("isac.check_placement", icon="CHECKMARK")
         layout.prop(p, "export_directory")
         layout.operator("isac.export_scene", icon="EXPORT")
+        layout.operator("isac.apply_calibration", icon="IMPORT")
 
 
 class ISAC_PT_modelling(_Base, bpy.types.Panel):
@@ -86,8 +87,10 @@ class ISAC_PT_object(_Base, bpy.types.Panel):
         layout.prop(p, "device_kind")
         if p.device_kind == "NONE":
             layout.prop(p, "export_geometry")
-            layout.prop(p, "itu_material")
-            layout.prop(p, "thickness")
+            layout.prop_search(p, "custom_material", context.scene.isac, "radio_materials")
+            if not p.custom_material:
+                layout.prop(p, "itu_material")
+                layout.prop(p, "thickness")
             layout.prop(p, "room_part")
             layout.operator("isac.tag_material", icon="MATERIAL")
             return

@@ -47,6 +47,10 @@ class ISAC_ObjectProps(bpy.types.PropertyGroup):
         name="Export geometry", default=True,
         description="Write this mesh into scene.xml (off for helpers such as boolean cutters)")
     itu_material: EnumProperty(name="ITU material", items=_MATERIAL_ITEMS, default=0)
+    custom_material: StringProperty(
+        name="Custom material", default="",
+        description="One of the scene's custom radio materials (Radio materials list); "
+                    "when set it replaces the ITU material and thickness")
     thickness: FloatProperty(name="Thickness", default=materials.DEFAULT_THICKNESS_M,
                              soft_min=0.001, unit="LENGTH", precision=3,
                              description="Slab thickness of the radio material, m")
@@ -125,6 +129,23 @@ class ISAC_SensingItem(bpy.types.PropertyGroup):
                        description="Run the radar every this many twin steps")
 
 
+def _custom_property(key: str, label: str, default: float, **kw):
+    prop = schema.CUSTOM_MATERIAL_PROPERTIES[key]
+    return FloatProperty(name=label, default=default, description=f"{prop.description}"
+                         + (f", {prop.unit}" if prop.unit else ""), **kw)
+
+
+class ISAC_CustomMaterial(bpy.types.PropertyGroup):
+    """A custom radio material (``name`` is its name): values at the carrier, written to
+    scene.xml as Sionna's ``radio-material`` (schema.CUSTOM_MATERIAL_PROPERTIES)."""
+
+    relative_permittivity: _custom_property("relative_permittivity", "Permittivity", 4.0,
+                                            soft_min=1.0)
+    conductivity: _custom_property("conductivity", "Conductivity (S/m)", 0.0, soft_min=0.0)
+    thickness: _custom_property("thickness", "Thickness", materials.DEFAULT_THICKNESS_M,
+                                soft_min=0.001, unit="LENGTH", precision=3)
+
+
 class ISAC_SceneProps(bpy.types.PropertyGroup):
     """Scene-wide radio settings written to twin.toml."""
 
@@ -141,6 +162,7 @@ class ISAC_SceneProps(bpy.types.PropertyGroup):
     links: CollectionProperty(type=ISAC_LinkItem)
     links_index: IntProperty(name="Active link", default=0)
     sensing_links: CollectionProperty(type=ISAC_SensingItem)
+    radio_materials: CollectionProperty(type=ISAC_CustomMaterial)
     placement_warnings: StringProperty(
         name="Placement warnings", default="",
         description="Devices or path points not in free space, one per line (Check Placement)")
@@ -244,7 +266,8 @@ def addon_preferences(context=None):
     return entry.preferences if entry is not None else None
 
 
-CLASSES = (ISAC_ObjectProps, ISAC_LinkItem, ISAC_SensingItem, ISAC_SceneProps, ISAC_LiveLinkMetric, ISAC_LiveProps,
+CLASSES = (ISAC_ObjectProps, ISAC_LinkItem, ISAC_SensingItem, ISAC_CustomMaterial,
+           ISAC_SceneProps, ISAC_LiveLinkMetric, ISAC_LiveProps,
            ISAC_AddonPreferences)
 
 

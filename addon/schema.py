@@ -118,3 +118,80 @@ DEFAULT_ROBOT_MODEL = "burger"
 
 #: Array centre in base_link when a robot's ``antenna_offset`` is left out, m.
 DEFAULT_ANTENNA_OFFSET = (0.0, 0.0, 0.25)
+
+
+#: ``scene.xml`` bsdf plugin of an ITU-R P.2040 material (``type`` + ``thickness``).
+ITU_MATERIAL_PLUGIN = "itu-radio-material"
+#: ``scene.xml`` bsdf plugin of a custom radio material: Sionna RT's own ``RadioMaterial``
+#: (plain Sionna loads it with these values), written as ``id="mat-<name>"``.
+CUSTOM_MATERIAL_PLUGIN = "radio-material"
+#: Prefix of every material's bsdf id in ``scene.xml``.
+MATERIAL_ID_PREFIX = "mat-"
+
+
+@dataclass(frozen=True)
+class MaterialProperty:
+    """One property of a custom radio material (a ``<float name=...>`` of its bsdf).
+
+    Attributes:
+        unit: SI unit ("" for a ratio).
+        lower, upper: accepted range; ``lower_open``: the lower bound itself is refused.
+        description: what it is.
+    """
+
+    unit: str
+    lower: float
+    upper: float
+    lower_open: bool
+    description: str
+
+    def check(self, value) -> str | None:
+        """``None`` when ``value`` is accepted, else what was expected (one phrase)."""
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            return f"expected a number, got {value!r}"
+        ok_lo = v > self.lower if self.lower_open else v >= self.lower
+        if not (v == v and ok_lo and v <= self.upper):  # v == v: not NaN
+            lo = "(" if self.lower_open else "["
+            return f"expected a value in {lo}{self.lower:g}, {self.upper:g}] {self.unit}".rstrip() \
+                + f", got {value!r}"
+        return None
+
+
+#: The custom radio material's properties, in the order the exporter writes them. Values
+#: are those at the scene's carrier frequency (a custom material has no frequency model).
+CUSTOM_MATERIAL_PROPERTIES: dict[str, MaterialProperty] = {
+    "relative_permittivity": MaterialProperty("", 1.0, 1.0e4, False,
+                                              "relative permittivity (real part) at the carrier"),
+    "conductivity": MaterialProperty("S/m", 0.0, 1.0e8, False, "conductivity at the carrier"),
+    "thickness": MaterialProperty("m", 0.0, 10.0, True, "slab thickness"),
+}
+
+#: Characters a custom material's name may use (it is part of a bsdf id and a Blender name).
+MATERIAL_NAME_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-."
+
+
+def custom_material_problems(name: str, values: dict, itu_names=()) -> list[str]:
+    """What is wrong with custom material ``name`` of properties ``values``
+    (``{property: value}``, every key of :data:`CUSTOM_MATERIAL_PROPERTIES`); ``[]`` when
+    nothing is. ``itu_names``: the ITU material names, which a custom name may not take."""
+    out = []
+    if not name or any(c not in MATERIAL_NAME_CHARS for c in name):
+        out.append(f"custom material {name!r}: the name must be non-empty and use only "
+                   "letters, digits, '_', '-', '.'")
+    elif name in itu_names:
+        out.append(f"custom material {name!r}: the name is an ITU material's; choose another")
+    for key, prop in CUSTOM_MATERIAL_PROPERTIES.items():
+        if key not in values:
+            out.append(f"custom material {name!r}: {key} is missing ({prop.description}, "
+                       f"{prop.unit or 'ratio'})")
+            continue
+        err = prop.check(values[key])
+        if err:
+            out.append(f"custom material {name!r}: {key}: {err}")
+    for key in values:
+        if key not in CUSTOM_MATERIAL_PROPERTIES:
+            out.append(f"custom material {name!r}: unknown property {key!r} (expected "
+                       f"{', '.join(CUSTOM_MATERIAL_PROPERTIES)})")
+    return out

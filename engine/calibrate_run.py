@@ -7,13 +7,20 @@ centre is :func:`engine.pose.antenna_pose` of it), fits the chosen
 parameters with :class:`engine.calibration.Calibrator`, and writes
 
 * ``DIR/scene/``: a copy of the scene folder with the fitted object offsets
-  applied to the meshes (it loads like any other folder);
+  applied to the meshes and the fitted materials written as custom radio
+  materials (``<bsdf type="radio-material">``, docs/config.md) that the
+  objects of the fitted material now use (it loads like any other folder and
+  gives the calibrated channel);
+* ``DIR/calibration.png``: :func:`engine.calibration_figure.plot_report` of it;
 * ``DIR/calibration.json``: every parameter before/after with its
   sensitivity, the mismatch before/after, the residual per snapshot, what
   the measurements did not see, convergence, time per gradient step.
 
-Fitted material parameters are reported but not written into the folder:
-the scene-folder format (``docs/config.md``) names ITU materials only.
+A fitted ITU material ``T`` becomes the custom material ``T-calibrated``
+(``T-<thickness>-calibrated`` when objects use it at several thicknesses),
+holding the fitted permittivity and conductivity (the ITU value at the carrier
+for one not fitted) and the objects' thickness; a fitted custom material keeps
+its name and gets the fitted values.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ import numpy as np
 
 from engine.calibration import (MATERIAL_KINDS, CalibrationError, Calibrator, Measurements,
                                 Parameter, SolverSettings)
+from engine.calibration_figure import plot_report
 from engine.config import TwinConfig
 from engine.msgs import Csi
 from engine.phy.ofdm import ResourceGrid
@@ -127,13 +135,33 @@ def measurements_from_recording(path: str | Path, config: TwinConfig, *,
     return (tx, rx), meas
 
 
-def default_parameters(scene, what: tuple[str, ...], objects: list[str]) -> list[Parameter]:
-    """Parameters for ``what`` (``"materials"``: permittivity and conductivity of every
-    ITU material of the scene but :data:`NOT_FITTED_BY_DEFAULT`; ``"poses"``: x, y, yaw
-    of each object in ``objects``)."""
+def material_users(scene, target: str) -> list:
+    """The objects (:class:`~engine.scene.ObjectInfo`) whose material is ``target``: an ITU
+    type or custom name (``"wood"``), or Sionna's name of one ITU material at one
+    thickness (``"wood-0.03"``, the bsdf id without ``mat-``)."""
+    return [o for o in scene.objects.values()
+            if o.material == target or (o.material not in scene.custom_materials
+                                        and f"{o.material}-{o.thickness:g}" == target)]
+
+
+def default_parameters(scene, what: tuple[str, ...], objects: list[str],
+                       materials: list[str] | None = None) -> list[Parameter]:
+    """Parameters for ``what`` (``"materials"``: permittivity and conductivity of each of
+    ``materials`` (names as :func:`material_users` takes them), default every material
+    of the scene but :data:`NOT_FITTED_BY_DEFAULT`; ``"poses"``: x, y, yaw of each
+    object in ``objects``)."""
     params: list[Parameter] = []
     for w in what:
         if w == "materials":
+            if materials:
+                for mat in materials:
+                    if not material_users(scene, mat):
+                        have = sorted({o.material for o in scene.objects.values()})
+                        raise CalibrationError(f"calibrate: --materials: no object has material "
+                                               f"{mat!r} (have: {', '.join(have)}; or "
+                                               "'<type>-<thickness>')")
+                    params += [Parameter(k, mat) for k in MATERIAL_KINDS]
+                continue
             for mat in sorted({o.material for o in scene.objects.values()}):
                 if mat not in NOT_FITTED_BY_DEFAULT:
                     params += [Parameter(k, mat) for k in MATERIAL_KINDS]
@@ -156,11 +184,21 @@ def permittivity_grid(scene, material: str, eps0: float, factor: float = 2.0,
     (at least 1), uniform in ``sqrt(eps)`` with ``per_period`` points per period
     ``wavelength / (2 d)`` of the thickest slab ``d`` (m) of ``material``."""
     lam = 299_792_458.0 / scene.config.scene.frequency_hz
-    d = max((o.thickness for o in scene.objects.values() if o.material == material),
-            default=0.1)
+    d = max((o.thickness for o in material_users(scene, material)), default=0.1)
     lo, hi = math.sqrt(max(1.0, eps0 / factor)), math.sqrt(eps0 * factor)
     n = int(math.ceil((hi - lo) / (lam / (2 * d) / per_period))) + 1
     return np.linspace(lo, hi, max(n, 2)) ** 2
+
+
+def pose_grid(p: Parameter, wavelength: float, per_wavelength: int = 8) -> np.ndarray:
+    """Start values for a pose scan, ``[S]``: x/y offsets over the parameter's bounds in
+    steps of ``wavelength / per_wavelength`` (m); yaw in 1 deg steps within +-5 deg."""
+    lo, hi = p.limits
+    if p.kind == "yaw":
+        lo, hi = max(lo, -math.radians(5)), min(hi, math.radians(5))
+        return np.linspace(lo, hi, int(round(math.degrees(hi - lo))) + 1)
+    lo, hi = max(lo, -0.1), min(hi, 0.1)
+    return np.linspace(lo, hi, int(math.ceil((hi - lo) / (wavelength / per_wavelength))) + 1)
 
 
 def local_minima(f: np.ndarray) -> np.ndarray:
@@ -178,9 +216,88 @@ class RunOutput:
     report: dict
 
 
+def calibrated_materials(scene, result) -> tuple[dict[str, dict[str, float]], dict[str, str]]:
+    """The custom materials a calibration writes and the objects that use them.
+
+    Args:
+        scene: the scene that was calibrated (its objects and materials as loaded).
+        result: :class:`~engine.calibration.CalibrationResult`.
+
+    Returns:
+        ``(materials, assign)``: ``name -> {"relative_permittivity", "conductivity" (S/m),
+        "thickness" (m)}`` and ``object -> material name``, for every object whose
+        material (ITU type or custom name) had a parameter fitted.
+    """
+    from sionna.rt.radio_materials.itu import itu_material
+
+    fitted: dict[str, dict[str, float]] = {}
+    for name, val in zip(result.names, result.final):
+        target, kind = name.rsplit(".", 1)
+        if kind in MATERIAL_KINDS:
+            key = "relative_permittivity" if kind == "permittivity" else "conductivity"
+            fitted.setdefault(target, {})[key] = float(val)
+    f = scene.config.scene.frequency_hz
+    materials: dict[str, dict[str, float]] = {}
+    assign: dict[str, str] = {}
+    for target, vals in fitted.items():
+        users = material_users(scene, target)
+        if target in scene.custom_materials:
+            materials[target] = {**scene.custom_materials[target], **vals}
+            assign.update({o.name: target for o in users})
+            continue
+        itu = users[0].material
+        eps, sigma = (float(np.asarray(v).reshape(-1)[0]) for v in itu_material(itu, f))
+        thicknesses = sorted({o.thickness for o in users})
+        for d in thicknesses:
+            mname = (f"{target}-calibrated" if len(thicknesses) == 1 and target != itu
+                     else f"{itu}-calibrated" if len(thicknesses) == 1 else
+                     f"{itu}-{d:g}-calibrated")
+            materials[mname] = {"relative_permittivity": vals.get("relative_permittivity", eps),
+                                "conductivity": vals.get("conductivity", sigma),
+                                "thickness": float(d)}
+            assign.update({o.name: mname for o in users if o.thickness == d})
+    return materials, assign
+
+
+def _write_materials(xml_path: Path, scene, materials: dict, assign: dict) -> None:
+    """Rewrite ``xml_path`` (a copy of ``scene``'s scene.xml): the objects in ``assign``
+    refer to their custom material, written as Sionna's ``radio-material`` bsdf; ITU
+    bsdfs no object refers to any more are dropped."""
+    import xml.etree.ElementTree as ET
+
+    from engine.addon_shared import schema
+    from engine.synthetic import exporter
+
+    fmt = exporter("numbers").fmt_float
+    prefix = schema.MATERIAL_ID_PREFIX
+    tree = ET.parse(xml_path)
+    root = tree.getroot()
+    shapes = list(root.iter("shape"))
+    for s in shapes:
+        sid = s.get("id", "")
+        name = sid[5:] if sid.startswith("mesh-") else sid
+        if name in assign:
+            next(s.iter("ref")).set("id", prefix + assign[name])
+    used = {r.get("id") for s in shapes for r in s.iter("ref")}
+    parent = {c: p for p in root.iter() for c in p}
+    for b in list(root.iter("bsdf")):
+        if b.get("id") not in used or (b.get("type") == schema.CUSTOM_MATERIAL_PLUGIN
+                                       and b.get("id")[len(prefix):] in materials):
+            parent[b].remove(b)
+    at = list(root).index(shapes[0]) if shapes else len(root)
+    for mname in sorted(materials, reverse=True):
+        b = ET.Element("bsdf", {"type": schema.CUSTOM_MATERIAL_PLUGIN, "id": prefix + mname})
+        for key in schema.CUSTOM_MATERIAL_PROPERTIES:
+            ET.SubElement(b, "float", {"name": key, "value": fmt(materials[mname][key])})
+        root.insert(at, b)
+    ET.indent(tree, "\t")
+    tree.write(xml_path, encoding="utf-8")
+
+
 def write_calibrated_scene(scene, result, out_dir: Path) -> Path:
     """Copy ``scene``'s folder to ``out_dir`` with the fitted x/y/yaw offsets applied to
-    the objects' meshes (rotation about the mesh's bounding-box centre); return it."""
+    the objects' meshes (rotation about the mesh's bounding-box centre) and the fitted
+    materials written (:func:`calibrated_materials`); return it."""
     from engine.meshes import read_ply
     from engine.synthetic import write_ply
 
@@ -188,6 +305,10 @@ def write_calibrated_scene(scene, result, out_dir: Path) -> Path:
     if out_dir.exists():
         shutil.rmtree(out_dir)
     shutil.copytree(src, out_dir)
+    materials, assign = calibrated_materials(scene, result)
+    if materials:
+        _write_materials(out_dir / Path(scene.config.scene.file).relative_to(src), scene,
+                         materials, assign)
     offsets: dict[str, dict[str, float]] = {}
     for name, val in zip(result.names, result.final):
         target, kind = name.rsplit(".", 1)
@@ -212,13 +333,18 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                         link: tuple[str, str] | None = None, max_snapshots: int = 6,
                         max_subcarriers: int = 16, max_steps: int = 30,
                         solver: SolverSettings | None = None, scan: bool = True,
-                        multistart: int = 3) -> RunOutput:
+                        multistart: int = 3, materials: list[str] | None = None,
+                        pose_scan: bool = False) -> RunOutput:
     """Fit the scene at ``scene_dir`` to ``recording``; write ``out/scene`` and
     ``out/calibration.json`` (see the module doc). ``solver``: default the scene's
     ``[tracer]`` settings (:meth:`SolverSettings.from_tracer`). ``scan``: start each
     permittivity from the best of :func:`permittivity_grid` (the mismatch has a local
     minimum per slab resonance, see :meth:`Calibrator.scan`) and fit from the
-    ``multistart`` best local minima of the scans; the fit with the lowest mismatch wins."""
+    ``multistart`` best local minima of the scans; the fit with the lowest mismatch wins.
+    ``materials``: the materials fitted with ``"materials"`` (default all but metal; see
+    :func:`default_parameters`). ``pose_scan``: before fitting, set each pose offset in
+    turn to the best of :func:`pose_grid` (the magnitude mismatch has a local minimum
+    about every half wavelength of an object's shift); costs one trace per grid point."""
     from engine.scene import load_scene
 
     out = Path(out)
@@ -226,7 +352,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     lk, meas = measurements_from_recording(recording, scene.config, link=link,
                                            max_snapshots=max_snapshots,
                                            max_subcarriers=max_subcarriers)
-    params = default_parameters(scene, tuple(what), list(objects or []))
+    params = default_parameters(scene, tuple(what), list(objects or []), materials)
     cal = Calibrator(scene, meas, params, solver or SolverSettings.from_tracer(scene.config.tracer))
     starts, scans = [cal.initial.copy()], {}
     if scan:
@@ -244,21 +370,35 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                         y[i] = grid[j]
                         new.append(y)
                 starts = new[:multistart]
+    pose_scans = {}
+    if pose_scan:
+        lam = 299_792_458.0 / scene.config.scene.frequency_hz
+        for x in starts:  # each coordinate in turn, the others where the scans left them
+            for i, p in enumerate(params):
+                if p.kind in ("x", "y", "yaw"):
+                    grid = pose_grid(p, lam)
+                    f = cal.scan(i, grid, x)
+                    if np.ptp(f) > 1e-6 * max(float(f.max()), 1e-12):  # else: not seen
+                        x[i] = grid[int(np.argmin(f))]
+                    pose_scans.setdefault(p.name, []).append(
+                        {"values": grid.tolist(), "mismatch_db2": f.tolist(),
+                         "start": float(x[i])})
     fits = [cal.fit(max_steps=max_steps, start=x) for x in starts]
     result = min(fits, key=lambda r: r.mismatch_final)
     out.mkdir(parents=True, exist_ok=True)
     scene_out = write_calibrated_scene(scene, result, out / "scene")
+    materials, assign = calibrated_materials(scene, result)
     report = {"scene": str(Path(scene_dir)), "recording": str(Path(recording)),
               "link": list(lk), "snapshots": int(len(meas.rx_positions)),
               "subcarriers": int(len(meas.subcarrier_offsets_hz)),
-              "permittivity_scans": scans,
+              "permittivity_scans": scans, "pose_scans": pose_scans,
               "fits_from_starts": [{"start": [float(v) for v in x], "final": r.final.tolist(),
                                     "mismatch_db2": r.mismatch_final, "converged": r.converged}
                                    for x, r in zip(starts, fits)],
-              "materials_written": False,
-              "materials_note": "fitted material parameters are reported only: the scene "
-                                "folder names ITU materials",
+              "materials_written": materials,
+              "material_of_objects": assign,
               **result.to_json()}
     report_path = out / "calibration.json"
     report_path.write_text(json.dumps(report, indent=2))
+    plot_report(report, out / "calibration.png")
     return RunOutput(scene_out, report_path, report)

@@ -204,6 +204,7 @@ class CalibrationResult:
         unobserved: names the measurements do not see at the start (:func:`unobserved`).
         mismatch_initial, mismatch_final: :func:`mismatch_db2`, dB^2.
         residual_db: ``[N]`` RMS power difference per measurement after the fit, dB.
+        residual_db_initial: ``[N]`` the same at the scene's values (before), dB.
         converged, message: the optimiser's verdict and reason.
         evaluations: mismatch+gradient evaluations (traces).
         seconds_per_step: mean wall time of one evaluation (trace, CFR, backward), s.
@@ -222,6 +223,7 @@ class CalibrationResult:
     evaluations: int
     seconds_per_step: float
     history: list[float] = field(default_factory=list)
+    residual_db_initial: np.ndarray | None = None
 
     def to_json(self) -> dict:
         """A JSON-serialisable report."""
@@ -233,6 +235,9 @@ class CalibrationResult:
             "unobserved": list(self.unobserved),
             "mismatch_db2": {"initial": self.mismatch_initial, "final": self.mismatch_final},
             "residual_db_per_measurement": [float(r) for r in self.residual_db],
+            "residual_db_per_measurement_initial": (
+                None if self.residual_db_initial is None else
+                [float(r) for r in self.residual_db_initial]),
             "converged": bool(self.converged), "message": self.message,
             "evaluations": self.evaluations, "seconds_per_step": self.seconds_per_step,
             "history_db2": [float(h) for h in self.history],
@@ -396,7 +401,7 @@ class Calibrator:
         dr, mi = self._dr, self._mi
         vars_ = []
         for v in values:
-            x = mi.Float(float(v))
+            x = dr.opaque(mi.Float, float(v))  # a literal would recompile every kernel
             if grad:
                 dr.enable_grad(x)
             vars_.append(x)
@@ -518,7 +523,7 @@ class Calibrator:
             f, g, model = self.evaluate(x0 + u * sc)
             history.append(f)
             if not first:
-                first.update(f=f, g=g)
+                first.update(f=f, g=g, model=model)
             log.info("calibrate: step %d mismatch %.5g dB^2 at %s", len(history), f,
                      np.round(x0 + u * sc, 6).tolist())
             return f, g * sc
@@ -528,15 +533,18 @@ class Calibrator:
         res = minimize(fun, np.zeros(len(x0)), jac=True, method="L-BFGS-B", bounds=bounds,
                        options={"maxiter": max_steps, "ftol": ftol, "gtol": gtol})
         final = x0 + res.x * sc
-        f_final, _, model = self.evaluate(final, grad=False)
         if start is not None:  # report against the scene's values
-            f0, g0, _ = self.evaluate(self.initial)
-            first.update(f=f0, g=g0)
-        residual = np.sqrt(np.mean((model - power_db(self.meas.csi)) ** 2, axis=(1, 2, 3)))
+            f0, g0, m0 = self.evaluate(self.initial)
+            first.update(f=f0, g=g0, model=m0)
+        f_final, _, model = self.evaluate(final, grad=False)  # leaves the scene there
+        meas_db = power_db(self.meas.csi)
+        residual = np.sqrt(np.mean((model - meas_db) ** 2, axis=(1, 2, 3)))
+        residual0 = np.sqrt(np.mean((first["model"] - meas_db) ** 2, axis=(1, 2, 3)))
         names = [p.name for p in self.params]
         return CalibrationResult(
             names=names, initial=self.initial.copy(), final=final, gradient_initial=first["g"],
             unobserved=unobserved(first["g"] * sc, names),
             mismatch_initial=first["f"], mismatch_final=f_final, residual_db=residual,
             converged=bool(res.success), message=str(res.message), evaluations=self.evaluations,
-            seconds_per_step=float(np.mean(self.step_seconds)), history=history)
+            seconds_per_step=float(np.mean(self.step_seconds)), history=history,
+            residual_db_initial=residual0)

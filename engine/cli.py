@@ -798,6 +798,9 @@ def _record_args(p: argparse.ArgumentParser) -> None:
                         "wall clock (Unix epoch of the start + simulated s)")
     p.add_argument("--csi", choices=("compact", "full"), default="compact",
                    help="CSI: 1 symbol in 14, 1 subcarrier in 16 (default) or everything")
+    p.add_argument("--csi-snr", type=float, default=None, metavar="DB",
+                   help="add white Gaussian noise to the recorded CSI at this SNR (dB; "
+                        "seeded by --seed): a measured channel estimate")
     p.add_argument("--connect", action="append", default=None,
                    help="zenoh endpoint of real robots to mirror (repeatable), "
                         "e.g. tcp/127.0.0.1:7448")
@@ -820,6 +823,12 @@ def cmd_record(args) -> int:
         print("isac-twin: error: --share needs --connect (the zenoh router or peer to "
               "publish to)", file=sys.stderr)
         return 2
+    try:
+        noise = {"snr_db": args.csi_snr, "seed": args.seed}
+        csi = CsiRecording(**noise) if args.csi == "compact" else CsiRecording.full(**noise)
+    except ValueError as exc:
+        print(f"isac-twin: error: --csi-snr: {exc}", file=sys.stderr)
+        return 2
     twin = Twin.from_scene(scene_path(args), seed=args.seed)
     bridge = None
     if args.connect:
@@ -838,7 +847,7 @@ def cmd_record(args) -> int:
         rec = record_twin(twin, args.steps, args.out, rate_hz=args.rate,
                           compression=args.compression, bridge=bridge,
                           stamp_epoch_s=time.time() if args.stamps == "wall" else 0.0,
-                          csi=CsiRecording() if args.csi == "compact" else CsiRecording.full())
+                          csi=csi)
     finally:
         if bridge is not None:
             bridge.close()
@@ -938,12 +947,19 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                    help="comma-separated: materials, poses (default materials)")
     p.add_argument("--objects", default="", help="comma-separated objects whose x, y, yaw "
                                                  "offsets are fitted (with --params poses)")
+    p.add_argument("--materials", default="",
+                   help="comma-separated materials fitted with --params materials: ITU "
+                        "type, custom name or TYPE-THICKNESS such as wood-0.03 (default: "
+                        "every material but metal)")
     p.add_argument("--link", default=None, metavar="TX,RX",
                    help="the recorded link to use (default: the first one)")
     p.add_argument("--snapshots", type=int, default=6, help="CSI messages used (default 6)")
     p.add_argument("--subcarriers", type=int, default=16,
                    help="recorded subcarriers used (default 16)")
     p.add_argument("--max-steps", type=int, default=30, help="optimiser iterations per start")
+    p.add_argument("--pose-scan", action="store_true",
+                   help="scan each fitted x/y/yaw offset (lambda/8 steps within +-10 cm, "
+                        "1 deg within +-5 deg) before fitting, against local minima")
     p.add_argument("--no-scan", action="store_true",
                    help="start at the scene's permittivities (no scan, single start)")
 
@@ -972,7 +988,9 @@ def cmd_calibrate(args) -> int:
         run = calibrate_recording(scene_path(args), args.measurements, args.out, what=what,
                                   objects=objects, link=link, max_snapshots=args.snapshots,
                                   max_subcarriers=args.subcarriers, max_steps=args.max_steps,
-                                  scan=not args.no_scan)
+                                  scan=not args.no_scan, pose_scan=args.pose_scan,
+                                  materials=[m.strip() for m in args.materials.split(",")
+                                             if m.strip()] or None)
     except CalibrationError as exc:
         print(f"isac-twin: error: {exc}", file=sys.stderr)
         return 2
@@ -985,6 +1003,9 @@ def cmd_calibrate(args) -> int:
           f"{r['evaluations']} evaluations at {r['seconds_per_step']:.2f} s")
     if r["unobserved"]:
         print(f"not seen by the measurements: {', '.join(r['unobserved'])}")
+    for name, mat in r["materials_written"].items():
+        print(f"material {name}: eps_r {mat['relative_permittivity']:.6g}, sigma "
+              f"{mat['conductivity']:.6g} S/m, {mat['thickness']:g} m")
     print(f"wrote {run.scene_dir} and {run.report_path}")
     return 0
 

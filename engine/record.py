@@ -40,7 +40,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -204,32 +204,53 @@ class CsiRecording:
 
     Attributes:
         symbol_step, subcarrier_step: keep every ``step``-th symbol / subcarrier (>= 1).
+        snr_db: add complex white Gaussian noise to each recorded message at this SNR,
+            dB (noise power = the message's mean ``|h|^2`` / 10^(snr/10), i.i.d. over
+            symbols, subcarriers and antenna pairs): a measured channel estimate instead
+            of the twin's exact one. ``None`` (default): no noise.
+        seed: seed of that noise.
     """
 
     symbol_step: int = 14
     subcarrier_step: int = 16
+    snr_db: float | None = None
+    seed: int = 0
+    _rng: list = field(default_factory=list, compare=False, repr=False)
 
     def __post_init__(self):
         for name in ("symbol_step", "subcarrier_step"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"CsiRecording.{name}: expected an integer >= 1, got {v!r}")
+        if self.snr_db is not None and not (isinstance(self.snr_db, (int, float))
+                                            and math.isfinite(self.snr_db)):
+            raise ValueError(f"CsiRecording.snr_db: expected a finite number of dB or None, "
+                             f"got {self.snr_db!r}")
 
     @classmethod
-    def full(cls) -> CsiRecording:
-        return cls(1, 1)
+    def full(cls, **kw) -> CsiRecording:
+        return cls(1, 1, **kw)
 
     def describe(self) -> str:
-        return f"symbols[::{self.symbol_step}], subcarriers[::{self.subcarrier_step}]"
+        out = f"symbols[::{self.symbol_step}], subcarriers[::{self.subcarrier_step}]"
+        if self.snr_db is not None:
+            out += f", noise at {self.snr_db:g} dB SNR (seed {self.seed})"
+        return out
 
     def __call__(self, msg):
-        if self.symbol_step == self.subcarrier_step == 1:
-            return msg
         h = np.asarray(msg.h)
-        if h.ndim != 4:
+        if h.ndim != 4 or (self.symbol_step == self.subcarrier_step == 1
+                           and self.snr_db is None):
             return msg
-        return dataclasses.replace(
-            msg, h=np.ascontiguousarray(h[::self.symbol_step, ::self.subcarrier_step]))
+        h = np.ascontiguousarray(h[::self.symbol_step, ::self.subcarrier_step])
+        if self.snr_db is not None:
+            if not self._rng:
+                self._rng.append(np.random.default_rng(self.seed))
+            rng = self._rng[0]
+            sigma = math.sqrt(float(np.mean(np.abs(h) ** 2)) / 10 ** (self.snr_db / 10) / 2)
+            h = (h + sigma * (rng.standard_normal(h.shape) + 1j * rng.standard_normal(h.shape))
+                 ).astype(h.dtype if np.iscomplexobj(h) else np.complex128)
+        return dataclasses.replace(msg, h=h)
 
 
 # ------------------------------------------------------------------ recovery

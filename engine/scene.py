@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from engine.addon_shared import schema
 from engine.config import ConfigError, TwinConfig, load_config
 from engine.meshes import MeshError, confine, read_ply
 from engine.room import check_placement
@@ -58,7 +59,8 @@ class ObjectInfo:
 
     Attributes:
         name: Sionna's object name (the shape id without ``mesh-``).
-        material: ITU material type, e.g. ``"concrete"``.
+        material: ITU material type, e.g. ``"concrete"``, or the name of one of the
+            scene's custom radio materials (:attr:`TwinScene.custom_materials`).
         thickness: material thickness, m.
         mesh_file: absolute path of the PLY.
         bounds_min, bounds_max: world bounding box ``[3]``, m.
@@ -82,6 +84,9 @@ class TwinScene:
         config: the validated ``twin.toml``.
         objects: ``name -> ObjectInfo`` in file order.
         bounds_min, bounds_max: the room's extent (union of all objects), m.
+        custom_materials: the custom radio materials of ``scene.xml``, ``name ->
+            {"relative_permittivity": eps_r, "conductivity": S/m, "thickness": m}``
+            (``schema.CUSTOM_MATERIAL_PROPERTIES``); objects and edits may name them.
     """
 
     config: TwinConfig
@@ -94,6 +99,7 @@ class TwinScene:
     #: incremented by every edit; consumers re-derive cached geometry when it changes
     revision: int = 0
     _hash: tuple[int, str] | None = field(default=None, repr=False)
+    custom_materials: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def sionna(self):
@@ -119,6 +125,9 @@ class TwinScene:
         for name in sorted(self.objects):
             o = self.objects[name]
             h.update(f"{name}\0{o.material}\0{o.thickness!r}\0{o.mesh_sha256}\n".encode())
+            if o.material in self.custom_materials:
+                props = self.custom_materials[o.material]
+                h.update(repr(sorted(props.items())).encode())
             pose = self.object_poses.get(name)
             if pose is not None:
                 h.update(np.asarray(pose, np.float64).round(9).tobytes())
@@ -169,30 +178,79 @@ class TwinScene:
         self.object_poses[name] = new
         self.revision += 1
 
-    def set_material(self, name: str, material: str, thickness: float | None = None) -> None:
-        """Give an object another ITU material (and thickness, m).
+    def define_material(self, name: str, values: dict) -> None:
+        """Add custom radio material ``name`` (``{"relative_permittivity",
+        "conductivity" (S/m), "thickness" (m)}`` at the carrier) that objects may then be
+        given with :meth:`set_material`; redefining one in use is refused.
 
         Raises:
-            KeyError: unknown object. ValueError: unknown material, undefined at the
-                carrier frequency, or non-positive thickness.
+            ValueError: a bad name or value (``schema.custom_material_problems``), or
+                ``name`` is already defined.
+        """
+        problems = schema.custom_material_problems(name, values, itu_materials())
+        if problems:
+            raise ValueError(f"define_material: {problems[0]}")
+        if name in self.custom_materials:
+            raise ValueError(f"define_material: custom material {name!r} exists")
+        self.custom_materials[name] = {k: float(values[k])
+                                       for k in schema.CUSTOM_MATERIAL_PROPERTIES}
+
+    def check_material(self, material: str, thickness: float | None, what: str) -> float:
+        """Validate ``material`` (an ITU type defined at the carrier, or one of
+        :attr:`custom_materials`) with ``thickness`` (m; ``None``: the custom material's,
+        else 0.1 m); return the thickness to use.
+
+        Raises:
+            ValueError: unknown material, ITU material undefined at the carrier, a
+                non-positive thickness, or a custom material given another thickness.
+        """
+        custom = self.custom_materials.get(material)
+        if custom is not None:
+            own = float(custom["thickness"])
+            if thickness is not None and not math.isclose(float(thickness), own, rel_tol=1e-6):
+                raise ValueError(f"{what}: thickness: custom material {material!r} has its own "
+                                 f"thickness "
+                                 f"{own:g} m; got {thickness!r}")
+            return own
+        f = self.config.scene.frequency_hz
+        if material not in itu_materials():
+            have = ", ".join(sorted(self.custom_materials)) or "none"
+            raise ValueError(f"{what}: material: unknown material {material!r}: expected an ITU "
+                             f"material or a custom one of the scene ({have})")
+        if not itu_defined_at(material, f):
+            raise ValueError(f"{what}: material: {material!r} is not defined "
+                             f"at {f / 1e9:g} GHz")
+        thickness = 0.1 if thickness is None else float(thickness)
+        if not (math.isfinite(thickness) and thickness > 0):
+            raise ValueError(f"{what}: thickness: must be > 0 m, got {thickness}")
+        return thickness
+
+    def _radio_material(self, material: str, thickness: float):
+        """The Sionna radio material for ``material`` (validated), shared when it exists."""
+        import sionna.rt as rt
+
+        custom = self.custom_materials.get(material)
+        if custom is not None:
+            # Sionna names a material loaded from scene.xml by its bsdf id without "mat-"
+            return self.sionna.get(material) or rt.RadioMaterial(
+                material, relative_permittivity=float(custom["relative_permittivity"]),
+                conductivity=float(custom["conductivity"]), thickness=float(custom["thickness"]))
+        mat_name = f"{material}-{thickness:g}"
+        return self.sionna.get(mat_name) or rt.ITURadioMaterial(mat_name, material, thickness)
+
+    def set_material(self, name: str, material: str, thickness: float | None = None) -> None:
+        """Give an object another material: an ITU type (and thickness, m; default the
+        object's) or one of :attr:`custom_materials` (its own thickness).
+
+        Raises:
+            KeyError: unknown object. ValueError: see :meth:`check_material`.
         """
         obj = self._object(name, "set_material")
         info = self.objects[name]
-        thickness = info.thickness if thickness is None else float(thickness)
-        f = self.config.scene.frequency_hz
-        if material not in itu_materials():
-            raise ValueError(f"set_material({name!r}): unknown ITU material {material!r}")
-        if not itu_defined_at(material, f):
-            raise ValueError(f"set_material({name!r}): material {material!r} is not defined "
-                             f"at {f / 1e9:g} GHz")
-        if not thickness > 0:
-            raise ValueError(f"set_material({name!r}): thickness must be > 0 m, got {thickness}")
-        import sionna.rt as rt
-
-        mat_name = f"{material}-{thickness:g}"
-        existing = self.sionna.get(mat_name)
-        obj.radio_material = existing if existing is not None else rt.ITURadioMaterial(
-            mat_name, material, thickness)
+        if thickness is None and material not in self.custom_materials:
+            thickness = info.thickness
+        thickness = self.check_material(material, thickness, f"set_material({name!r})")
+        obj.radio_material = self._radio_material(material, thickness)
         self.objects[name] = replace(info, material=material, thickness=thickness)
         self.revision += 1
 
@@ -205,18 +263,16 @@ class TwinScene:
         self.revision += 1
 
     def add_object(self, name: str, mesh_file: str | Path, material: str,
-                   thickness: float = 0.1) -> None:
-        """Add an object from a PLY file in world coordinates.
+                   thickness: float | None = None) -> None:
+        """Add an object from a PLY file in world coordinates; ``material`` an ITU type
+        (``thickness`` m, default 0.1) or a custom material of the scene.
 
         Raises:
             ValueError: the name exists, the mesh is unreadable, or the material invalid.
         """
         if name in self.objects:
             raise ValueError(f"add_object: an object named {name!r} already exists")
-        if material not in itu_materials() or not itu_defined_at(
-                material, self.config.scene.frequency_hz):
-            raise ValueError(f"add_object({name!r}): material {material!r} is unknown or "
-                             "not defined at the carrier frequency")
+        thickness = self.check_material(material, thickness, f"add_object({name!r})")
         mesh_file = Path(mesh_file).resolve()
         try:
             mesh = read_ply(mesh_file)
@@ -224,8 +280,7 @@ class TwinScene:
             raise ValueError(f"add_object({name!r}): {exc}") from exc
         import sionna.rt as rt
 
-        mat_name = f"{material}-{thickness:g}"
-        mat = self.sionna.get(mat_name) or rt.ITURadioMaterial(mat_name, material, thickness)
+        mat = self._radio_material(material, thickness)
         self.sionna.edit(add=[rt.SceneObject(fname=str(mesh_file), name=name,
                                              radio_material=mat)])
         lo, hi = mesh.bounds
@@ -260,11 +315,18 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
 
     table = itu_materials()
     mats: dict[str, tuple[str, float]] = {}
+    custom: dict[str, dict[str, float]] = {}
     for b in root.iter("bsdf"):
         bid = b.get("id", "")
-        if b.get("type") != "itu-radio-material":
+        if b.get("type") == schema.CUSTOM_MATERIAL_PLUGIN:
+            name, props = _custom_bsdf(xml_path, b, table)
+            custom[name] = props
+            mats[bid] = (name, props["thickness"])
+            continue
+        if b.get("type") != schema.ITU_MATERIAL_PLUGIN:
             raise ConfigError(f"{xml_path}: bsdf {bid!r}: type {b.get('type')!r} is not "
-                              "supported (expected 'itu-radio-material')")
+                              f"supported (expected {schema.ITU_MATERIAL_PLUGIN!r} or "
+                              f"{schema.CUSTOM_MATERIAL_PLUGIN!r})")
         for c in b:
             if (c.tag, c.get("name")) not in _BSDF_CHILDREN:
                 raise ConfigError(f"{xml_path}: bsdf {bid!r}: <{c.tag} name="
@@ -308,7 +370,7 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
             raise ConfigError(f"{xml_path}: shape {name!r}: material reference {ref!r} "
                               "is not a bsdf defined in the file")
         mtype, thick = mats[ref]
-        if not itu_defined_at(mtype, frequency_hz):
+        if mtype not in custom and not itu_defined_at(mtype, frequency_hz):
             bands = ", ".join(f"{lo:g}-{hi:g} GHz" for lo, hi in itu_bands(mtype))
             raise ConfigError(f"{xml_path}: object {name!r}: material {mtype!r} is not defined "
                               f"at {frequency_hz / 1e9:g} GHz (defined: {bands})")
@@ -326,7 +388,32 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
             mesh_sha256=mesh.sha256)
     if not objects:
         raise ConfigError(f"{xml_path}: the scene has no objects")
-    return objects
+    return objects, custom
+
+
+def _custom_bsdf(xml_path: Path, b, itu_table) -> tuple[str, dict[str, float]]:
+    """Name and properties of a custom ``radio-material`` bsdf, or ConfigError."""
+    bid = b.get("id", "")
+    prefix = schema.MATERIAL_ID_PREFIX
+    if not bid.startswith(prefix):
+        raise ConfigError(f"{xml_path}: bsdf {bid!r}: a {schema.CUSTOM_MATERIAL_PLUGIN!r} "
+                          f"id must be '{prefix}<name>'")
+    name = bid[len(prefix):]
+    props: dict[str, float] = {}
+    for c in b:
+        key = c.get("name")
+        if c.tag != "float" or key not in schema.CUSTOM_MATERIAL_PROPERTIES:
+            raise ConfigError(f"{xml_path}: bsdf {bid!r}: <{c.tag} name={key!r}> is not "
+                              f"supported (expected <float name=...> of "
+                              f"{', '.join(schema.CUSTOM_MATERIAL_PROPERTIES)})")
+        try:
+            props[key] = float(c.get("value"))
+        except (TypeError, ValueError):
+            props[key] = c.get("value")  # reported below
+    problems = schema.custom_material_problems(name, props, itu_table)
+    if problems:
+        raise ConfigError(f"{xml_path}: bsdf {bid!r}: {problems[0]}")
+    return name, props
 
 
 def load_scene(path: str | Path, *, load_sionna: bool = True) -> TwinScene:
@@ -340,10 +427,11 @@ def load_scene(path: str | Path, *, load_sionna: bool = True) -> TwinScene:
         ConfigError: any invalid file, key, object or device; the message names it.
     """
     cfg = load_config(path)
-    objects = _parse_scene_xml(cfg.scene.file, cfg.scene.frequency_hz)
+    objects, custom = _parse_scene_xml(cfg.scene.file, cfg.scene.frequency_hz)
     lo = np.min([o.bounds_min for o in objects.values()], axis=0)
     hi = np.max([o.bounds_max for o in objects.values()], axis=0)
-    scene = TwinScene(config=cfg, objects=objects, bounds_min=lo, bounds_max=hi)
+    scene = TwinScene(config=cfg, objects=objects, bounds_min=lo, bounds_max=hi,
+                      custom_materials=custom)
     for i, d in enumerate(cfg.devices):
         if not scene.contains(d.position):
             raise ConfigError(

@@ -97,15 +97,19 @@ def write_scene_folder(folder: str | Path, objects: list[SyntheticObject],
                        *, frequency_hz: float = 2.4e9, name: str = "synthetic",
                        num_subcarriers: int = 1024, subcarrier_spacing_hz: float = 78125.0,
                        num_symbols: int = 14, tracer: dict | None = None,
-                       room: dict | None = None) -> Path:
+                       room: dict | None = None,
+                       custom_materials: dict[str, dict] | None = None) -> Path:
     """Write ``scene.xml``, ``meshes/*.ply`` and ``twin.toml``; return the folder.
-    ``room``: a ``[room]`` table (``{"shell": [...], "furniture": [...]}``)."""
+    ``room``: a ``[room]`` table (``{"shell": [...], "furniture": [...]}``).
+    ``custom_materials``: custom radio materials objects may name, ``name ->
+    {"relative_permittivity", "conductivity" (S/m), "thickness" (m)}``."""
     folder = Path(folder)
     (folder / "meshes").mkdir(parents=True, exist_ok=True)
     for o in objects:
         write_ply(folder / "meshes" / f"{o.name}.ply", o.vertices, o.faces)
     exporter("mitsuba_xml").write_scene_xml(
-        folder / "scene.xml", [(o.name, o.material, float(o.thickness)) for o in objects])
+        folder / "scene.xml", [(o.name, o.material, float(o.thickness)) for o in objects],
+        custom_materials)
     data: dict = {
         "schema": schema.TWIN_TOML_SCHEMA,
         "scene": {"name": name, "file": "scene.xml", "frequency_hz": float(frequency_hz)},

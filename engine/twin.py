@@ -42,8 +42,7 @@ from engine.raytrace import make_tracer
 from engine.robots import SensorOptions, build_robots
 from engine.robots.control import PathError, controller_from_spec
 from engine.room import ROBOT_BODY_HEIGHT_M, path_obstruction
-from engine.scene import (BOUNDS_TOLERANCE_M, TwinScene, itu_defined_at, itu_materials,
-                          load_scene)
+from engine.scene import BOUNDS_TOLERANCE_M, TwinScene, load_scene
 from engine.state import Command, Edit, LinkState, RobotState, StepResult
 
 log = logging.getLogger(__name__)
@@ -327,15 +326,12 @@ class Twin:
         def material(required):
             if edit.material is None and not required:
                 return
-            if edit.material not in itu_materials():
-                raise ValueError(f"{what}: material: unknown ITU material {edit.material!r}")
-            if not itu_defined_at(edit.material, self.config.scene.frequency_hz):
-                raise ValueError(f"{what}: material: {edit.material!r} is not defined at "
-                                 f"{self.config.scene.frequency_hz / 1e9:g} GHz")
             if edit.thickness is not None and not (np.isfinite(edit.thickness)
                                                    and edit.thickness > 0):
                 raise ValueError(f"{what}: thickness: expected a finite value > 0 m, "
                                  f"got {edit.thickness!r}")
+            # an ITU material defined at the carrier or a custom one of the scene
+            self.scene.check_material(edit.material, edit.thickness, what)
 
         if edit.op == "add":
             if edit.target in objects or edit.target in devices:
@@ -426,7 +422,7 @@ class Twin:
             else:
                 path = confine(e.mesh_file, self.config.scene.file.parent,
                                roots=self.asset_dirs)
-            self.scene.add_object(e.target, path, e.material, e.thickness or 0.1)
+            self.scene.add_object(e.target, path, e.material, e.thickness)
         log.info("applied edit %s %s; scene hash now %s", e.op, e.target,
                  self.scene.content_hash()[:12])
 

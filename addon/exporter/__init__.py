@@ -25,7 +25,7 @@ from .. import materials, schema
 from ..devices import curve_waypoints
 from .geometry import WorldMesh, world_mesh, write_ply
 from .interchange import write_dae, write_stl, write_usd
-from .mitsuba_xml import material_id, write_scene_xml
+from .mitsuba_xml import custom_material_id, material_id, write_scene_xml
 from .numbers import clean
 from .twin_toml import write_twin_toml
 
@@ -163,6 +163,8 @@ def _collect(scene, depsgraph):
 
     meshes: list[tuple[WorldMesh, str, float]] = []
     used: dict[str, str] = {}
+    custom = materials.custom_table(scene)
+    used_custom: set[str] = set()
     for obj in geometry_objects(scene):
         name = safe_name(obj.name)
         if name in used:
@@ -171,11 +173,19 @@ def _collect(scene, depsgraph):
             continue
         used[name] = obj.name
         mat, thickness = obj.isac.itu_material, float(obj.isac.thickness)
-        if mat == materials.NO_MATERIAL:
+        if obj.isac.custom_material:
+            mat = obj.isac.custom_material
+            if mat not in custom:
+                problems.append(f"Object '{obj.name}': custom radio material '{mat}' is not "
+                                f"in the scene's list (have: {', '.join(custom) or 'none'})")
+                continue
+            thickness = custom[mat]["thickness"]
+            used_custom.add(mat)
+        elif mat == materials.NO_MATERIAL:
             problems.append(f"Object '{obj.name}': no ITU radio material assigned "
                             "(tag it, or untick 'Export geometry')")
             continue
-        if not materials.is_defined_at(mat, freq) and math.isfinite(freq):
+        if mat not in custom and not materials.is_defined_at(mat, freq) and math.isfinite(freq):
             problems.append(materials.band_message(obj.name, mat, freq))
         if not _finite_positive(thickness):
             problems.append(f"Object '{obj.name}': material thickness must be > 0 m, "
@@ -189,6 +199,9 @@ def _collect(scene, depsgraph):
                             "(zero dimension or collapsed faces)")
             continue
         meshes.append((wm, mat, thickness))
+    for name in sorted(used_custom):
+        problems += [f"Radio materials: {m}" for m in
+                     schema.custom_material_problems(name, custom[name], materials.ITU_MATERIALS)]
 
     devices = []
     dev_names: dict[str, str] = {}
@@ -363,7 +376,7 @@ def export_scene(context_or_scene, folder, *, interchange: bool = True) -> Expor
         if stale.name not in keep:
             stale.unlink()
     shapes = [(wm.name, t, d) for wm, t, d in meshes]
-    write_scene_xml(folder / "scene.xml", shapes)
+    write_scene_xml(folder / "scene.xml", shapes, materials.custom_table(scene))
     write_twin_toml(folder / "twin.toml", twin_data(scene, devices, links, depsgraph))
     report.files += ["scene.xml", "twin.toml"]
 
@@ -377,7 +390,9 @@ def export_scene(context_or_scene, folder, *, interchange: bool = True) -> Expor
 
     report.files.sort()
     report.objects = sorted(s[0] for s in shapes)
-    report.materials = sorted({material_id(t, d) for _, t, d in shapes})
+    custom = materials.custom_table(scene)
+    report.materials = sorted({custom_material_id(t) if t in custom else material_id(t, d)
+                               for _, t, d in shapes})
     report.devices = sorted(o.name for o in devices)
     report.links = links
     log.info("exported %d objects, %d devices to %s", len(meshes), len(devices), folder)

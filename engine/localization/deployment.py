@@ -187,18 +187,24 @@ class Deployment:
             every this many steps (NaN in between).
         extra_phy: ``{label: NetworkPHY}`` also evaluated on the same paths (e.g.
             another resource allocation); recorded as ``"AP1->robot1 (label)"``.
+        real_scene: the real room as a loaded :class:`~engine.scene.TwinScene` (e.g. a
+            calibrated twin's deployment in the same reality as the original's);
+            default a copy of ``folder``'s room, perturbed when ``settings.perturb``.
     """
 
     def __init__(self, folder, db: FingerprintDB, settings: DeploymentSettings | None = None,
                  *, seed: int = 0, dt: float = 0.25, localizer=None,
-                 rate_every: int = 1, extra_phy: dict | None = None) -> None:
+                 rate_every: int = 1, extra_phy: dict | None = None,
+                 real_scene: TwinScene | None = None) -> None:
         self.settings = s = settings or DeploymentSettings()
         self.db = db
         self.twin = Twin(load_scene(folder), seed=seed, phy=False,
                          sensors=SensorOptions(lidar=False, imu=False))
         attach(self.twin, db)
-        real_scene = load_scene(folder)
-        self.perturbation = perturb_scene(real_scene, seed=seed + 1) if s.perturb else None
+        given = real_scene is not None
+        real_scene = real_scene if given else load_scene(folder)
+        self.perturbation = (perturb_scene(real_scene, seed=seed + 1)
+                             if s.perturb and not given else None)
         # The PHY (rates) costs seconds per step for a 32 x 2 link: run it every
         # ``rate_every`` steps only, with the same NetworkPHY the twin would use.
         self.rate_every = max(1, int(rate_every))

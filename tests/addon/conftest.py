@@ -42,6 +42,7 @@ def empty_scene():
     scene.name = "Scene"
     props = scene.isac
     props.links.clear()
+    props.radio_materials.clear()
     for key in props.bl_rna.properties.keys():
         if key not in ("rna_type", "links", "name"):
             props.property_unset(key)
@@ -76,6 +77,9 @@ class LayoutStub:
     row = column = box = split = column_flow = grid_flow = _child
 
     def prop(self, data, prop, **kwargs):
+        self.calls.append(("prop", prop))
+
+    def prop_search(self, data, prop, search_data, search_prop, **kwargs):
         self.calls.append(("prop", prop))
 
     def operator(self, idname, **kwargs):

@@ -83,6 +83,9 @@ def test_cli_recovers_brick_walls(recording, capsys):
     # the scan saw more than one slab resonance: a single start could end elsewhere
     assert len(rep["permittivity_scans"]["concrete.permittivity"]["starts"]) > 1
     assert load_scene(d / "out" / "scene").objects.keys() == load_scene(twin).objects.keys()
+    assert (d / "out" / "calibration.png").read_bytes()[:4] == b"\x89PNG"
+    before = rep["residual_db_per_measurement_initial"]
+    assert min(before) > 10 * max(rep["residual_db_per_measurement"])
 
 
 @pytest.mark.slow
@@ -130,6 +133,18 @@ def test_calibrated_scene_moves_the_fitted_object(tmp_path):
     load_scene(out, load_sionna=False)
 
 
+def test_pose_grid_steps():
+    from engine.calibrate_run import pose_grid
+
+    g = pose_grid(Parameter("y", "Cabinet"), 0.125)  # lambda at 2.4 GHz
+    assert g[0] == pytest.approx(-0.1) and g[-1] == pytest.approx(0.1)
+    assert np.diff(g).max() <= 0.125 / 8 + 1e-12 and len(g) == 14
+    y = pose_grid(Parameter("yaw", "Cabinet"), 0.125)
+    assert np.degrees(y).round(6).tolist() == list(range(-5, 6))
+    narrow = pose_grid(Parameter("x", "Cabinet", bounds=(-0.02, 0.03)), 0.125)
+    assert narrow[0] == pytest.approx(-0.02) and narrow[-1] == pytest.approx(0.03)
+
+
 def test_local_minima():
     assert local_minima(np.array([3.0, 1.0, 2.0, 0.5, 0.7, 0.2])).tolist() == [5, 3, 1]
 
@@ -148,6 +163,10 @@ def test_cli_refuses_bad_input(tmp_path, capsys):
                  "--out", str(tmp_path / "o")]) == 2
     assert "expected TX,RX" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+    assert main(["record", str(twin), "--steps", "1", "--out", str(tmp_path / "r.mcap"),
+                 "--csi-snr", "nan"]) == 2
+    assert "--csi-snr: CsiRecording.snr_db: expected a finite number" in capsys.readouterr().err
+    assert not (tmp_path / "r.mcap").exists()
 
 
 def test_parameter_choice_is_checked(tmp_path):
@@ -163,3 +182,70 @@ def test_parameter_choice_is_checked(tmp_path):
         default_parameters(scene, ("poses",), ["Sofa"])
     with pytest.raises(CalibrationError, match="'colours' is not one of"):
         default_parameters(scene, ("colours",), [])
+    # one material at one thickness, by Sionna's name of it
+    names = [p.name for p in default_parameters(scene, ("materials",), [], ["metal-0.002"])]
+    assert names == ["metal-0.002.permittivity", "metal-0.002.conductivity"]
+    with pytest.raises(CalibrationError, match="no object has material 'wood'"):
+        default_parameters(scene, ("materials",), [], ["wood"])
+
+
+def test_a_material_at_one_thickness_is_written_for_its_objects_only(tmp_path):
+    from engine.calibrate_run import calibrated_materials
+
+    objs = syn.room_objects((5.0, 4.0, 3.0), {"Shelf": ((3.0, 2.5, 0.0), (3.6, 3.0, 1.5),
+                                                        "concrete", 0.05)})
+    devs = [syn.SyntheticDevice("AP1", "access_point", "tx", (0.5, 0.5, 2.0))]
+    scene = load_scene(syn.write_scene_folder(tmp_path / "r", objs, devs, []),
+                       load_sionna=False)
+    res = CalibrationResult(names=["concrete-0.05.permittivity"], initial=np.array([5.24]),
+                            final=np.array([6.0]), gradient_initial=np.ones(1), unobserved=[],
+                            mismatch_initial=1.0, mismatch_final=0.0, residual_db=np.zeros(1),
+                            converged=True, message="", evaluations=1, seconds_per_step=0.0)
+    mats, assign = calibrated_materials(scene, res)
+    assert assign == {"Shelf": "concrete-0.05-calibrated"}
+    assert mats["concrete-0.05-calibrated"]["relative_permittivity"] == 6.0
+    assert mats["concrete-0.05-calibrated"]["thickness"] == pytest.approx(0.05)
+    out = write_calibrated_scene(scene, res, tmp_path / "out")
+    back = load_scene(out, load_sionna=False)
+    assert back.objects["Shelf"].material == "concrete-0.05-calibrated"
+    assert back.objects["floor"].material == "concrete"  # 0.2 m concrete untouched
+
+
+@pytest.mark.slow
+def test_calibrated_folder_gives_the_calibrators_channel_at_the_fitted_values(recording,
+                                                                               tmp_path):
+    """The folder written holds the fitted materials (custom radio materials) and poses:
+    loaded anew, its channel is the calibrator's model at the fitted values."""
+    _, _, run = recording
+    twin = room(tmp_path / "twin", "concrete")
+    scene = load_scene(twin)
+    _, meas = measurements_from_recording(run, scene.config, max_snapshots=4,
+                                          max_subcarriers=8)
+    params = [Parameter("permittivity", "concrete"), Parameter("conductivity", "concrete"),
+              Parameter("x", "Cabinet"), Parameter("y", "Cabinet"), Parameter("yaw", "Cabinet")]
+    settings = SolverSettings.from_tracer(scene.config.tracer)
+    cal = Calibrator(scene, meas, params, settings)
+    fitted = np.array([4.3, 0.07, 0.013, -0.021, np.radians(1.7)])
+    _, _, model = cal.evaluate(fitted, grad=False)
+    res = CalibrationResult(names=[p.name for p in params], initial=cal.initial, final=fitted,
+                            gradient_initial=np.ones(5), unobserved=[], mismatch_initial=1.0,
+                            mismatch_final=0.0, residual_db=np.zeros(4), converged=True,
+                            message="", evaluations=1, seconds_per_step=0.0)
+    out = write_calibrated_scene(load_scene(twin, load_sionna=False), res, tmp_path / "out")
+    xml = (out / "scene.xml").read_text()
+    assert 'type="radio-material" id="mat-concrete-calibrated"' in xml
+    assert "mat-concrete-0.2" not in xml  # no object refers to ITU concrete any more
+    cscene = load_scene(out)
+    assert cscene.custom_materials == {"concrete-calibrated": {
+        "relative_permittivity": pytest.approx(4.3), "conductivity": pytest.approx(0.07),
+        "thickness": pytest.approx(0.2)}}
+    assert {o.material for o in cscene.objects.values()} == {"concrete-calibrated", "metal"}
+    again = Calibrator(cscene, meas, [Parameter("permittivity", "concrete-calibrated")],
+                       settings)
+    assert again.initial[0] == pytest.approx(4.3, rel=1e-6)
+    _, _, model2 = again.evaluate(again.initial, grad=False)
+    assert np.ptp(model) > 5  # dB: a channel with structure, not a constant
+    np.testing.assert_allclose(model2, model, atol=1e-3)  # dB
+    # and away from the fitted values it differs (the check can fail)
+    _, _, model0 = cal.evaluate(cal.initial, grad=False)
+    assert np.abs(model0 - model).max() > 0.1

@@ -156,3 +156,122 @@ def test_oversized_mesh_is_refused_before_reading(tmp_path):
         f.truncate(2000)
     with pytest.raises(MeshError, match=r"big\.ply: 2000 bytes exceeds the mesh size limit of 1000"):
         read_ply(big, max_bytes=1000)
+
+
+# --------------------------------------------------------------- custom radio materials
+
+
+def _concrete_at(f_hz):
+    """ITU concrete's (eps_r, sigma S/m) at f from Sionna's own ITU-R P.2040 model."""
+    from sionna.rt.radio_materials.itu import itu_material
+    eps, sigma = itu_material("concrete", f_hz)
+    return float(np.asarray(eps).reshape(-1)[0]), float(np.asarray(sigma).reshape(-1)[0])
+
+
+def _custom_room(tmp_path, name, props, material_of_walls=None):
+    from engine.synthetic import room_objects
+    objs = room_objects((5.0, 4.0, 3.0), {})
+    if material_of_walls:
+        objs = [SyntheticObject(o.name, o.vertices, o.faces, material_of_walls, o.thickness)
+                if o.name.startswith("wall") else o for o in objs]
+    dev = [SyntheticDevice("AP1", "access_point", "tx", (1.0, 1.0, 2.0))]
+    return write_scene_folder(tmp_path / name, objs, dev, [], custom_materials=props)
+
+
+def test_custom_material_loads_as_sionna_radio_material(tmp_path):
+    props = {"wet_wall": {"relative_permittivity": 7.5, "conductivity": 0.08, "thickness": 0.15}}
+    folder = _custom_room(tmp_path, "c", props, "wet_wall")
+    xml = (folder / "scene.xml").read_text()
+    assert '<bsdf type="radio-material" id="mat-wet_wall">' in xml
+    scene = load_scene(folder)
+    assert scene.custom_materials == props
+    assert scene.objects["wall_xmin"].material == "wet_wall"
+    assert scene.objects["wall_xmin"].thickness == pytest.approx(0.15)
+    m = scene.sionna.objects["wall_xmin"].radio_material
+    assert float(m.relative_permittivity.numpy()[0]) == pytest.approx(7.5)
+    assert float(m.conductivity.numpy()[0]) == pytest.approx(0.08)
+    assert float(m.thickness.numpy()[0]) == pytest.approx(0.15)
+    # the values are part of what the channel depends on
+    props2 = {"wet_wall": dict(props["wet_wall"], relative_permittivity=7.6)}
+    other = load_scene(_custom_room(tmp_path, "d", props2, "wet_wall"), load_sionna=False)
+    assert other.content_hash() != scene.content_hash()
+
+
+@pytest.mark.slow
+def test_custom_material_with_itu_values_gives_the_itu_channel(tmp_path):
+    """Reference: Sionna's ITU concrete. A custom material holding its values at the
+    carrier must give the same paths' channel."""
+    import mitsuba as mi
+    import sionna.rt as rt
+    eps, sigma = _concrete_at(2.4e9)
+    props = {"concrete_like": {"relative_permittivity": eps, "conductivity": sigma,
+                               "thickness": 0.2}}
+    cfrs = []
+    for name, mat in (("itu", None), ("custom", "concrete_like")):
+        sc = load_scene(_custom_room(tmp_path, name, props, mat)).sionna
+        sc.tx_array = sc.rx_array = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso",
+                                                  polarization="V")
+        sc.add(rt.Transmitter("t", position=mi.Point3f(1.0, 1.0, 2.0)))
+        sc.add(rt.Receiver("r", position=mi.Point3f(3.5, 2.5, 1.0)))
+        p = rt.PathSolver()(sc, max_depth=2, samples_per_src=20000, seed=1)
+        h = p.cfr(frequencies=mi.Float(np.linspace(-5e6, 5e6, 8)), out_type="numpy")
+        cfrs.append(np.asarray(h).reshape(-1))
+    assert np.abs(cfrs[0]).max() > 0
+    np.testing.assert_allclose(cfrs[1], cfrs[0], rtol=1e-4, atol=1e-4 * np.abs(cfrs[0]).max())
+
+
+@pytest.mark.parametrize("props, msg", [
+    ({"relative_permittivity": 0.5, "conductivity": 0.0, "thickness": 0.1},
+     r"bsdf 'mat-bad': custom material 'bad': relative_permittivity: expected a value in "
+     r"\[1, 10000\]"),
+    ({"relative_permittivity": 4.0, "conductivity": -1.0, "thickness": 0.1},
+     r"bsdf 'mat-bad': custom material 'bad': conductivity"),
+    ({"relative_permittivity": 4.0, "conductivity": 0.0, "thickness": 0.0},
+     r"bsdf 'mat-bad': custom material 'bad': thickness: expected a value in \(0, 10\] m"),
+])
+def test_bad_custom_material_is_refused_naming_the_bsdf(tmp_path, props, msg):
+    folder = _custom_room(tmp_path, "ok", {"bad": {"relative_permittivity": 4.0,
+                                                   "conductivity": 0.0, "thickness": 0.1}},
+                          "bad")
+    xml = (folder / "scene.xml").read_text()
+    for k, v in props.items():  # write the bad value past the exporter's own check
+        start = xml.index(f'<float name="{k}" value="', xml.index('id="mat-bad"'))
+        end = xml.index('"/>', start)
+        xml = xml[:start] + f'<float name="{k}" value="{v}' + xml[end:]
+    (folder / "scene.xml").write_text(xml)
+    with pytest.raises(ConfigError, match=r"scene\.xml: " + msg):
+        load_scene(folder, load_sionna=False)
+
+
+def test_custom_material_name_and_children_checked(tmp_path):
+    folder = _custom_room(tmp_path, "n", {"wet": {"relative_permittivity": 4.0,
+                                                   "conductivity": 0.0, "thickness": 0.1}}, "wet")
+    _xml_edit(folder, 'id="mat-wet"', 'id="mat-brick"')
+    _xml_edit(folder, '<ref id="mat-wet"', '<ref id="mat-brick"')
+    with pytest.raises(ConfigError, match="custom material 'brick': the name is an ITU"):
+        load_scene(folder, load_sionna=False)
+    folder = _custom_room(tmp_path, "m", {"wet": {"relative_permittivity": 4.0,
+                                                   "conductivity": 0.0, "thickness": 0.1}}, "wet")
+    _xml_edit(folder, '<float name="conductivity"', '<float name="roughness"')
+    with pytest.raises(ConfigError, match=r"bsdf 'mat-wet': <float name='roughness'> is not "
+                                          r"supported"):
+        load_scene(folder, load_sionna=False)
+
+
+def test_set_material_to_a_custom_material(tmp_path):
+    props = {"wet": {"relative_permittivity": 9.0, "conductivity": 0.2, "thickness": 0.12}}
+    scene = load_scene(_custom_room(tmp_path, "s", props, "wet"))
+    h0 = scene.content_hash()
+    scene.set_material("floor", "wet")
+    assert scene.objects["floor"].material == "wet"
+    assert scene.objects["floor"].thickness == pytest.approx(0.12)
+    m = scene.sionna.objects["floor"].radio_material
+    assert float(m.relative_permittivity.numpy()[0]) == pytest.approx(9.0)
+    assert scene.content_hash() != h0
+    with pytest.raises(ValueError, match="custom material 'wet' has its own thickness 0.12 m"):
+        scene.set_material("ceiling", "wet", 0.3)
+    with pytest.raises(ValueError, match=r"unknown material 'dry'.*custom one of the scene "
+                                         r"\(wet\)"):
+        scene.set_material("ceiling", "dry")
+    scene.set_material("floor", "concrete", 0.2)  # and back to ITU
+    assert scene.objects["floor"].material == "concrete"

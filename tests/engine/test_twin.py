@@ -317,3 +317,29 @@ def test_csi_is_built_only_for_consumers_and_records_the_same(lab, tmp_path):
                 ref = tw.phy.channel(res[step].links[(m.tx, "robot1")].paths, times)[s.group]
                 np.testing.assert_allclose(m.h, ref, rtol=0,
                                            atol=1e-5 * np.abs(ref).max())
+
+
+def test_material_edits_name_itu_or_custom_materials(tmp_path):
+    folder = _lab(tmp_path / "lab")
+    xml = (folder / "scene.xml").read_text()
+    bsdf = ('\t<bsdf type="radio-material" id="mat-damp_plaster">\n'
+            '\t\t<float name="relative_permittivity" value="6.5"/>\n'
+            '\t\t<float name="conductivity" value="0.05"/>\n'
+            '\t\t<float name="thickness" value="0.05"/>\n\t</bsdf>\n')
+    xml = xml.replace("<!-- Shapes", bsdf + "<!-- Shapes", 1)
+    (folder / "scene.xml").write_text(xml)
+    tw = Twin.from_scene(folder, seed=1)
+    assert tw.scene.custom_materials["damp_plaster"]["relative_permittivity"] == 6.5
+    tw.validate_edit(Edit(op="material", target="cabinet", material="concrete", thickness=0.1))
+    with pytest.raises(ValueError, match=r"edit material 'cabinet': material: unknown material "
+                                         r"'dry_plaster'.*\(damp_plaster\)"):
+        tw.apply_edit(Edit(op="material", target="cabinet", material="dry_plaster"))
+    with pytest.raises(ValueError, match="custom material 'damp_plaster' has its own thickness"):
+        tw.apply_edit(Edit(op="material", target="cabinet", material="damp_plaster",
+                           thickness=0.3))
+    tw.apply_edit(Edit(op="material", target="cabinet", material="damp_plaster"))
+    tw.step()
+    m = tw.scene.sionna.objects["cabinet"].radio_material
+    assert tw.scene.objects["cabinet"].material == "damp_plaster"
+    assert float(m.relative_permittivity.numpy()[0]) == pytest.approx(6.5)
+    assert float(m.conductivity.numpy()[0]) == pytest.approx(0.05)

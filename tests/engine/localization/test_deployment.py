@@ -45,6 +45,19 @@ def test_loop_produces_four_positions_and_finite_errors(lab, lab_db, settings):
     assert dep.reality.scene.content_hash() != dep.twin.scene.content_hash()
 
 
+def test_a_given_real_room_is_the_reality(lab, lab_db):
+    """Two twins compared in one reality (issue 20): the real room passed in is used as
+    it is, not perturbed again."""
+    real = load_scene(lab)
+    perturb_scene(real, seed=9)
+    h = real.content_hash()
+    dep = Deployment(lab, lab_db, DeploymentSettings(source="real", mode="pilots", path=PATH),
+                     seed=1, dt=0.25, real_scene=real)
+    assert dep.reality.scene is real and real.content_hash() == h
+    assert dep.perturbation is None
+    assert len(dep.run(1)) == 1
+
+
 def test_perturbation_is_seeded_and_keeps_the_shell(lab):
     a, b = load_scene(lab), load_scene(lab)
     pa, pb = perturb_scene(a, seed=3), perturb_scene(b, seed=3)
