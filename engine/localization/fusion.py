@@ -14,10 +14,21 @@ covariance ``P [3, 3]``. The way a robot runs it:
   the fix is accepted only if its squared Mahalanobis distance
   ``nu^T S^-1 nu`` is at most ``gate_chi2`` (chi-square, 2 degrees of freedom:
   9.21 keeps 99 % of good fixes), else it is counted in ``rejected``;
-* **re-acquisition**: after ``reacquire_after`` consecutive rejections the
-  filter is taken to have drifted (an overconfident state would gate out
-  every good fix from then on): the position covariance is grown by the
-  innovation ``nu nu^T`` and the fix is used.
+* **re-acquisition** (an overconfident state that drifted would gate out
+  every good fix from then on): the innovations of the fixes rejected since
+  the last accepted one are kept; they are all measured against the same
+  odometry-propagated track, so after a drift (or a wheel slip) they share
+  one offset. When at least ``reacquire_after`` of them agree -- each within
+  the gate of their median under twice the fix covariance,
+  ``(nu_i - med)^T (2 R)^-1 (nu_i - med) <= gate_chi2`` -- the filter
+  re-acquires on their consensus: the position covariance is grown by the
+  mean offset ``m m^T`` and the filter is updated with ``h(x) + m`` (fix
+  covariance ``R``: neighbouring fixes share their bias, so averaging does not
+  shrink it). Rejected fixes that disagree (scattered outliers, e.g. a fix
+  20-30 cm off on alternating sides) are no evidence of a drift and never
+  move the state, however many arrive in a row. (The earlier rule used the
+  5th consecutive rejected fix, whatever it was: in a lap it jumped onto a
+  fix 30 cm off the truth.)
 """
 
 from __future__ import annotations
@@ -50,7 +61,8 @@ class PoseEKF:
         fix_std_m: standard deviation of one RF fix per axis, m.
         antenna_offset: ``[x, y]`` of the antenna in the body frame, m.
         gate_chi2: gate on the squared Mahalanobis distance of a fix.
-        reacquire_after: consecutive rejections after which a fix is used anyway.
+        reacquire_after: rejected fixes (since the last accepted one) that must
+            agree on one offset before the filter re-acquires on them.
 
     Raises:
         ValueError: non-finite poses, non-positive standard deviations or gate.
@@ -75,9 +87,10 @@ class PoseEKF:
         if int(reacquire_after) < 1:
             raise ValueError(f"reacquire_after: expected >= 1, got {reacquire_after!r}")
         self.reacquire_after = int(reacquire_after)
-        self._streak = 0
-        self.accepted = 0  #: fixes used
+        self._streak: list[np.ndarray] = []  # innovations rejected since the last accepted fix
+        self.accepted = 0  #: fixes used (a re-acquisition counts as one)
         self.rejected = 0  #: fixes refused by the gate
+        self.reacquired = 0  #: re-acquisitions on agreeing rejected fixes
 
     @staticmethod
     def _pose(name, v) -> np.ndarray:
@@ -136,13 +149,17 @@ class PoseEKF:
         nu = z - h
         S = H @ self.P @ H.T + self.R
         if float(nu @ np.linalg.solve(S, nu)) > self.gate:
-            self._streak += 1
-            if self._streak < self.reacquire_after:
-                self.rejected += 1
+            self.rejected += 1
+            self._streak = self._streak[-(3 * self.reacquire_after - 1):] + [nu]
+            m = self._consensus()
+            if m is None:
                 return False
-            self.P[:2, :2] += np.outer(nu, nu)  # drifted: re-acquire on this fix
+            self.rejected -= 1  # used after all
+            self.reacquired += 1
+            self.P[:2, :2] += np.outer(m, m)  # drifted: re-acquire on the consensus
+            nu = m
             S = H @ self.P @ H.T + self.R
-        self._streak = 0
+        self._streak = []
         K = self.P @ H.T @ np.linalg.inv(S)
         self.x = self.x + K @ nu
         self.x[2] = _wrap(self.x[2])
@@ -150,3 +167,16 @@ class PoseEKF:
         self.P = ikh @ self.P @ ikh.T + K @ self.R @ K.T  # Joseph form
         self.accepted += 1
         return True
+
+    def _consensus(self) -> np.ndarray | None:
+        """Mean offset of the rejected innovations that agree with their median
+        (see the module doc), or None when fewer than ``reacquire_after`` do."""
+        if len(self._streak) < self.reacquire_after:
+            return None
+        nus = np.array(self._streak)
+        d = nus - np.median(nus, axis=0)
+        chi = np.einsum("ij,jk,ik->i", d, np.linalg.inv(2.0 * self.R), d)
+        agree = chi <= self.gate
+        if int(agree.sum()) < self.reacquire_after:
+            return None
+        return nus[agree].mean(axis=0)
