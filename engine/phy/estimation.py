@@ -382,34 +382,23 @@ class MdpEstimator:
         runs on ``h_fit`` (``h`` compressed to its dominant column space);
         the returned amplitudes and RSS are for the full ``h``."""
         fc = f / SPEED_OF_LIGHT  # cycles per metre of path length
-        memo = {}
-
-        def basis(d):
-            # E(d) [N, k], its thin QR (Q [N, k]: E's column space) and Q^H h_fit; LM
-            # asks for the residual and the Jacobian at the same d: computed once.
-            key = d.tobytes()
-            if key not in memo:
-                memo.clear()
-                e = np.exp(-2j * np.pi * np.outer(fc, d))
-                q, r = np.linalg.qr(e)
-                memo[key] = (e, q, r, np.conj(q.T) @ h_fit)
-            return memo[key]
 
         def resid(d):
-            _, q, _, qh = basis(d)
-            r = (h_fit - q @ qh).ravel()  # (I - Q Q^H) h: the least-squares residual
+            e = np.exp(-2j * np.pi * np.outer(fc, d))
+            c, *_ = np.linalg.lstsq(e, h_fit, rcond=None)
+            r = (h_fit - e @ c).ravel()
             return np.concatenate([r.real, r.imag])
 
         def jac(d):
             # Kaufman's variable-projection Jacobian: column k = -P_perp dE/dd_k c
-            # (the amplitudes' own sensitivity dropped), P_perp = I - Q Q^H. Analytic:
-            # the finite-difference one cost ~k+1 extra solves per iteration.
-            e, q, r, qh = basis(d)
-            c = scipy.linalg.solve_triangular(r, qh)  # [k, S] amplitudes
+            # (the amplitudes' own sensitivity dropped), P_perp = I - E E^+. Analytic:
+            # the finite-difference one cost ~k+1 extra lstsq solves per iteration.
+            e = np.exp(-2j * np.pi * np.outer(fc, d))  # [N, k]
+            c, *_ = np.linalg.lstsq(e, h_fit, rcond=None)  # [k, S]
             de = -2j * np.pi * fc[:, None] * e  # dE[:, k]/dd_k  [N, k]
             n, k = e.shape
             x = (de[:, :, None] * c[None, :, :]).reshape(n, -1)  # [N, k*S]: dE_k c_k
-            x = x - q @ (np.conj(q.T) @ x)  # P_perp
+            x = x - e @ np.linalg.lstsq(e, x, rcond=None)[0]  # P_perp
             jk = -x.reshape(n, k, -1).transpose(1, 0, 2).reshape(k, -1)  # [k, N*S]
             return np.concatenate([jk.real, jk.imag], axis=1).T
 
