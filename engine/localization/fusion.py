@@ -172,7 +172,7 @@ class PoseEKF:
                 return False
             self.rejected -= 1  # used after all
             self.reacquired += 1
-            self.P[:2, :2] += np.outer(m, m)  # drifted: re-acquire on the consensus
+            self.P[:2, :2] += np.outer(m, m)  # drifted: re-acquire on the median innovation
             nu = m
             S = H @ self.P @ H.T + self.R
             self._recent = []
