@@ -256,8 +256,8 @@ def test_pilot_features_do_not_change_the_mdp_and_directions(lab):
     ch = [phy.channel(x) for x in lk]
 
     def obs(features):
-        return observe_pilots(lk, ch, spec, PilotSettings(snr_db=20.0), rng=np.random.default_rng(5),
-                              features=features)
+        return observe_pilots(lk, ch, spec, PilotSettings(snr_db=20.0),
+                              rng=np.random.default_rng(5), features=features)
 
     every, lean, fb = obs(("mdp", "csi", "pdp", "dirs")), obs(("mdp", "dirs")), \
         obs(("mdp_fallback", "dirs"))
