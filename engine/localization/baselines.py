@@ -346,7 +346,7 @@ def make_localizers(db: FingerprintDB, spec: FeatureSpec, *, mca: dict | None = 
 
 #: Localizers by name, with the observation features each needs
 #: (:func:`~engine.localization.measurements.observe_pilots` ``features``).
-METHODS = {"MCA": ("mdp",), "MCA-angles": ("mdp", "dirs"), "LOS-fix": ("dirs",),
+METHODS = {"MCA": ("mdp",), "MCA-angles": ("mdp_fallback", "dirs"), "LOS-fix": ("dirs",),
            "PDP": ("pdp",), "kNN-CSI": ("csi",)}
 
 

@@ -14,10 +14,25 @@ covariance ``P [3, 3]``. The way a robot runs it:
   the fix is accepted only if its squared Mahalanobis distance
   ``nu^T S^-1 nu`` is at most ``gate_chi2`` (chi-square, 2 degrees of freedom:
   9.21 keeps 99 % of good fixes), else it is counted in ``rejected``;
-* **re-acquisition**: after ``reacquire_after`` consecutive rejections the
-  filter is taken to have drifted (an overconfident state would gate out
-  every good fix from then on): the position covariance is grown by the
-  innovation ``nu nu^T`` and the fix is used.
+* **re-acquisition** (an overconfident state that drifted would gate out
+  every good fix from then on): the innovations of the last
+  ``reacquire_window`` fixes, accepted or not, are kept, moved with every
+  correction an accepted fix makes (all against the current
+  odometry-propagated track). When a fix is rejected, at least
+  ``reacquire_after`` of the kept ones were rejected, and their median ``m``
+  fails the chi-square gate with the median's own covariance,
+  ``m^T (H P H^T + pi/2 R / n)^-1 m > gate_chi2`` (n kept fixes), the track
+  is off: the position covariance is grown by ``m m^T`` and the filter is
+  updated with ``h(x) + m`` (fix covariance ``R``: neighbouring fixes share
+  their bias, so their number does not shrink it). A jump is never larger
+  than what most recent fixes say; after a large slip the window fills with
+  the new offset and a second re-acquisition finishes the correction. The median over the
+  whole window, not the rejected fixes alone, decides: scattered outliers
+  (fixes 20-30 cm off on alternating sides) and a short run of fixes biased
+  one way while most fixes agree with the track (MCA-angles does both in a
+  lap of the lab) never move the state; a drift that most fixes see does.
+  (The earlier rule used the 5th consecutive rejected fix, whatever it was:
+  in a lap it jumped onto a fix 30 cm off the truth.)
 """
 
 from __future__ import annotations
@@ -50,7 +65,10 @@ class PoseEKF:
         fix_std_m: standard deviation of one RF fix per axis, m.
         antenna_offset: ``[x, y]`` of the antenna in the body frame, m.
         gate_chi2: gate on the squared Mahalanobis distance of a fix.
-        reacquire_after: consecutive rejections after which a fix is used anyway.
+        reacquire_after: rejected fixes among the last ``reacquire_window``
+            needed before a re-acquisition is considered.
+        reacquire_window: recent fixes (accepted or not) whose median
+            innovation decides a re-acquisition.
 
     Raises:
         ValueError: non-finite poses, non-positive standard deviations or gate.
@@ -59,7 +77,7 @@ class PoseEKF:
     def __init__(self, pose, odometry, *, initial_std=(0.05, math.radians(2.0)),
                  odom_std=(0.05, 0.05, math.radians(1.0)), fix_std_m: float = 0.05,
                  antenna_offset=(0.0, 0.0), gate_chi2: float = 9.21,
-                 reacquire_after: int = 5) -> None:
+                 reacquire_after: int = 5, reacquire_window: int = 16) -> None:
         self.x = self._pose("pose", pose)
         self._odo = self._pose("odometry", odometry)
         vals = {"initial_std": initial_std, "odom_std": odom_std, "fix_std_m": [fix_std_m],
@@ -75,9 +93,17 @@ class PoseEKF:
         if int(reacquire_after) < 1:
             raise ValueError(f"reacquire_after: expected >= 1, got {reacquire_after!r}")
         self.reacquire_after = int(reacquire_after)
-        self._streak = 0
-        self.accepted = 0  #: fixes used
+        if int(reacquire_window) < self.reacquire_after:
+            raise ValueError(f"reacquire_window: expected >= reacquire_after "
+                             f"({self.reacquire_after}), got {reacquire_window!r}")
+        self.reacquire_window = int(reacquire_window)
+        self._fixes = 0  # fixes seen (update calls)
+        # the last ``reacquire_window`` fixes: (fix index, innovation against the
+        # current track, rejected?)
+        self._recent: list[tuple[int, np.ndarray, bool]] = []
+        self.accepted = 0  #: fixes used (a re-acquisition counts as one)
         self.rejected = 0  #: fixes refused by the gate
+        self.reacquired = 0  #: re-acquisitions on agreeing rejected fixes
 
     @staticmethod
     def _pose(name, v) -> np.ndarray:
@@ -135,18 +161,41 @@ class PoseEKF:
         H[:, 2] = dr @ self.offset
         nu = z - h
         S = H @ self.P @ H.T + self.R
-        if float(nu @ np.linalg.solve(S, nu)) > self.gate:
-            self._streak += 1
-            if self._streak < self.reacquire_after:
-                self.rejected += 1
+        self._fixes += 1
+        self._recent = [r for r in self._recent if r[0] > self._fixes - self.reacquire_window]
+        out = float(nu @ np.linalg.solve(S, nu)) > self.gate
+        self._recent.append((self._fixes, nu, out))
+        if out:
+            self.rejected += 1
+            m = self._consensus(H @ self.P @ H.T)
+            if m is None:
                 return False
-            self.P[:2, :2] += np.outer(nu, nu)  # drifted: re-acquire on this fix
+            self.rejected -= 1  # used after all
+            self.reacquired += 1
+            self.P[:2, :2] += np.outer(m, m)  # drifted: re-acquire on the median innovation
+            nu = m
             S = H @ self.P @ H.T + self.R
-        self._streak = 0
+            self._recent = []
         K = self.P @ H.T @ np.linalg.inv(S)
+        before = self.antenna_xy
         self.x = self.x + K @ nu
         self.x[2] = _wrap(self.x[2])
+        moved = self.antenna_xy - before  # kept innovations are against the moved track
+        self._recent = [(i, v - moved, r) for i, v, r in self._recent]
         ikh = np.eye(3) - K @ H
         self.P = ikh @ self.P @ ikh.T + K @ self.R @ K.T  # Joseph form
         self.accepted += 1
         return True
+
+    def _consensus(self, p_h: np.ndarray) -> np.ndarray | None:
+        """The median innovation of the recent fixes when it says the track is off
+        (see the module doc; ``p_h`` = ``H P H^T``), else None."""
+        n = len(self._recent)
+        if sum(r for _, _, r in self._recent) < self.reacquire_after:
+            return None
+        med = np.median(np.array([v for _, v, _ in self._recent]), axis=0)
+        # variance of a median of n Gaussian samples: pi / 2 R / n
+        s = p_h + 0.5 * math.pi * self.R / n
+        if float(med @ np.linalg.solve(s, med)) <= self.gate:
+            return None
+        return med

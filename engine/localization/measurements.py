@@ -243,6 +243,32 @@ class PilotSettings:
     seed: int = 0
 
 
+#: Comb pilot patterns by (transmitter, grid, ports, stride, seed) ->
+#: ``(PilotPattern, symbols [P, K, N], LSChannelEstimator)``: drawing the QPSK
+#: symbols of a 32-port grid costs tens of ms, and a pattern never changes.
+_COMB_PILOTS: dict = {}
+
+
+def comb_pilots(grid, name: str, num_ports: int, stride: int, seed: int):
+    """The comb :class:`~engine.phy.estimation.PilotPattern` of transmitter ``name``
+    (``num_ports`` ports, subcarrier ``stride``, QPSK ``seed``) on ``grid``, its
+    symbols ``[P, K, N]`` (read-only) and its :class:`LSChannelEstimator`, made
+    once and kept (a few patterns per twin)."""
+    key = (name, grid.num_subcarriers, grid.subcarrier_spacing_hz, grid.num_symbols,
+           grid.cyclic_prefix_samples, int(num_ports), int(stride), int(seed))
+    hit = _COMB_PILOTS.get(key)
+    if hit is None:
+        if len(_COMB_PILOTS) >= 64:
+            _COMB_PILOTS.clear()
+        pat = PilotPattern(ResourceSet(grid, None, None, name=name), "comb",
+                           num_ports=num_ports, subcarrier_stride=stride, seed=seed)
+        ls = LSChannelEstimator(pat)
+        x = pat.symbols
+        x.setflags(write=False)
+        hit = _COMB_PILOTS[key] = (pat, x, ls)
+    return hit
+
+
 def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: PilotSettings,
                    num_paths: int = 9, rng: np.random.Generator | None = None,
                    features=("mdp", "csi", "pdp", "dirs")) -> Observation:
@@ -259,6 +285,15 @@ def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: Pil
             stay NaN / empty. ``"dirs"``: joint delay-direction estimation
             (:class:`~engine.phy.directions.DelayDirectionEstimator`) at every
             AP with more than one antenna, into :attr:`Observation.paths`.
+            ``"mdp_fallback"``: the delay-only MDP only at the APs that get no
+            direction estimate (single-antenna APs, or all when ``"dirs"`` is
+            not asked for): what MCA-angles reads, without the MDP of a
+            32-antenna AP it never uses.
+
+    Without ``"csi"`` and ``"pdp"`` only the raw LS values at each port's comb
+    are formed (the interpolated full-grid estimate is what those two read);
+    both ways give the same comb values, so the MDP and directions do not
+    depend on the feature set.
     """
     rng = rng if rng is not None else np.random.default_rng(settings.seed)
     grid = spec.grid
@@ -266,39 +301,39 @@ def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: Pil
     lengths = np.full((A, num_paths), np.nan)
     powers = np.zeros((A, num_paths))
     csi, pdp, paths = [], [], []
+    full = "csi" in features or "pdp" in features
     for i, (lp, h) in enumerate(zip(links, channels)):
         k_, n_, nr, nt = h.shape
-        rs = ResourceSet(grid, None, None, name=lp.tx)
-        pat = PilotPattern(rs, "comb", num_ports=nt,
-                           subcarrier_stride=max(settings.min_stride, nt), seed=settings.seed)
-        x = pat.symbols  # [P, K, N]
+        stride = max(settings.min_stride, nt)
+        pat, x, ls_est = comb_pilots(grid, lp.tx, nt, stride, settings.seed)  # x [P, K, N]
         sig = np.mean(np.abs(h) ** 2)
         sigma2 = sig * pat.pilot_power / 10 ** (settings.snr_db / 10) if sig > 0 else 1e-30
         y = np.einsum("knrp,pkn->knr", h, x)
         y = y + np.sqrt(sigma2 / 2) * (rng.standard_normal(y.shape)
                                        + 1j * rng.standard_normal(y.shape))
-        hh = LSChannelEstimator(pat)(y)  # [K, N, Nr, P]
-        hmean = hh.mean(axis=0)  # [N, Nr, P] (noise / K)
+        # LS at each port's comb, averaged over the 14 symbols (noise / K): [Ns, Nr] per port
+        scs = [pat.positions(p)[1] for p in range(nt)]
+        if full:
+            hmean = ls_est(y).mean(axis=0)  # [N, Nr, P]
+            combs = [hmean[sc, :, p] for p, sc in enumerate(scs)]
+        else:
+            combs = []
+            for p, sc in enumerate(scs):
+                sy = pat.positions(p)[0]
+                combs.append((y[np.ix_(sy, sc)] / x[p][np.ix_(sy, sc)][..., None]).mean(axis=0))
         csi.append(db(np.mean(np.abs(hmean[spec.knn_subcarriers]) ** 2, axis=1))
                    if "csi" in features else np.full((len(spec.knn_subcarriers), nt), np.nan))
         pdp.append(db(pdp_from_csi(hmean.reshape(n_, -1), spec.pdp_bins_m, grid))
                    if "pdp" in features else np.full(len(spec.pdp_bins_m), np.nan))
-        stride = max(settings.min_stride, nt)
+        dirs = "dirs" in features and nt > 1
         if "dirs" in features:
-            paths.append(None if nt == 1 else _pilot_directions(hmean, pat, spec, lp,
-                                                                 settings, stride))
-        if "mdp" not in features:
+            paths.append(_pilot_directions(combs, scs, spec, lp, settings, stride)
+                         if dirs else None)
+        if not ("mdp" in features or ("mdp_fallback" in features and not dirs)):
             continue
         # MDP: raw LS at each port's comb, snapshots = (rx, port).
-        snaps, sc0 = [], None
-        for p in range(nt):
-            _, sc = pat.positions(p)
-            if sc0 is None:
-                sc0 = sc
-            m = min(len(sc), len(sc0))
-            snaps.append(hmean[sc[:m], :, p])
-        ncomb = min(s.shape[0] for s in snaps)
-        snap = np.concatenate([s[:ncomb] for s in snaps], axis=1)  # [Nc, Nr*P]
+        ncomb = min(len(sc) for sc in scs)
+        snap = np.concatenate([c[:ncomb] for c in combs], axis=1)  # [Nc, Nr*P]
         # ESPRIT needs 2k <= M - 1 (window M): widen the window for short combs.
         sub = min(ncomb - 2, max(ncomb // 2, 2 * settings.max_paths + 2))
         est = MdpEstimator(stride * grid.subcarrier_spacing_hz, max_paths=settings.max_paths,
@@ -311,16 +346,15 @@ def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: Pil
     return Observation(lengths, powers, csi, np.array(pdp), paths)
 
 
-def _pilot_directions(hmean, pat: PilotPattern, spec: FeatureSpec, lp, settings: PilotSettings,
+def _pilot_directions(combs: list, scs: list, spec: FeatureSpec, lp, settings: PilotSettings,
                       stride: int) -> DelayDirectionProfile:
     """Joint delay-direction estimate of one AP from its LS values at each
-    port's comb (``hmean [N, Nr, P]``)."""
-    nt = hmean.shape[2]
-    combs = [pat.positions(p)[1] for p in range(nt)]
-    m = min(len(c) for c in combs)
-    csi = np.stack([hmean[c[:m], :, p] for p, c in enumerate(combs)], axis=2)  # [M, Nr, P]
+    port's comb (``combs[p] [Ns, Nr]`` at subcarriers ``scs[p]``)."""
+    nt = len(combs)
+    m = min(len(c) for c in scs)
+    csi = np.stack([c[:m] for c in combs], axis=2)  # [M, Nr, P]
     df = spec.grid.subcarrier_spacing_hz
-    off = np.array([(c[0] - combs[0][0]) * df for c in combs])
+    off = np.array([(c[0] - scs[0][0]) * df for c in scs])
     est = DelayDirectionEstimator(spec.arrays[lp.tx], stride * df,
                                   orientation=sionna_orientation(lp.tx_orientation),
                                   max_paths=settings.max_paths,

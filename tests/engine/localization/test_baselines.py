@@ -234,3 +234,39 @@ def test_los_fix_from_pilots_in_the_bundled_lab_off_the_circle():
                              rng=rng, features=("dirs",))
         errs.append(np.linalg.norm(loc(obs)[:2] - p[:2]))
     assert max(errs) < 0.10, errs
+
+
+def test_pilot_features_do_not_change_the_mdp_and_directions(lab):
+    """observe_pilots forms only the raw comb LS values when neither CSI nor PDP is asked
+    for (the interpolated full-grid estimate costs ~90 ms per fix on the lab): the MDP and
+    directions are the same as with every feature, for the same noise; "mdp_fallback"
+    skips the delay-only MDP exactly at the APs that got directions."""
+    from engine.phy.network import NetworkPHY
+    from engine.raytrace import DevicePose, device_poses, make_tracer
+
+    scene = load_scene(lab)
+    cfg = scene.config
+    spec = FeatureSpec.from_config(cfg)
+    phy = NetworkPHY(cfg)
+    robot = [d.name for d in cfg.devices if d.kind == "robot"][0]
+    poses = dict(device_poses(cfg))
+    poses[robot] = DevicePose((2.2, 1.7, 0.25), (0.0, 0.0, 0.4))
+    links = make_tracer(cfg)(scene, poses)
+    lk = [links[(ap, robot)] for ap in ("AP1", "AP2")]
+    ch = [phy.channel(x) for x in lk]
+
+    def obs(features):
+        return observe_pilots(lk, ch, spec, PilotSettings(snr_db=20.0),
+                              rng=np.random.default_rng(5), features=features)
+
+    every, lean, fb = obs(("mdp", "csi", "pdp", "dirs")), obs(("mdp", "dirs")), \
+        obs(("mdp_fallback", "dirs"))
+    assert np.isfinite(every.lengths[0, 0]) and np.isfinite(every.lengths[1, 0])
+    np.testing.assert_allclose(lean.lengths, every.lengths, rtol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(lean.powers, every.powers, rtol=1e-9)
+    for a, b in zip(lean.paths[:1] + fb.paths[:1], every.paths[:1] * 2):
+        np.testing.assert_allclose(a.distances_m, b.distances_m, rtol=1e-9)
+        np.testing.assert_allclose(a.directions, b.directions, atol=1e-9)
+    assert lean.paths[1] is None and np.isnan(lean.pdp_db).all()
+    assert np.isnan(fb.lengths[0]).all()  # AP1 (2x2) has directions: no delay-only MDP
+    np.testing.assert_allclose(fb.lengths[1], every.lengths[1], rtol=1e-9, equal_nan=True)

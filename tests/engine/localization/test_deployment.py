@@ -231,9 +231,13 @@ def test_fused_closed_loop_accuracy_on_a_path_it_was_not_tuned_on(bundled_lab_db
     """The demo's closed-loop estimator (MCA-angles + EKF, pilots at 20 dB, perturbed
     room) in the bundled lab on a polyline through the room's north half, not the
     demo's circle the defaults were chosen on; fixed seed; the first 48 steps (12 s).
-    Against the simulator's truth, measured: RMSE 11.5 cm, max 27.1 cm, 13 fixes gated out
-    (odometry alone 3.4 cm RMSE: over 12 s odometry has barely drifted, so this bounds the
-    RF-driven estimate, it does not claim to beat odometry)."""
+    Against the simulator's truth, measured: RMSE 6.7 cm, max 12.8 cm. The closed loop is
+    sensitive: with an MDP refinement that differed by 1e-15 m (a QR variant, reverted)
+    the robot steered another way and measured 11.2 / 22.6 cm; with the EKF's earlier
+    re-acquisition rule it measured 11.5 / 27.1 cm (its replay on recorded fixes is
+    test_fusion's regression). Odometry alone: 3.5 cm RMSE (over 12 s it has
+    barely drifted, so this bounds the RF-driven estimate, it does not claim to beat
+    odometry)."""
     spec = {"kind": "polyline", "waypoints": [[5.5, 3.0], [5.5, 4.6], [3.0, 4.6], [3.0, 2.2]]}
     s = DeploymentSettings(source="real", mode="pilots", snr_db=20.0, closed_loop=True,
                            method="MCA-angles", fusion="ekf", path=spec)
@@ -244,4 +248,4 @@ def test_fused_closed_loop_accuracy_on_a_path_it_was_not_tuned_on(bundled_lab_db
     truth = np.array([r.truth for r in dep.records])
     assert np.linalg.norm(truth[-1] - truth[0]) > 1.5  # it drove past the first corner
     assert max(abs(dep.path.project(p).error) for p in truth) < 0.25  # measured 15.5 cm
-    assert e["rmse"] < 0.18 and e["max"] < 0.40, e
+    assert e["rmse"] < 0.16 and e["max"] < 0.30, e
