@@ -40,7 +40,7 @@ import numpy as np
 from engine.raytrace.base import INTERACTION_REFRACTION, INTERACTION_SPECULAR
 from engine.raytrace.planes import PlaneIndex
 from engine.raytrace.raw import RawPaths, concat_targets, to_points
-from engine.raytrace.source_chains import shoot_chains
+from engine.raytrace.source_chains import MirrorFilter, shoot_chains
 from engine.raytrace.solver_core import chain_buffer, gather_pairs
 
 #: Bumped whenever a change of this module changes which paths are found;
@@ -225,19 +225,26 @@ class ChainTracer:
         max_pairs: candidate-target pairs per image-method call.
         max_cap: kept for the callers' truncation policy (the chain set is not
             capped: ``max_num_paths_per_src`` bounds each target's paths).
+        mirror_filter: pass each receiver only the chains mirror geometry allows
+            (default) instead of all of them.
 
     The cache (chains) belongs to one scene state and one set of source
     positions: :meth:`trace` drops it when its ``context`` argument or the
     sources change.
     """
 
-    def __init__(self, core, max_pairs: int = MAX_PAIRS_PER_CALL, max_cap: int | None = None):
+    def __init__(self, core, max_pairs: int = MAX_PAIRS_PER_CALL, max_cap: int | None = None,
+                 mirror_filter: bool = True):
         if not chains_supported(core.config):
             raise ValueError("chain reuse traces specular chains only: disable "
                              "tracer.diffuse_reflection and tracer.diffraction, or use "
                              'tracer.method = "sbr"')
         self.core = core
         self.max_pairs = int(max_pairs)
+        #: Give the image method only the chains that mirror geometry allows
+        #: (:class:`~engine.raytrace.source_chains.MirrorFilter`; the paths are
+        #: the same, tested), else every chain.
+        self.mirror_filter = bool(mirror_filter)
         self.rays = int(core.config.samples_per_src)
         self.cap = int(core.config.max_num_paths_per_src)
         self.max_cap = int(max_cap or 16 * self.cap)
@@ -252,6 +259,7 @@ class ChainTracer:
         #: :meth:`prepare` after a reset.
         self.store: ChainStore | None = None
         self._all: np.ndarray | None = None
+        self._filter: MirrorFilter | None = None
         #: Sources whose chains were enumerated since the reset.
         self.sources_shot = 0
 
@@ -261,7 +269,9 @@ class ChainTracer:
         ``src``: the sources, ``[S, 3]`` m (numpy or Mitsuba ``Point3f``).
 
         Returns:
-            Per target, the store indices of its candidate chains: all of them.
+            Per target, the store indices of its candidate chains: those that
+            pass the :class:`~engine.raytrace.source_chains.MirrorFilter` (all
+            of them without :attr:`mirror_filter`).
         """
         if self.store is None:
             self.store = ChainStore(self.core.config.max_depth, PlaneIndex(sc.mi_scene))
@@ -273,8 +283,11 @@ class ChainTracer:
                 sc.mi_scene, self.store.planes, pts, self.rays, cfg.max_depth,
                 specular=cfg.specular_reflection, refraction=cfg.refraction))
             self._all = np.arange(len(self.store), dtype=np.int64)
+            self._filter = MirrorFilter(self.store.planes, pts, self.store.columns())
             self.sources_shot += len(pts)
-        return [self._all] * len(targets)
+        if not self.mirror_filter:
+            return [self._all] * len(targets)
+        return self._filter(np.asarray(targets, np.float64).reshape(-1, 3))
 
     # ----------------------------------------------------------------- tracing
 

@@ -59,6 +59,10 @@ class PlaneIndex:
             (as Sionna stores it in a ``PathsBuffer``) and primitive index of
             each plane's first triangle.
         canonical_point: ``[num_planes, 3]`` float32, a vertex of that triangle, m.
+        normal: ``[num_planes, 3]`` float64 unit normal (oriented as above).
+        offset: ``[num_planes]`` float64, ``normal . x`` of the plane's points, m.
+        lo, hi: ``[num_planes, 3]`` float64 corners of the axis-aligned box of
+            the plane's triangles, m.
     """
 
     def __init__(self, mi_scene):
@@ -73,7 +77,7 @@ class PlaneIndex:
         shapes = mi_scene.shapes()
         self._base = np.full(int(ids.max(initial=-1)) + 2, -1, np.int64)
         self._count = np.zeros_like(self._base)
-        normals, points, owner, prims = [], [], [], []
+        normals, points, owner, prims, los, his = [], [], [], [], [], []
         start = 0
         for sid, s in zip(ids, shapes):
             if not s.is_mesh() or s.face_count() == 0:
@@ -86,6 +90,8 @@ class PlaneIndex:
             n = np.divide(n, norm[:, None], out=np.zeros_like(n), where=norm[:, None] > 0)
             normals.append(n)
             points.append(v[f[:, 0]])
+            los.append(np.minimum(np.minimum(p0, p1), p2))
+            his.append(np.maximum(np.maximum(p0, p1), p2))
             owner.append(np.full(len(f), sid, np.int64))
             prims.append(np.arange(len(f), dtype=np.int64))
             self._base[sid], self._count[sid] = start, len(f)
@@ -95,6 +101,8 @@ class PlaneIndex:
             self.num_planes = 0
             self.canonical_shape = self.canonical_prim = np.zeros(0, np.uint32)
             self.canonical_point = np.zeros((0, 3), np.float32)
+            self.normal = self.lo = self.hi = np.zeros((0, 3))
+            self.offset = np.zeros(0)
             return
         n = oriented_normals(np.concatenate(normals))
         p = np.concatenate(points)
@@ -120,6 +128,13 @@ class PlaneIndex:
         self.canonical_shape = owner[head].astype(np.uint32)
         self.canonical_prim = prims[head].astype(np.uint32)
         self.canonical_point = p[head].astype(np.float32)
+        self.normal = n[head]
+        self.offset = d[head]
+        lo, hi = np.concatenate(los)[ok], np.concatenate(his)[ok]
+        self.lo = np.full((self.num_planes, 3), np.inf)
+        self.hi = np.full((self.num_planes, 3), -np.inf)
+        np.minimum.at(self.lo, plane[ok], lo)
+        np.maximum.at(self.hi, plane[ok], hi)
 
     def planes_of(self, shapes: np.ndarray, prims: np.ndarray) -> np.ndarray:
         """Plane ids of (shape id, primitive) pairs (any equal shapes) -> int64,

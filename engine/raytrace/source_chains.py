@@ -31,7 +31,7 @@ import numpy as np
 
 from engine.raytrace.base import INTERACTION_NONE, INTERACTION_REFRACTION, INTERACTION_SPECULAR
 
-__all__ = ["fibonacci_directions", "shoot_chains"]
+__all__ = ["MirrorFilter", "fibonacci_directions", "shoot_chains"]
 
 #: Rays traced per Mitsuba call (bounds memory: ~200 B per ray and depth).
 RAYS_PER_CALL = 1 << 20
@@ -175,3 +175,111 @@ def _columns(out: list, d_max: int) -> dict[str, np.ndarray]:
                 **{k: np.zeros((0, d_max), np.float32) for k in ("probs", "vx", "vy", "vz")},
                 "k_tx": np.zeros((0, 3), np.float32)}
     return {k: np.concatenate([c[k] for c in out]) for k in out[0]}
+
+
+class MirrorFilter:
+    """Which chains can be paths to a target, by mirror geometry alone.
+
+    For a chain, the image of its source after each specular reflection is the
+    source mirrored across that reflection's plane (refractions do not move
+    it). A path to target ``q`` exists only if, walking back from ``q``, the
+    segment from each image to the current point crosses the reflection's
+    plane (the image lies behind it) at a point inside the axis-aligned box of
+    the plane's triangles, grown by ``margin`` -- Sionna's image method checks
+    the same and more (the exact triangle, occlusion), so a chain this filter
+    drops is never a path, and the image method runs on a fraction of the
+    pairs (about 14 % in the bundled lab). Chains without a specular
+    reflection always pass.
+
+    Args:
+        planes: the scene's :class:`~engine.raytrace.planes.PlaneIndex`.
+        sources: ``[S, 3]`` m.
+        cols: chain columns (``src [C]``, ``types [C, D]``, ``shapes``,
+            ``prims``), e.g. a :class:`~engine.raytrace.chains.ChainStore`'s.
+        margin: m added around each plane's box (float32 and Sionna's own
+            offsets stay far below it).
+    """
+
+    def __init__(self, planes, sources: np.ndarray, cols: dict[str, np.ndarray],
+                 margin: float = 1e-3):
+        types = np.asarray(cols["types"])
+        c, d = types.shape
+        plane = planes.planes_of(cols["shapes"], cols["prims"])
+        self.spec = (types == INTERACTION_SPECULAR) & (plane >= 0)
+        self.plane = np.where(self.spec, plane, -1)
+        self.planes, self.margin = planes, float(margin)
+        img = np.empty((c, d + 1, 3))
+        img[:, 0] = np.asarray(sources, np.float64).reshape(-1, 3)[np.asarray(cols["src"], int)]
+        for j in range(d):
+            p = np.where(self.spec[:, j], self.plane[:, j], 0)
+            n = planes.normal[p]
+            dist = np.einsum("ij,ij->i", n, img[:, j]) - planes.offset[p]
+            img[:, j + 1] = np.where(self.spec[:, j][:, None],
+                                     img[:, j] - 2.0 * dist[:, None] * n, img[:, j])
+        #: ``[C, D + 1, 3]`` images of each chain's source after each interaction, m.
+        self.images = img
+        has = self.spec.any(axis=1)
+        self.always = np.flatnonzero(~has)
+        self.reflecting = np.flatnonzero(has)
+        self.last = d - 1 - np.argmax(self.spec[self.reflecting, ::-1], axis=1)
+
+    def __call__(self, targets: np.ndarray) -> list[np.ndarray]:
+        """Per target ``[T, 3]`` m, the sorted indices of the chains that pass."""
+        # a segment parallel to a plane gives t = inf/nan: compared False, dropped
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return self._pass(targets)
+
+    def _pass(self, targets: np.ndarray) -> list[np.ndarray]:
+        f32 = np.float32
+        targets = np.asarray(targets, np.float64).reshape(-1, 3)
+        pl, m = self.planes, self.margin
+        rc, lj = self.reflecting, self.last
+        p = self.plane[rc, lj]
+        a = self.images[rc, lj + 1]
+        # the last reflection, for every (target, chain), in float32 (the margin
+        # is ~1e3 x its rounding over a room)
+        da = (np.einsum("ij,ij->i", pl.normal[p], a) - pl.offset[p]).astype(f32)
+        db = targets.astype(f32) @ pl.normal[p].T.astype(f32) - pl.offset[p].astype(f32)[None]
+        t = da[None] / (da[None] - db)
+        ok = (np.signbit(da)[None] != np.signbit(db)) | (db == 0)
+        lo, hi = (pl.lo[p] - m).astype(f32), (pl.hi[p] + m).astype(f32)
+        af, tg = a.astype(f32), targets.astype(f32)
+        for k in range(3):
+            xk = tg[:, None, k] - af[None, :, k]
+            xk *= t
+            xk += af[None, :, k]
+            ok &= (xk >= lo[None, :, k]) & (xk <= hi[None, :, k])
+        ti, ci = np.nonzero(ok)
+        x = a[ci] + t[ti, ci].astype(np.float64)[:, None] * (targets[ti] - a[ci])
+        c, j = rc[ci], lj[ci]
+        # the earlier reflections, pair by pair (float64)
+        d = self.spec.shape[1]
+        while len(c):
+            earlier = self.spec[c] & (np.arange(d)[None] < j[:, None])
+            more = np.flatnonzero(earlier.any(axis=1))
+            if len(more) == 0:
+                break
+            jj = d - 1 - np.argmax(earlier[more][:, ::-1], axis=1)
+            cm = c[more]
+            pp = self.plane[cm, jj]
+            a2, b2 = self.images[cm, jj + 1], x[more]
+            n2 = pl.normal[pp]
+            da2 = np.einsum("ij,ij->i", n2, a2) - pl.offset[pp]
+            db2 = np.einsum("ij,ij->i", n2, b2) - pl.offset[pp]
+            t2 = da2 / (da2 - db2)
+            x2 = a2 + t2[:, None] * (b2 - a2)
+            ok2 = (((np.signbit(da2) != np.signbit(db2)) | (db2 == 0))
+                   & ((x2 >= pl.lo[pp] - m) & (x2 <= pl.hi[pp] + m)).all(axis=1))
+            keep = np.ones(len(c), bool)
+            keep[more[~ok2]] = False
+            x[more], j = x2, j.copy()
+            j[more] = jj
+            done = np.ones(len(c), bool)
+            done[more] = False
+            j[done] = -1  # no earlier reflection left to check
+            ti, c, x, j = ti[keep], c[keep], x[keep], j[keep]
+        order = np.lexsort((c, ti))
+        parts = np.split(c[order], np.cumsum(np.bincount(ti, minlength=len(targets)))[:-1])
+        if len(self.always) == 0:
+            return parts
+        return [np.sort(np.r_[self.always, q]) for q in parts]
