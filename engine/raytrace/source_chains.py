@@ -218,68 +218,55 @@ class MirrorFilter:
                                      img[:, j] - 2.0 * dist[:, None] * n, img[:, j])
         #: ``[C, D + 1, 3]`` images of each chain's source after each interaction, m.
         self.images = img
-        has = self.spec.any(axis=1)
-        self.always = np.flatnonzero(~has)
-        self.reflecting = np.flatnonzero(has)
-        self.last = d - 1 - np.argmax(self.spec[self.reflecting, ::-1], axis=1)
+        # Per chain, its reflections from the last to the first: [D, C] plane
+        # (-1: none) and the image that reflection mirrors towards.
+        order = np.argsort(-np.where(self.spec, np.arange(d)[None], -1), axis=1, kind="stable")
+        self._steps = []
+        for k in range(d):
+            j = order[:, k]
+            has = self.spec[np.arange(c), j]
+            p = np.where(has, self.plane[np.arange(c), j], 0)
+            self._steps.append((has, p, img[np.arange(c), j + 1]))
+        self._dr = None  # the same as Dr.Jit arrays, made on first use
 
     def __call__(self, targets: np.ndarray) -> list[np.ndarray]:
         """Per target ``[T, 3]`` m, the sorted indices of the chains that pass."""
-        # a segment parallel to a plane gives t = inf/nan: compared False, dropped
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return self._pass(targets)
+        import drjit as dr
+        import mitsuba as mi
 
-    def _pass(self, targets: np.ndarray) -> list[np.ndarray]:
-        f32 = np.float32
         targets = np.asarray(targets, np.float64).reshape(-1, 3)
-        pl, m = self.planes, self.margin
-        rc, lj = self.reflecting, self.last
-        p = self.plane[rc, lj]
-        a = self.images[rc, lj + 1]
-        # the last reflection, for every (target, chain), in float32 (the margin
-        # is ~1e3 x its rounding over a room)
-        da = (np.einsum("ij,ij->i", pl.normal[p], a) - pl.offset[p]).astype(f32)
-        db = targets.astype(f32) @ pl.normal[p].T.astype(f32) - pl.offset[p].astype(f32)[None]
-        t = da[None] / (da[None] - db)
-        ok = (np.signbit(da)[None] != np.signbit(db)) | (db == 0)
-        lo, hi = (pl.lo[p] - m).astype(f32), (pl.hi[p] + m).astype(f32)
-        af, tg = a.astype(f32), targets.astype(f32)
-        for k in range(3):
-            xk = tg[:, None, k] - af[None, :, k]
-            xk *= t
-            xk += af[None, :, k]
-            ok &= (xk >= lo[None, :, k]) & (xk <= hi[None, :, k])
-        ti, ci = np.nonzero(ok)
-        x = a[ci] + t[ti, ci].astype(np.float64)[:, None] * (targets[ti] - a[ci])
-        c, j = rc[ci], lj[ci]
-        # the earlier reflections, pair by pair (float64)
-        d = self.spec.shape[1]
-        while len(c):
-            earlier = self.spec[c] & (np.arange(d)[None] < j[:, None])
-            more = np.flatnonzero(earlier.any(axis=1))
-            if len(more) == 0:
-                break
-            jj = d - 1 - np.argmax(earlier[more][:, ::-1], axis=1)
-            cm = c[more]
-            pp = self.plane[cm, jj]
-            a2, b2 = self.images[cm, jj + 1], x[more]
-            n2 = pl.normal[pp]
-            da2 = np.einsum("ij,ij->i", n2, a2) - pl.offset[pp]
-            db2 = np.einsum("ij,ij->i", n2, b2) - pl.offset[pp]
-            t2 = da2 / (da2 - db2)
-            x2 = a2 + t2[:, None] * (b2 - a2)
-            ok2 = (((np.signbit(da2) != np.signbit(db2)) | (db2 == 0))
-                   & ((x2 >= pl.lo[pp] - m) & (x2 <= pl.hi[pp] + m)).all(axis=1))
-            keep = np.ones(len(c), bool)
-            keep[more[~ok2]] = False
-            x[more], j = x2, j.copy()
-            j[more] = jj
-            done = np.ones(len(c), bool)
-            done[more] = False
-            j[done] = -1  # no earlier reflection left to check
-            ti, c, x, j = ti[keep], c[keep], x[keep], j[keep]
-        order = np.lexsort((c, ti))
-        parts = np.split(c[order], np.cumsum(np.bincount(ti, minlength=len(targets)))[:-1])
-        if len(self.always) == 0:
-            return parts
-        return [np.sort(np.r_[self.always, q]) for q in parts]
+        nc, nt = self.spec.shape[0], len(targets)
+        if nc == 0 or nt == 0:
+            return [np.zeros(0, np.int64) for _ in range(nt)]
+        pts = lambda v: mi.Point3f(*(mi.Float(np.ascontiguousarray(v[:, k], np.float32))  # noqa: E731
+                                     for k in range(3)))
+        if self._dr is None:
+            pl, m = self.planes, self.margin
+            self._dr = [(mi.Bool(has), pts(a), pts(pl.normal[p]),
+                         mi.Float(pl.offset[p].astype(np.float32)),
+                         pts(pl.lo[p] - m), pts(pl.hi[p] + m))
+                        for has, p, a in self._steps]
+        # One kernel over every (target, chain) lane, in float32 (the margin is
+        # ~1e3 x its rounding over a room).
+        idx = dr.arange(mi.UInt32, nt * nc)
+        ti = idx // nc
+        ci = idx - ti * nc
+        x = dr.gather(mi.Point3f, pts(targets), ti)
+        ok = dr.full(mi.Bool, True, nt * nc)
+        for has, a, n, off, lo, hi in self._dr:
+            on = dr.gather(mi.Bool, has, ci)
+            aa, nn = dr.gather(mi.Point3f, a, ci), mi.Vector3f(dr.gather(mi.Point3f, n, ci))
+            o = dr.gather(mi.Float, off, ci)
+            da = dr.dot(nn, mi.Vector3f(aa)) - o
+            db = dr.dot(nn, mi.Vector3f(x)) - o
+            t = da / (da - db)
+            xn = aa + t * (x - aa)
+            hit = (((da < 0) != (db < 0)) | (db == 0)) \
+                & dr.all(xn >= dr.gather(mi.Point3f, lo, ci)) \
+                & dr.all(xn <= dr.gather(mi.Point3f, hi, ci))
+            ok &= ~on | hit
+            x = dr.select(on, xn, x)
+        sel = dr.compress(ok)
+        dr.eval(sel)
+        sel = np.asarray(sel.numpy(), np.int64)
+        return np.split(sel % nc, np.cumsum(np.bincount(sel // nc, minlength=nt))[:-1])
