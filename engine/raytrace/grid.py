@@ -339,11 +339,11 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
             core, scene.sionna, plan, chunk_size, max_cap or 16 * config.max_num_paths_per_src,
             progress)
         chain_stats = None
-    arrays = _assemble(plan, pieces, max(1, config.max_depth))
+    arrays = assemble_grid(plan, pieces, max(1, config.max_depth))
     verification = _verify(core, scene.sionna, plan.src, plan.src_orient, plan.points, arrays,
                            plan.todo, int(verify), config.seed, config.max_num_paths_per_src,
                            int(verify_top), plan.keep_strongest)
-    meta = _grid_meta(scene, config, plan, spacing, margin, {
+    meta = grid_metadata(scene, plan, spacing, margin, {
         **dataclasses.asdict(config), "deterministic": det,
         "max_num_paths_per_src_used": cap_used, "chunk_size": chunk_size,
         "truncation_retries": retries, "spec_table_size": spec_table_size,
@@ -465,8 +465,17 @@ def _trace_by_sbr(core, sc, plan: _GridPlan, chunk_size: int, max_cap: int, prog
     return pieces, tracer.cap, tracer.retries
 
 
-def _assemble(plan: _GridPlan, pieces, depth: int) -> dict[str, np.ndarray]:
-    """Job 3: the traced chunks into the arrays of :data:`GRID_ARRAYS`."""
+def assemble_grid(plan, pieces, depth: int) -> dict[str, np.ndarray]:
+    """Job 3: the traced chunks into the arrays of :data:`GRID_ARRAYS`.
+
+    Args:
+        plan: the raster (``tx_names``, ``points [N, 3]``, ``free [N]``,
+            ``src [S, 3]``, ``src_orient_cfg [S, 3]``), e.g. ``trace_grid``'s or
+            :class:`engine.scaleout.tiles.GridPlan`.
+        pieces: ``(point indices [t], chunk)``, a chunk as :func:`sorted_chunk`
+            returns it (``[t, S, P']`` arrays).
+        depth: interaction slots ``D``.
+    """
     s = len(plan.tx_names)
     p = max([part["valid"].shape[2] for _, part in pieces], default=0)
     n_all = len(plan.points)
@@ -489,9 +498,10 @@ def _assemble(plan: _GridPlan, pieces, depth: int) -> dict[str, np.ndarray]:
     return arrays
 
 
-def _grid_meta(scene, config: TracerConfig, plan: _GridPlan, spacing: float, margin: float,
-               tracer_meta: dict, verification: dict) -> dict:
-    """Job 5: the metadata (see ``docs/tracers.md``)."""
+def grid_metadata(scene, plan, spacing: float, margin: float, tracer_meta: dict,
+                  verification: dict) -> dict:
+    """Job 5: the metadata (see ``docs/tracers.md``); ``plan`` as :func:`assemble_grid`'s
+    plus ``origin [2]``, ``shape``, ``height``."""
     import mitsuba as mi
     import sionna.rt
 

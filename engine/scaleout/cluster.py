@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import datetime as _dt
 import logging
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -37,17 +36,13 @@ import numpy as np
 
 from engine.config import TracerConfig
 from engine.raytrace.chains import CHAIN_REUSE_VERSION
-from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_FORMAT, GRID_FORMAT_VERSION,
-                                  GRID_SPEC_TABLE_SIZE, PathGrid, save_grid)
-from engine.raytrace.raw import pad_paths
+from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_SPEC_TABLE_SIZE, PathGrid,
+                                  assemble_grid, grid_metadata, save_grid)
 from engine.scaleout.checkpoint import TileCheckpoints, checkpoint_key
 from engine.scaleout.tiles import (DEFAULT_WORKER_THREADS, GridPlan, TileJob, plan_grid,
                                    scene_folder, trace_tile)
 
 log = logging.getLogger(__name__)
-
-_PATH_KEYS = ("valid", "a", "tau", "theta_t", "phi_t", "theta_r", "phi_r", "interactions",
-              "vertices")
 
 
 def check_cluster_args(workers: int | None, scheduler: str | None) -> None:
@@ -209,7 +204,7 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
         client.cancel(futures)
         raise
     arrays = assemble(plan, [(tiles[k], done[k]) for k in sorted(done)], max(1, config.max_depth))
-    meta = grid_meta(scene, config, plan, spacing, margin, {
+    meta = grid_metadata(scene, plan, spacing, margin, {
         **dataclasses.asdict(config), "deterministic": det,
         "max_num_paths_per_src_used": max([int(i["cap"]) for i in infos.values()],
                                           default=config.max_num_paths_per_src),
@@ -251,51 +246,4 @@ def assemble(plan: GridPlan, tiles: list[tuple[np.ndarray, list[dict]]],
             off += n
         if off != len(idx):
             raise ValueError(f"a tile returned {off} points, expected {len(idx)}")
-    s = len(plan.tx_names)
-    p = max([part["valid"].shape[2] for _, part in pieces], default=0)
-    n_all = len(plan.points)
-    arrays = {
-        "points": plan.points, "free": plan.free, "tx_positions": plan.src,
-        "tx_orientations": plan.src_orient_cfg,
-        "num_paths": np.zeros((n_all, s), np.int32),
-        "valid": np.zeros((n_all, s, p), bool),
-        "a": np.zeros((n_all, s, p), np.complex64),
-        "tau": np.zeros((n_all, s, p), np.float64),
-        **{k: np.zeros((n_all, s, p), np.float32) for k in ("theta_t", "phi_t", "theta_r",
-                                                            "phi_r")},
-        "interactions": np.zeros((n_all, s, p, depth), np.uint8),
-        "vertices": np.zeros((n_all, s, p, depth, 3), np.float32),
-    }
-    for idx, part in pieces:
-        arrays["num_paths"][idx] = part["num_paths"]
-        for k in _PATH_KEYS:
-            arrays[k][idx] = pad_paths(part[k], p).astype(arrays[k].dtype)
-    return arrays
-
-
-def grid_meta(scene, config: TracerConfig, plan: GridPlan, spacing: float, margin: float,
-              tracer_meta: dict, verification: dict) -> dict:
-    """The grid metadata, as ``trace_grid`` writes it (see ``docs/tracers.md``)."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    import mitsuba as mi
-    import sionna.rt
-
-    sionna_version = getattr(sionna.rt, "__version__", None)
-    if sionna_version is None:
-        try:
-            sionna_version = version("sionna-rt")
-        except PackageNotFoundError:
-            sionna_version = "unknown"
-    cfg = scene.config
-    return {
-        "format": GRID_FORMAT, "version": GRID_FORMAT_VERSION,
-        "scene_name": cfg.scene.name, "scene_hash": scene.content_hash(),
-        "frequency_hz": cfg.scene.frequency_hz,
-        "origin": plan.origin.tolist(), "spacing": float(spacing), "shape": list(plan.shape),
-        "height": plan.height, "margin": float(margin),
-        "tx_names": plan.tx_names, "num_free": int(plan.free.sum()),
-        "tracer": tracer_meta, "verification": verification,
-        "sionna_version": sionna_version, "mitsuba_variant": mi.variant(),
-        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-    }
+    return assemble_grid(plan, pieces, depth)
