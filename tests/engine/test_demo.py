@@ -10,7 +10,7 @@ def test_bundled_rooms_have_their_blend():
 def test_unknown_scene_is_refused_in_one_line(tmp_path, capsys):
     assert main(["--scene", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "neither a bundled room (aces_lab, l_office)" in err[0]
+    assert len(err) == 1 and "neither a bundled room (aces_lab, l_office, office_floor)" in err[0]
 
 
 def test_scene_folder_with_a_misplaced_robot_exits_2(tmp_path, capsys):
