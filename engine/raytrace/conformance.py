@@ -23,7 +23,7 @@ it (geometry comes from Mitsuba ray casts and analytic formulas):
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -463,7 +463,8 @@ def robot_points(scene, n: int, height: float, *, clearance: float = 0.11, seed:
 def compare_path_sets(results: Iterable[Mapping[Link, LinkPaths]], reference: SionnaReference,
                       freqs_hz: np.ndarray | None = None,
                       cache: dict | None = None,
-                      confirm: SionnaReference | None = None) -> list[PathSetComparison]:
+                      confirm: SionnaReference | Sequence[SionnaReference] | None = None
+                      ) -> list[PathSetComparison]:
     """Each link of each backend result against Sionna's own trace of it.
 
     Args:
@@ -475,8 +476,9 @@ def compare_path_sets(results: Iterable[Mapping[Link, LinkPaths]], reference: Si
             (default: 64 offsets over +-40 MHz).
         cache: a dict that keeps reference (and confirmation) traces between
             calls (keyed by the two poses; the same ``freqs_hz`` must be used).
-        confirm: a reference with more rays, asked only about links with paths
-            that ``reference`` lacks: those it holds are real paths that
+        confirm: a reference with more rays (or a sequence of them, asked in
+            turn while paths remain unconfirmed), asked only about links with
+            paths that ``reference`` lacks: those it holds are real paths that
             ``reference``'s rays missed (``found_more_db``), not extra.
     """
     if freqs_hz is None:
@@ -509,13 +511,15 @@ def compare_path_sets(results: Iterable[Mapping[Link, LinkPaths]], reference: Si
             db = lambda a: 20 * np.log10(np.maximum(np.abs(a), 1e-300) / top)  # noqa: E731
             missing, extra, more = db(ref.a[m < 0]), db(lp.a[~hit]), np.zeros(0)
             if extra.size and confirm is not None:
-                ck = ("confirm", confirm.samples_per_src, key(tx), key(rx))
-                if ck not in cache:
-                    cache[ck] = confirm([tx], rx, freqs_hz)[0]
-                big, _ = cache[ck]
                 seen = np.zeros(lp.num_paths, bool)
-                mb = match_paths(lp, big)
-                seen[mb[mb >= 0]] = True
+                for ref_more in (confirm if isinstance(confirm, (list, tuple)) else [confirm]):
+                    if (hit | seen).all():
+                        break
+                    ck = ("confirm", ref_more.samples_per_src, key(tx), key(rx))
+                    if ck not in cache:
+                        cache[ck] = ref_more([tx], rx, freqs_hz)[0]
+                    mb = match_paths(lp, cache[ck][0])
+                    seen[mb[mb >= 0]] = True
                 more, extra = db(lp.a[~hit & seen]), db(lp.a[~hit & ~seen])
             err = math.nan
             if missing.size == 0 and extra.size == 0 and more.size == 0:

@@ -128,11 +128,11 @@ def lab_scene():
 @pytest.mark.slow
 def test_every_backend_returns_sionnas_path_set_in_the_lab(lab_scene):
     """Chain reuse (the default), direct shoot-and-bounce and the grid backend,
-    at 12 random free points of the lab where a robot fits plus 4 points at
+    at 20 random free points of the lab where a robot fits plus 4 points at
     round coordinates, against Sionna RT's own PathSolver (public API, one
     receiver per call, the lab's ray count) and its Paths.cfr: no repeated
     path, none missing within 40 dB, none extra, channel within 1e-4. A path
-    that the reference's rays miss but a 100x-ray trace holds is real, not
+    that the reference's rays miss but a 10x- or 100x-ray trace holds is real, not
     extra: chain reuse enumerates every chain of the APs, and at these points
     Sionna's 1e5 and 1e6-ray traces miss paths down to -25 dB that 1e7 rays
     find (all such paths were confirmed that way; none was invented)."""
@@ -148,20 +148,22 @@ def test_every_backend_returns_sionnas_path_set_in_the_lab(lab_scene):
     grid = trace_grid(scene, spacing=0.25, margin=2.0, verify=0, progress=False)
     free = np.flatnonzero(grid.free)
     rng = np.random.default_rng(7)
-    pts = grid.points[rng.choice(free, 12, replace=False)]
+    pts = grid.points[rng.choice(free, 20, replace=False)]
     on_lines = [i for i in free
                 if np.isclose(grid.points[i, 0] % 0.5, 0) or np.isclose(grid.points[i, 1] % 0.5, 0)]
     pts = np.vstack([pts, grid.points[rng.choice(on_lines, 4, replace=False)]])
     assert np.isclose(pts[-4:, :2] % 0.5, 0).any(axis=1).all()
     ref = SionnaReference(scene, cfg.samples_per_src)
-    confirm = SionnaReference(scene, 100 * cfg.samples_per_src)
+    # 10x first; 100x only for the paths 10x does not hold
+    confirm = [SionnaReference(scene, 10 * cfg.samples_per_src),
+               SionnaReference(scene, 100 * cfg.samples_per_src)]
     cache: dict = {}
     for name, tracer in (("chains", SionnaTracer(cfg)),
                          ("direct", SionnaTracer(replace(cfg, method="sbr"))),
                          ("grid", GridTracer(grid))):
         comps = compare_path_sets(_links_at(tracer, scene, pts), ref, cache=cache,
                                   confirm=confirm)
-        assert len(comps) == 32
+        assert len(comps) == 48
         rep = check_path_sets(comps)
         print(f"\n{name}:\n{rep}")
         assert rep.passed, f"{name}:\n{rep}"
