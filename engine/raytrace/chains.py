@@ -283,10 +283,12 @@ class ChainTracer:
                 sc.mi_scene, self.store.planes, pts, self.rays, cfg.max_depth,
                 specular=cfg.specular_reflection, refraction=cfg.refraction))
             self._all = np.arange(len(self.store), dtype=np.int64)
-            self._filter = MirrorFilter(self.store.planes, pts, self.store.columns())
+            self._sources = pts
             self.sources_shot += len(pts)
         if not self.mirror_filter:
             return [self._all] * len(targets)
+        if self._filter is None:
+            self._filter = MirrorFilter(self.store.planes, self._sources, self.store.columns())
         return self._filter(np.asarray(targets, np.float64).reshape(-1, 3))
 
     # ----------------------------------------------------------------- tracing
