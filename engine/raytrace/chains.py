@@ -223,8 +223,6 @@ class ChainTracer:
             image method and field calculator; ``samples_per_src`` is the number
             of branching rays per source).
         max_pairs: candidate-target pairs per image-method call.
-        max_cap: kept for the callers' truncation policy (the chain set is not
-            capped: ``max_num_paths_per_src`` bounds each target's paths).
         mirror_filter: pass each receiver only the chains mirror geometry allows
             (default) instead of all of them.
 
@@ -233,8 +231,7 @@ class ChainTracer:
     sources change.
     """
 
-    def __init__(self, core, max_pairs: int = MAX_PAIRS_PER_CALL, max_cap: int | None = None,
-                 mirror_filter: bool = True):
+    def __init__(self, core, max_pairs: int = MAX_PAIRS_PER_CALL, mirror_filter: bool = True):
         if not chains_supported(core.config):
             raise ValueError("chain reuse traces specular chains only: disable "
                              "tracer.diffuse_reflection and tracer.diffraction, or use "
@@ -246,10 +243,6 @@ class ChainTracer:
         #: the same, tested), else every chain.
         self.mirror_filter = bool(mirror_filter)
         self.rays = int(core.config.samples_per_src)
-        self.cap = int(core.config.max_num_paths_per_src)
-        self.max_cap = int(max_cap or 16 * self.cap)
-        #: Kept for the grid's statistics: chain enumeration never truncates.
-        self.truncation_retries = 0
         self._context = None
         self.reset()
 
@@ -260,6 +253,7 @@ class ChainTracer:
         self.store: ChainStore | None = None
         self._all: np.ndarray | None = None
         self._filter: MirrorFilter | None = None
+        self._sources: np.ndarray | None = None
         #: Sources whose chains were enumerated since the reset.
         self.sources_shot = 0
 
@@ -310,7 +304,8 @@ class ChainTracer:
         Returns:
             :class:`~engine.raytrace.sionna.RawPaths` ``[T, S, P]``, paths of a
             link in no particular order; ``candidates_per_source`` counts the
-            chains in the store.
+            chains in the store and ``cap`` exceeds it: chain enumeration has no
+            candidate buffer to overflow, so the result is never truncated.
         """
         import mitsuba as mi
 
@@ -330,8 +325,8 @@ class ChainTracer:
         v_rx_all = np.zeros((nt, 3)) if target_velocities is None else \
             np.asarray(target_velocities, float).reshape(nt, 3)
         per_target = self.prepare(sc, src, targets)
-        cap = core.config.max_num_paths_per_src
         counts = np.bincount(self.store.columns()["src"].astype(np.int64), minlength=ns)
+        cap = int(counts.max(initial=0)) + 1
         depth = core.config.max_depth
 
         groups, cur, size = [], [], 0

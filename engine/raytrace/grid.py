@@ -333,7 +333,7 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
              "chain reuse" if plan.use_chains else "shoot-and-bounce")
     if plan.use_chains:
         pieces, cap_used, retries, chain_stats = _trace_by_chains(
-            core, scene.sionna, plan, chunk_size, max_cap, progress)
+            core, scene.sionna, plan, chunk_size, progress)
     else:
         pieces, cap_used, retries = _trace_by_sbr(
             core, scene.sionna, plan, chunk_size, max_cap or 16 * config.max_num_paths_per_src,
@@ -428,12 +428,11 @@ def _chunk_size(chunk_size: int | None, plan: _GridPlan, config: TracerConfig,
     return int(chunk_size)
 
 
-def _trace_by_chains(core, sc, plan: _GridPlan, chunk_size: int, max_cap: int | None,
-                     progress: bool):
+def _trace_by_chains(core, sc, plan: _GridPlan, chunk_size: int, progress: bool):
     """Job 2 (chain reuse): the transmitters' chains first, then the points chunk by chunk."""
     from tqdm import tqdm
 
-    ct = ChainTracer(core, max_cap=max_cap)  # its first trace enumerates the chains
+    ct = ChainTracer(core)  # its first trace enumerates the chains
     pieces = []
     with tqdm(total=len(plan.todo), unit="pt", desc="grid", disable=not progress) as bar:
         for start in range(0, len(plan.todo), chunk_size):
@@ -443,7 +442,8 @@ def _trace_by_chains(core, sc, plan: _GridPlan, chunk_size: int, max_cap: int | 
             bar.update(len(idx))
     stats = {"version": CHAIN_REUSE_VERSION, "rays_per_source": ct.rays,
              "chains": len(ct.store)}
-    return pieces, ct.cap, ct.truncation_retries, stats
+    # no candidate buffer, nothing to grow: the configured cap, no retry
+    return pieces, core.config.max_num_paths_per_src, 0, stats
 
 
 def _trace_by_sbr(core, sc, plan: _GridPlan, chunk_size: int, max_cap: int, progress: bool):

@@ -117,8 +117,10 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
         scene: the :class:`~engine.scene.TwinScene`; workers load its folder
             (same path on every worker) and must get the same content hash.
         tx_names, spacing (m), height (m), margin (m), config, keep_strongest,
-            method, deterministic, max_cap, chunk_size: as
+            method, deterministic, chunk_size: as
             :func:`~engine.raytrace.grid.trace_grid` (``method`` must be chain reuse).
+        max_cap: accepted for ``trace_grid``'s signature; chain reuse has no
+            candidate buffer, so there is no cap to grow.
         client: a ``distributed.Client`` (see :func:`cluster_client`).
         tile_size: free points per tile (a task), a multiple of ``chunk_size``
             (default: one chunk, 1024 points): a point's paths may depend on
@@ -159,7 +161,7 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
     plan = plan_grid(scene, tx_names, spacing, height, margin, config, method, tile_size)
     job = TileJob(scene_folder=str(scene_folder(scene)), scene_hash=scene.content_hash(),
                   config=config, src=plan.src, src_orient=plan.src_orient, deterministic=det,
-                  spec_table_size=GRID_SPEC_TABLE_SIZE, max_cap=max_cap,
+                  spec_table_size=GRID_SPEC_TABLE_SIZE,
                   keep_strongest=None if keep_strongest is None else int(keep_strongest),
                   chunk_size=chunk, worker_threads=int(worker_threads))
     if verify:

@@ -61,7 +61,6 @@ class TileJob:
         src_orient: ``[S, 3]`` rad Sionna ``[yaw, pitch, roll]`` of the transmitters.
         deterministic: ``SolverCore(deterministic=...)``.
         spec_table_size: see :func:`~engine.raytrace.grid.trace_grid`.
-        max_cap: largest ``max_num_paths_per_src`` on truncation (None: 16 x).
         keep_strongest: paths kept per point and transmitter (None: all).
         chunk_size: points per ``ChainTracer.trace`` call.
         worker_threads: Dr.Jit threads of a worker process.
@@ -74,7 +73,6 @@ class TileJob:
     src_orient: np.ndarray
     deterministic: bool = False
     spec_table_size: int | None = GRID_SPEC_TABLE_SIZE
-    max_cap: int | None = None
     keep_strongest: int | None = None
     chunk_size: int = CHAIN_CHUNK_SIZE
     worker_threads: int = DEFAULT_WORKER_THREADS
@@ -86,7 +84,7 @@ class TileJob:
                 "src": np.round(self.src, 9).tolist(),
                 "src_orient": np.round(self.src_orient, 9).tolist(),
                 "deterministic": self.deterministic,
-                "spec_table_size": self.spec_table_size, "max_cap": self.max_cap,
+                "spec_table_size": self.spec_table_size,
                 "keep_strongest": self.keep_strongest, "chunk_size": self.chunk_size}
 
 
@@ -204,7 +202,7 @@ def worker_state(job: TileJob):
             "needs the same scene folder (see docs/scaleout.md)")
     core = SolverCore(job.config, deterministic=job.deterministic,
                       spec_table_size=job.spec_table_size)
-    _STATE[key] = (scene, ChainTracer(core, max_cap=job.max_cap))
+    _STATE[key] = (scene, ChainTracer(core))
     log.info("worker %d: loaded %s (%s)", os.getpid(), job.scene_folder, have[:12])
     return _STATE[key]
 
@@ -222,14 +220,13 @@ def trace_tile(job: TileJob, index: int, points: np.ndarray) -> dict:
         "cap", "retries", "chains", "pid"}``.
     """
     scene, ct = worker_state(job)
-    retries0 = ct.truncation_retries
     parts = []
     for start in range(0, len(points), job.chunk_size):
         raw = ct.trace(scene.sionna, job.src, points[start:start + job.chunk_size],
                        source_orientations=job.src_orient)
         parts.append(sorted_chunk(raw, job.keep_strongest))
-    return {"index": int(index), "parts": parts, "cap": int(ct.cap),
-            "retries": int(ct.truncation_retries - retries0),
+    return {"index": int(index), "parts": parts, "cap": int(job.config.max_num_paths_per_src),
+            "retries": 0,
             "chains": len(ct.store) if ct.store is not None else 0, "pid": os.getpid()}
 
 

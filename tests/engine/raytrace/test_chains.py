@@ -341,3 +341,15 @@ def _floor_triangle(sc, planes):
     hit = np.flatnonzero((np.abs(planes.normal[:, 2]) > 0.99) & (np.abs(planes.offset) < 1e-6))
     p = int(hit[0])
     return np.array([planes.canonical_shape[p]]), np.array([planes.canonical_prim[p]])
+
+
+def test_chain_reuse_reports_no_truncation_below_the_cap(room_scene):
+    """Chain reuse has no candidate buffer to overflow: with a cap far below the
+    ~1,300 chains per source its result must not claim to be truncated (it did:
+    the chain count was reported as the candidates against the configured cap)."""
+    tiny = replace(room_scene.config.tracer, max_num_paths_per_src=150)
+    tr = SionnaTracer(tiny)
+    res = tr(room_scene, device_poses(room_scene.config))
+    assert tr.direct_calls == 0 and len(tr.chains.store) > 1000
+    assert not tr.last_raw.truncated
+    assert all(lp.num_paths > 5 for lp in res.values())
