@@ -41,7 +41,7 @@ from engine.raytrace.base import INTERACTION_REFRACTION, INTERACTION_SPECULAR
 from engine.raytrace.planes import PlaneIndex
 from engine.raytrace.raw import RawPaths, concat_targets, to_points
 from engine.raytrace.source_chains import MirrorFilter, shoot_chains
-from engine.raytrace.solver_core import chain_buffer, gather_pairs
+from engine.raytrace.solver_core import arrays_to_raw, chain_arrays
 
 #: Bumped whenever a change of this module changes which paths are found;
 #: stored in grid metadata so that caches traced by another version are rebuilt.
@@ -197,22 +197,12 @@ class ChainStore:
                 self._chunks = [self._cols]
         return self._cols
 
-    def buffer(self):
-        """The chains as a Sionna ``PathsBuffer``, none valid; entries from
-        ``len(self)`` on are empty chains (no interaction): the slots a
-        line-of-sight path is written into."""
+    def arrays(self) -> dict:
+        """The chains as :func:`~engine.raytrace.solver_core.chain_arrays`
+        (Dr.Jit arrays; entries from ``len(self)`` on are empty chains)."""
         if self._buffer is None:
-            self._buffer = chain_buffer(self.columns(), self.max_depth)
+            self._buffer = chain_arrays(self.columns(), self.max_depth)
         return self._buffer
-
-    def pairs(self, chain_idx: np.ndarray, target_idx: np.ndarray, spare: int = 0):
-        """Candidates for (chain, target) pairs -> ``PathsBuffer``.
-
-        ``spare`` empty entries follow the ``len(chain_idx)`` candidates (the
-        buffer's ``paths_counter`` is the number of candidates, so a generator
-        stage can append there, e.g. Sionna's line-of-sight test).
-        """
-        return gather_pairs(self.buffer(), len(self), chain_idx, target_idx, spare)
 
 
 class ChainTracer:
@@ -231,7 +221,8 @@ class ChainTracer:
     sources change.
     """
 
-    def __init__(self, core, max_pairs: int = MAX_PAIRS_PER_CALL, mirror_filter: bool = True):
+    def __init__(self, core, max_pairs: int = MAX_PAIRS_PER_CALL, mirror_filter: bool = True,
+                 freeze: bool = False):
         if not chains_supported(core.config):
             raise ValueError("chain reuse traces specular chains only: disable "
                              "tracer.diffuse_reflection and tracer.diffraction, or use "
@@ -242,6 +233,13 @@ class ChainTracer:
         #: (:class:`~engine.raytrace.source_chains.MirrorFilter`; the paths are
         #: the same, tested), else every chain.
         self.mirror_filter = bool(mirror_filter)
+        #: Replay the evaluation's recorded kernels (``drjit.freeze``) while the
+        #: chains, the scene state and the numbers of sources, targets and pairs
+        #: stay the same (a live trace of the same devices step after step):
+        #: Dr.Jit then skips tracing Sionna's image method and field
+        #: calculator in Python, most of a step's cost. Same paths, bit for bit
+        #: (tested). Recordings are dropped with the chains.
+        self.freeze = bool(freeze)
         self.rays = int(core.config.samples_per_src)
         self._context = None
         self.reset()
@@ -256,6 +254,25 @@ class ChainTracer:
         self._sources: np.ndarray | None = None
         #: Sources whose chains were enumerated since the reset.
         self.sources_shot = 0
+        self._evaluate = self._frozen() if self.freeze else self.core.evaluate_chains
+        self._inputs = _InputSlots()
+
+    def _frozen(self):
+        import drjit as dr
+
+        def sizes(mi_scene, chains, chain_idx, target_idx, src, tgt, *rest):
+            # Widths enter Sionna's code as Python ints (literals in the
+            # recorded kernels): a call with other widths must record anew.
+            return (dr.width(chains["_src_indices"]), dr.width(chain_idx), dr.width(src),
+                    dr.width(tgt))
+
+        return dr.freeze(self.core.evaluate_chains, state_fn=sizes, limit=4, warn_after=16,
+                         auto_opaque=False)
+
+    @property
+    def recordings(self) -> int:
+        """Recordings of the frozen evaluation since the last reset (0 unfrozen)."""
+        return int(getattr(self._evaluate, "n_recordings", 0))
 
     def prepare(self, sc, src, targets: np.ndarray) -> list[np.ndarray]:
         """Enumerate the chains of the sources ``src`` (once per reset).
@@ -307,6 +324,7 @@ class ChainTracer:
             chains in the store and ``cap`` exceeds it: chain enumeration has no
             candidate buffer to overflow, so the result is never truncated.
         """
+        import drjit as dr
         import mitsuba as mi
 
         sources = np.asarray(sources, np.float64).reshape(-1, 3)
@@ -318,8 +336,6 @@ class ChainTracer:
         core = self.core
         ns, nt = len(sources), len(targets)
         src = to_points(sources, ns, mi.Point3f)
-        src_o = to_points(source_orientations, ns, mi.Point3f)
-        v_tx = to_points(source_velocities, ns, mi.Vector3f)
         tgt_o_all = np.zeros((nt, 3)) if target_orientations is None else \
             np.asarray(target_orientations, float).reshape(nt, 3)
         v_rx_all = np.zeros((nt, 3)) if target_velocities is None else \
@@ -338,25 +354,90 @@ class ChainTracer:
             size += len(ids)
         if cur:
             groups.append(cur)
+        chains = self.store.arrays()
+        src_o_np = np.zeros((ns, 3)) if source_orientations is None else \
+            np.asarray(source_orientations, float).reshape(ns, 3)
+        v_tx_np = np.zeros((ns, 3)) if source_velocities is None else \
+            np.asarray(source_velocities, float).reshape(ns, 3)
         results = []
         for g in groups:
             g = np.asarray(g)
-            pos = targets[g]
-            tgt = to_points(pos, len(g), mi.Point3f)
-            tgt_o = to_points(tgt_o_all[g], len(g), mi.Point3f)
-            v_rx = to_points(v_rx_all[g], len(g), mi.Vector3f)
             chain_idx = np.concatenate([per_target[t] for t in g])
-            tgt_idx = np.repeat(np.arange(len(g)), [len(per_target[t]) for t in g])
-            los = ns * len(g) if core.config.los else 0
-            if len(chain_idx) + los == 0:
+            if len(chain_idx) == 0 and not core.config.los:
                 results.append(RawPaths.empty(len(g), ns, depth, counts, cap))
                 continue
-            buf = self.store.pairs(chain_idx, tgt_idx, spare=los)
-            if los:  # Sionna's LoS test appends the visible LoS paths as valid entries
-                core.los_test(sc.mi_scene, src, tgt, buf)
-            buf.shrink()
-            results.append(core.evaluate(buf, sc.mi_scene, sc.wavelength, src, tgt, src_o,
-                                         tgt_o, v_tx, v_rx, counts, cap, depth=depth))
+            tgt_idx = np.repeat(np.arange(len(g)), [len(per_target[t]) for t in g])
+            # (a frozen call with empty inputs aborts in Dr.Jit: no pairs, no freezing)
+            frozen = self.freeze and len(chain_idx) > 0
+            inputs = self._inputs if frozen else _fresh
+            evaluate = self._evaluate if frozen else core.evaluate_chains
+            cols = evaluate(sc.mi_scene, chains, inputs("chain", chain_idx, mi.UInt),
+                                  inputs("target", tgt_idx, mi.UInt),
+                                  inputs("src", sources, mi.Point3f),
+                                  inputs("tgt", targets[g], mi.Point3f),
+                                  inputs("v_tx", v_tx_np, mi.Vector3f),
+                                  inputs("v_rx", v_rx_all[g], mi.Vector3f),
+                                  sc.wavelength, bool(core.config.los))
+            dr.eval(*cols)
+            cols = [c.numpy() for c in cols]
+            results.append(arrays_to_raw(cols[1:], len(g), ns, depth, counts, cap,
+                                         src_o_np, tgt_o_all[g], keep=cols[0].astype(bool)))
         if len(results) == 1:
             return results[0]
         return concat_targets(results)
+
+
+def _fresh(name: str, values: np.ndarray, cls):
+    """``values`` (``[n]`` indices or ``[n, 3]``) as a new Dr.Jit array of ``cls``
+    (``mi.UInt``, ``mi.Point3f`` or ``mi.Vector3f``)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if cls is mi.UInt:
+        out = dr.copy(mi.UInt(np.ascontiguousarray(values, np.uint32)))
+        dr.eval(out)
+        return out
+    return to_points(values, len(values), cls)
+
+
+class _InputSlots:
+    """The per-call inputs of a frozen evaluation, in Dr.Jit arrays allocated
+    once per name and shape and overwritten in place (LLVM backend: host
+    memory, written through ``numpy()``'s zero-copy view).
+
+    Fresh arrays each call made ``drjit.freeze`` record the evaluation again on
+    most calls (its dry run of the recording failed for some allocations;
+    bench_retrace: 18 of 30 calls), which cost more than it saved; the same
+    arrays every call replay the recording."""
+
+    def __init__(self):
+        self._slots: dict[tuple, tuple] = {}
+
+    def __call__(self, name: str, values: np.ndarray, cls):
+        import drjit as dr
+        import mitsuba as mi
+
+        values = np.asarray(values)
+        n = len(values)
+        slot = self._slots.get((name, n))
+        if slot is None:
+            if cls is mi.UInt:
+                arrays = [dr.empty(mi.UInt, n)]
+            else:
+                arrays = [dr.empty(mi.Float, n) for _ in range(3)]
+            dr.eval(*arrays)
+            views = [a.numpy() for a in arrays]
+            if dr.backend_v(arrays[0]) != dr.JitBackend.LLVM or \
+                    any(not v.flags.writeable for v in views):
+                raise RuntimeError("frozen chain evaluation needs Dr.Jit's LLVM backend")
+            out = arrays[0] if cls is mi.UInt else cls(*arrays)
+            slot = self._slots[(name, n)] = (out, views)
+        out, views = slot
+        dr.sync_thread()  # no kernel still reads the previous values
+        if cls is mi.UInt:
+            views[0][:] = values.astype(np.uint32, copy=False)
+        else:
+            v = values.reshape(n, 3)
+            for i in range(3):
+                views[i][:] = v[:, i]
+        return out

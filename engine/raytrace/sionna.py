@@ -68,7 +68,7 @@ class SionnaTracer:
             # image-method buffer then keeps its size, and Sionna bakes buffer
             # sizes into its kernels -- with the filter's varying sizes a retrace
             # recompiled a kernel nearly every step (+20 ms LLVM; bench_retrace).
-            self.chains = ChainTracer(self.core, mirror_filter=False)
+            self.chains = ChainTracer(self.core, mirror_filter=False, freeze=True)
         #: Where each source of chain reuse was at its last call (name -> [3] m).
         self._source_positions: dict[str, np.ndarray] = {}
         #: Calls traced by shoot-and-bounce (all of them without chain reuse;

@@ -52,9 +52,9 @@ from engine.config import TracerConfig
 from engine.raytrace.polarization import rotations, v_coefficients
 from engine.raytrace.raw import RawPaths, to_points
 
-__all__ = ["MIN_BUFFER_PER_SRC", "SolverCore", "basis_patterns", "buffer_columns",
-           "buffer_to_numpy", "chain_buffer", "gather_pairs", "load_sionna_rt", "paths_to_numpy",
-           "pinned_spec_table", "spec_table_default"]
+__all__ = ["MIN_BUFFER_PER_SRC", "SolverCore", "arrays_to_raw", "basis_patterns",
+           "buffer_arrays", "buffer_columns", "buffer_to_numpy", "chain_arrays",
+           "load_sionna_rt", "paths_to_numpy", "pinned_spec_table", "spec_table_default"]
 
 #: Smallest candidate buffer per source that :class:`SolverCore` allocates
 #: (see "Buffer size" in :class:`SolverCore`).
@@ -182,53 +182,58 @@ def paths_to_numpy(paths, num_rx: int, num_tx: int, depth: int,
         candidates_per_source=counts, cap=cap, **ang)
 
 
-def buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
-                     depth: int, counts: np.ndarray, cap: int, src_o=None,
-                     tgt_o=None) -> RawPaths:
-    """Flat ``PathsBuffer`` (after ``discard_invalid``) -> :class:`RawPaths`.
+def buffer_arrays(buf, src_vel, tgt_vel, wavelength) -> list:
+    """Per-path quantities of a field-calculated ``PathsBuffer``, as Dr.Jit arrays
+    (not evaluated): ``src_i, tgt_i, tau, doppler, theta_t, phi_t, theta_r,
+    phi_r [n]``, ``types, vx, vy, vz [n * D]`` (flat, depth-minor) and the real
+    and imaginary parts of ``a[i][j]`` ``[n]`` (i, j = 0, 1; real first).
 
-    Equivalent to building Sionna's ``Paths`` (synthetic single-element arrays)
-    and reading its tensors, without it: ``Paths`` scatters into
-    ``[depth, rx, tx, max_num_paths]`` tensors whose kernels bake the path
-    count as a literal (an LLVM compile, ~5 ms each, three per call whenever the
-    count changes) and costs a few ms of Python tracing. Here the per-path
-    quantities (angles and Doppler as in ``Paths._build_from_buffer``) are
-    evaluated in one ``dr.eval`` and arranged into ``[R, T, P]`` with numpy;
-    within a link, paths keep their buffer order. Invalid slots are zero.
-
-    The buffer holds the coefficients of :func:`basis_patterns` at both ends
-    at orientation zero (``buf.a[i][j]``): they become ``pol``; ``a`` is the iso
-    V coefficient in the devices' orientations ``src_o [T, 3]`` / ``tgt_o
-    [R, 3]`` (Sionna ``[yaw, pitch, roll]``, default 0), see
-    :mod:`engine.raytrace.polarization`.
-    """
+    Angles and Doppler as in Sionna's ``Paths._build_from_buffer`` and
+    ``Paths._finalize_doppler_shift_compute``."""
     import drjit as dr
     import mitsuba as mi
 
     from sionna.rt.utils import theta_phi_from_unit_vec
 
-    d = max(1, depth)
-    n = int(buf.buffer_size) if buf.tau is not None else 0
-    if n == 0:
-        return RawPaths.empty(num_rx, num_tx, d, counts, cap)
     src_i, tgt_i = buf.source_indices, buf.target_indices
     k_tx, k_rx = buf.k_tx, buf.k_rx
     theta_t, phi_t = theta_phi_from_unit_vec(k_tx)
     theta_r, phi_r = theta_phi_from_unit_vec(k_rx)
-    # Paths._finalize_doppler_shift_compute
     v_tx = dr.gather(mi.Vector3f, src_vel, src_i)
     v_rx = dr.gather(mi.Vector3f, tgt_vel, tgt_i)
     doppler = buf.doppler + dr.dot(k_tx, v_tx) / wavelength - dr.dot(-k_rx, v_rx) / wavelength
     comps = [buf.a[i][j] for i in range(2) for j in range(2)]
     parts = [f(c) for c in comps for f in (dr.real, dr.imag)]
-    out = [src_i, tgt_i, buf.tau, doppler, theta_t, phi_t,
-           theta_r, phi_r, buf.interaction_types.array, buf.vertices_x.array,
-           buf.vertices_y.array, buf.vertices_z.array, *parts]
-    dr.eval(*out)
-    (src_i, tgt_i, tau, dop, tht, pht, thr, phr, inter, vx, vy, vz, *parts) = \
-        [x.numpy() for x in out]
-    pol = (np.stack(parts[0::2], -1).astype(np.float64)
-           + 1j * np.stack(parts[1::2], -1).astype(np.float64)).reshape(n, 2, 2)
+    return [src_i, tgt_i, buf.tau, doppler, theta_t, phi_t, theta_r, phi_r,
+            buf.interaction_types.array, buf.vertices_x.array, buf.vertices_y.array,
+            buf.vertices_z.array, *parts]
+
+
+def arrays_to_raw(cols: list[np.ndarray], num_rx: int, num_tx: int, depth: int,
+                  counts: np.ndarray, cap: int, src_o=None, tgt_o=None,
+                  keep: np.ndarray | None = None) -> RawPaths:
+    """:func:`buffer_arrays` read into numpy -> :class:`RawPaths` ``[R, T, P]``.
+
+    ``keep [n]``: the paths to keep (default all); within a link, paths keep
+    their buffer order. Invalid slots are zero. ``pol`` is the transfer matrix
+    (the buffer holds the coefficients of :func:`basis_patterns` at both ends
+    at orientation zero); ``a`` is the iso V coefficient in the devices'
+    orientations ``src_o [T, 3]`` / ``tgt_o [R, 3]`` (Sionna ``[yaw, pitch,
+    roll]``, default 0), see :mod:`engine.raytrace.polarization`.
+    """
+    d = max(1, depth)
+    (src_i, tgt_i, tau, dop, tht, pht, thr, phr, inter, vx, vy, vz, *parts) = cols
+    inter = np.asarray(inter).reshape(-1, d)
+    vert = np.stack([vx, vy, vz], -1).reshape(-1, d, 3)
+    parts = np.stack(parts, -1)
+    if keep is not None:
+        (src_i, tgt_i, tau, dop, tht, pht, thr, phr, inter, vert, parts) = (
+            x[keep] for x in (src_i, tgt_i, tau, dop, tht, pht, thr, phr, inter, vert, parts))
+    n = len(src_i)
+    if n == 0:
+        return RawPaths.empty(num_rx, num_tx, d, counts, cap)
+    pol = (parts[:, 0::2].astype(np.float64)
+           + 1j * parts[:, 1::2].astype(np.float64)).reshape(n, 2, 2)
     pair = tgt_i.astype(np.int64) * num_tx + src_i.astype(np.int64)
     order = np.argsort(pair, kind="stable")
     per_pair = np.bincount(pair, minlength=num_rx * num_tx)
@@ -243,12 +248,11 @@ def buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
         o[r, t, slot] = v
         return o
 
-    inter = inter.reshape(n, d).astype(np.int32)
-    vert = np.stack([vx, vy, vz], -1).reshape(n, d, 3).astype(np.float32)
+    inter = inter.astype(np.int32)
+    vert = vert.astype(np.float32)
     vert[inter == 0] = 0.0  # Sionna leaves stale coordinates in unused slots
     f64 = np.float64
-    v = _with_v(pol, tht, pht, thr, phr, src_i.astype(np.int64), tgt_i.astype(np.int64),
-                _orient(src_o, num_tx), _orient(tgt_o, num_rx))
+    v = _with_v(pol, tht, pht, thr, phr, t, r, _orient(src_o, num_tx), _orient(tgt_o, num_rx))
     return RawPaths(
         valid=place(np.ones(n, bool), bool),
         a=place(v, np.complex128), pol=place(pol, np.complex128),
@@ -257,6 +261,31 @@ def buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
         theta_r=place(thr, f64), phi_r=place(phr, f64),
         interactions=place(inter, np.int32), vertices=place(vert, np.float32),
         candidates_per_source=counts, cap=cap)
+
+
+def buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
+                     depth: int, counts: np.ndarray, cap: int, src_o=None,
+                     tgt_o=None) -> RawPaths:
+    """Flat ``PathsBuffer`` (after ``discard_invalid``) -> :class:`RawPaths`.
+
+    Equivalent to building Sionna's ``Paths`` (synthetic single-element arrays)
+    and reading its tensors, without it: ``Paths`` scatters into
+    ``[depth, rx, tx, max_num_paths]`` tensors whose kernels bake the path
+    count as a literal (an LLVM compile, ~5 ms each, three per call whenever the
+    count changes) and costs a few ms of Python tracing. Here the per-path
+    quantities (:func:`buffer_arrays`) are evaluated in one ``dr.eval`` and
+    arranged by :func:`arrays_to_raw`.
+    """
+    import drjit as dr
+
+    d = max(1, depth)
+    n = int(buf.buffer_size) if buf.tau is not None else 0
+    if n == 0:
+        return RawPaths.empty(num_rx, num_tx, d, counts, cap)
+    out = buffer_arrays(buf, src_vel, tgt_vel, wavelength)
+    dr.eval(*out)
+    return arrays_to_raw([x.numpy() for x in out], num_rx, num_tx, depth, counts, cap,
+                         src_o, tgt_o)
 
 
 def basis_patterns() -> list:
@@ -542,6 +571,83 @@ class SolverCore:
                                self._counter.counts, cap, _orient(src_o, ns),
                                _orient(tgt_o, nt))
 
+    def evaluate_chains(self, mi_scene, chains: dict, chain_idx, target_idx, src, tgt,
+                        v_tx, v_rx, wavelength, los: bool) -> list:
+        """Image method and field calculator on (chain, target) pairs.
+
+        Args:
+            mi_scene: the Mitsuba scene.
+            chains: :func:`chain_arrays` (the chains and at least one empty chain).
+            chain_idx, target_idx: ``mi.UInt [M]`` the pairs (chain ``M_i`` to
+                target ``target_idx_i``).
+            src, tgt: ``mi.Point3f`` ``[S]`` / ``[T]`` m; v_tx, v_rx: their
+                velocities, ``mi.Vector3f`` m/s.
+            wavelength: m (the scene's ``mi.Float``).
+            los: also test the ``S x T`` line-of-sight paths (Sionna's LoS test,
+                written into fixed slots after the pairs, source-major, so the
+                call has no data-dependent size).
+
+        Returns:
+            ``[keep, *arrays]``: ``keep`` ``mi.Bool [M (+ S T)]`` marks the
+            entries that are paths; ``arrays`` are :func:`buffer_arrays` of all
+            entries. Nothing here reads data back to the host, so the call can
+            be frozen (``drjit.freeze``; :class:`~engine.raytrace.chains.ChainTracer`
+            does for live traces). Same paths, in the same order, as
+            Sionna's candidate buffer after its LoS test and ``discard_invalid``.
+        """
+        import drjit as dr
+        import mitsuba as mi
+
+        from sionna.rt.constants import MIN_SEGMENT_LENGTH
+        from sionna.rt.path_solvers.sample_data import SampleData
+        from sionna.rt.utils import spawn_ray_to
+
+        ns, nt = dr.width(src), dr.width(tgt)
+        m = ns * nt if los else 0
+        npairs = dr.width(chain_idx)
+        n = npairs + m
+        idx = chain_idx
+        if m:  # LoS slots start as empty chains
+            empty = dr.width(chains["_src_indices"]) - 1
+            idx = dr.concat([chain_idx, dr.full(mi.UInt, empty, m)]) if npairs else \
+                dr.full(mi.UInt, empty, m)
+        b = _chain_buffer(chains, self.config.max_depth).gather(idx)
+        b._tgt_indices = dr.concat([target_idx, dr.zeros(mi.UInt, m)]) if (m and npairs) else \
+            (target_idx if npairs else dr.zeros(mi.UInt, m))
+        b._valid = dr.full(mi.Bool, False, n)
+        b._paths_counter = mi.UInt(n)
+        unused = dr.full(mi.Bool, False, n)
+        if m:
+            # sb_deterministic._los (Sionna 2.2) without its compaction: lane
+            # (s, t) -> entry npairs + s T + t.
+            sd = SampleData(ns, nt, 0, diffraction=False)
+            o, t = dr.repeat(src, nt), dr.tile(tgt, ns)
+            visible = dr.norm(t - o) > MIN_SEGMENT_LENGTH
+            rays = spawn_ray_to(o, t)
+            visible &= ~mi_scene.ray_test(rays, active=visible)
+            lane = dr.arange(mi.UInt, m)
+            b.add_paths(mi.UInt(0), npairs + lane, sd, visible,
+                        dr.tile(dr.arange(mi.UInt, nt), ns), rays.d, -rays.d, visible)
+            # Hidden LoS slots are no candidates: marked valid, the image
+            # method skips them, and ``keep`` drops them.
+            i = dr.arange(mi.UInt, n)
+            in_los = i >= npairs
+            seen = dr.gather(mi.Bool, visible, dr.select(in_los, i - npairs, 0), in_los)
+            unused = in_los & ~seen
+            b._valid = b._valid | unused
+        kw = self.solver_kwargs(self.config.max_num_paths_per_src)
+        s = self.solver
+        b.detach_geometry()
+        b = s._image_method(scene=mi_scene, paths=b, src_positions=src, tgt_positions=tgt,
+                            diffraction=kw["diffraction"], diffraction_lit_region=True)
+        pattern = self.basis_array.antenna_pattern.patterns
+        b = s._field_calculator(
+            wavelength=wavelength, paths=b, samples_per_src=kw["samples_per_src"],
+            diffraction=kw["diffraction"], src_positions=src, tgt_positions=tgt,
+            src_orientations=dr.zeros(mi.Point3f, ns), tgt_orientations=dr.zeros(mi.Point3f, nt),
+            src_antenna_patterns=pattern, tgt_antenna_patterns=pattern)
+        return [b.valid & ~unused, *buffer_arrays(b, v_tx, v_rx, wavelength)]
+
     def los_test(self, mi_scene, src, tgt, buf) -> None:
         """Sionna's line-of-sight test: appends the visible LoS paths of every
         (source, target) pair to ``buf`` as valid entries (after its
@@ -567,69 +673,55 @@ def buffer_columns(buf) -> list[np.ndarray]:
     return [np.asarray(c.numpy()) for c in cols]
 
 
-def chain_buffer(cols: dict[str, np.ndarray], max_depth: int):
-    """A ``PathsBuffer`` holding chains ``cols`` (``src [C]``, ``types, shapes,
-    prims, probs, vx, vy, vz [C, D]``, ``k_tx [C, 3]``), none valid, followed
-    by empty chains (no interaction) up to a power of two (at least 1024
-    entries, at least one empty): the slots a line-of-sight path is written
-    into. The size rarely changes as a store grows (Dr.Jit recompiles kernels
-    that gather from the buffer when it does)."""
+def chain_arrays(cols: dict[str, np.ndarray], max_depth: int) -> dict:
+    """Chains ``cols`` (``src [C]``, ``types, shapes, prims, probs, vx, vy, vz
+    [C, D]``, ``k_tx [C, 3]``) as the Dr.Jit arrays of a ``PathsBuffer`` (keys:
+    its attribute names), followed by empty chains (no interaction) up to a
+    power of two (at least 1024 entries, at least one empty). The size rarely
+    changes as a store grows (Dr.Jit recompiles kernels that gather from the
+    chains when it does); :meth:`SolverCore.evaluate_chains` reads them."""
     import drjit as dr
     import mitsuba as mi
 
     from sionna.rt.constants import INVALID_PRIMITIVE, INVALID_SHAPE, InteractionType
-    from sionna.rt.path_solvers.paths_buffer import PathsBuffer
 
-    d = max(1, int(max_depth))
     n = max(1024, 1 << len(cols["src"]).bit_length())
     empty = {"src": 0, "types": int(InteractionType.NONE), "shapes": INVALID_SHAPE,
              "prims": INVALID_PRIMITIVE, "probs": 0.0, "vx": 0.0, "vy": 0.0,
              "vz": 0.0, "k_tx": 0.0}
     col = {k: np.concatenate([v, np.full((n - len(v),) + v.shape[1:], empty[k], v.dtype)])
            for k, v in cols.items()}
-    b = PathsBuffer(n, int(max_depth), False)
-    t = lambda k, cls: cls(col[k].ravel(), shape=(n, d))  # noqa: E731
-    b._src_indices = mi.UInt(col["src"])
-    b._interaction_types = t("types", mi.TensorXu)
-    b._shapes = t("shapes", mi.TensorXu)
-    b._primitives = t("prims", mi.TensorXu)
-    b._probs = t("probs", mi.TensorXf)
-    b._vertices_x = t("vx", mi.TensorXf)
-    b._vertices_y = t("vy", mi.TensorXf)
-    b._vertices_z = t("vz", mi.TensorXf)
-    b._k_tx_x, b._k_tx_y, b._k_tx_z = (
-        mi.Float(np.ascontiguousarray(col["k_tx"][:, i])) for i in range(3))
-    b._paths_counter = mi.UInt(n)
-    dr.eval(b._src_indices, b._interaction_types, b._shapes, b._primitives)
-    return b
+    out = {"_src_indices": mi.UInt(col["src"]),
+           "_interaction_types": mi.UInt(col["types"].ravel()),
+           "_shapes": mi.UInt(col["shapes"].ravel()),
+           "_primitives": mi.UInt(col["prims"].ravel()),
+           "_probs": mi.Float(col["probs"].ravel()),
+           "_vertices_x": mi.Float(col["vx"].ravel()),
+           "_vertices_y": mi.Float(col["vy"].ravel()),
+           "_vertices_z": mi.Float(col["vz"].ravel()),
+           **{f"_k_tx_{c}": mi.Float(np.ascontiguousarray(col["k_tx"][:, i]))
+              for i, c in enumerate("xyz")}}
+    dr.eval(*out.values())
+    return out
 
 
-def gather_pairs(buffer, empty_index: int, chain_idx: np.ndarray, target_idx: np.ndarray,
-                 spare: int = 0):
-    """Candidates for (chain, target) pairs gathered from a :func:`chain_buffer`.
-
-    Args:
-        buffer: the chains' ``PathsBuffer``.
-        empty_index: index of an empty chain in it (the number of chains).
-        chain_idx, target_idx: ``[M]`` the pairs.
-        spare: empty entries after the ``M`` candidates (the buffer's
-            ``paths_counter`` is ``M``, so a generator stage can append there,
-            e.g. :meth:`SolverCore.los_test`).
-    """
+def _chain_buffer(chains: dict, max_depth: int):
+    """A ``PathsBuffer`` of :func:`chain_arrays` ``chains``, none valid."""
     import drjit as dr
     import mitsuba as mi
 
-    n = len(chain_idx)
-    idx = np.concatenate([np.asarray(chain_idx, np.int64),
-                          np.full(int(spare), empty_index, np.int64)]).astype(np.uint32)
-    b = buffer.gather(mi.UInt(idx))
-    b._tgt_indices = mi.UInt(np.concatenate([np.asarray(target_idx, np.uint32),
-                                             np.zeros(int(spare), np.uint32)]))
-    b._valid = dr.full(mi.Bool, False, len(idx))
+    from sionna.rt.path_solvers.paths_buffer import PathsBuffer
+
+    n = dr.width(chains["_src_indices"])
+    d = max(1, int(max_depth))
+    b = PathsBuffer(n, int(max_depth), False)
+    b._src_indices = chains["_src_indices"]
+    for k in ("_interaction_types", "_shapes", "_primitives"):
+        setattr(b, k, mi.TensorXu(chains[k], shape=(n, d)))
+    for k in ("_probs", "_vertices_x", "_vertices_y", "_vertices_z"):
+        setattr(b, k, mi.TensorXf(chains[k], shape=(n, d)))
+    b._k_tx_x, b._k_tx_y, b._k_tx_z = (chains[f"_k_tx_{c}"] for c in "xyz")
     b._paths_counter = mi.UInt(n)
-    # Evaluated arrays: a stage that scatters into them (the LoS test's
-    # scatter_inc on the counter) must not be split across kernels.
-    dr.make_opaque(b._valid, b._paths_counter, b._tgt_indices)
-    b.schedule()
-    dr.eval()
     return b
+
+
