@@ -27,6 +27,7 @@ import math
 import time
 
 import bpy
+import numpy as np
 from mathutils import Matrix, Vector
 
 from . import legend, schema
@@ -354,12 +355,67 @@ def ray_style(power_db: float, *, width: bool = True, opacity: bool = False
             RAY_ALPHA_MIN + t * (1.0 - RAY_ALPHA_MIN) if opacity else 1.0)
 
 
+def _link_arrays(lk: dict):
+    """One link of a ``rays`` (packed, as :class:`wire.Decoder` delivers it: bytes) or
+    ``paths`` (JSON lists) message as arrays: ``(sizes [C] int, points [P, 3] float32,
+    types [P] uint8 (0 at each path's ends), power_db [C] float32)``."""
+    if "count" in lk:  # packed (wire 1.3): straight from the bytes, no copy
+        sizes = np.frombuffer(lk["sizes"], np.uint8).astype(np.intp)
+        points = np.frombuffer(lk["points"], "<f4").reshape(-1, 3)
+        inner = np.frombuffer(lk["types"], np.uint8)
+        power = np.frombuffer(lk["power_db"], "<f4")
+    else:
+        paths = lk["paths"]
+        sizes = np.fromiter((len(p["points"]) for p in paths), np.intp, len(paths))
+        points = np.array([q for p in paths for q in p["points"]], np.float32).reshape(-1, 3)
+        inner = np.fromiter((t for p in paths for t in p["types"]), np.uint8)
+        power = np.fromiter((p["power_db"] for p in paths), np.float32, len(paths))
+    types = np.zeros(len(points), np.uint8)
+    if len(inner):
+        ends = np.zeros(len(points), bool)
+        stop = np.cumsum(sizes)
+        ends[stop - 1] = True
+        ends[stop - sizes] = True
+        types[~ends] = inner
+    return sizes, points, types, power
+
+
+def _select(sizes, power, n: int):
+    """Indices of the curves to draw: the ``n`` strongest (all when ``n <= 0``), strongest
+    first; a prefix (a slice) when the link is already in that order (the engine's)."""
+    c = len(sizes)
+    if n <= 0:
+        return slice(0, c)
+    if c <= 1 or bool(np.all(power[:-1] >= power[1:])):
+        return slice(0, min(n, c))
+    return np.argsort(-power, kind="stable")[:n]
+
+
+def _point_index(sizes, curves):
+    """Point indices ``[P']`` of the curves ``curves`` (indices) of a link with ``sizes``."""
+    starts = np.cumsum(sizes) - sizes
+    lens = sizes[curves]
+    first = np.repeat(starts[curves] - (np.cumsum(lens) - lens), lens)
+    return first + np.arange(int(lens.sum()))
+
+
+def _power_rgb(t):
+    """:func:`power_color` over an array ``t`` in [0, 1]: RGB ``[N, 3]`` float32."""
+    ts = [s[0] for s in _POWER_STOPS]
+    return np.stack([np.interp(t, ts, [s[1][k] for s in _POWER_STOPS]) for k in range(3)],
+                    axis=1).astype(np.float32)
+
+
+_TYPE_LUT = np.array([TYPE_COLORS.get(k, TYPE_COLORS[0]) for k in range(256)], np.float32)
+
+
 def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0, *,
                width_by_power: bool = False, opacity_by_power: bool = False):
-    """Flatten a ``paths`` message: curve sizes, positions, colours, radii.
+    """Flatten a ``rays`` or ``paths`` message: curve sizes, positions, colours, radii.
 
     Args:
-        msg: a ``paths`` message.
+        msg: a ``rays`` message (packed arrays as bytes, what :class:`wire.Decoder`
+            delivers) or a ``paths`` message.
         mode: ``"POWER"`` (colour by path power on :data:`RAY_SCALE_DB`, strong = yellow)
             or ``"TYPE"``
             (each point coloured by the interaction it is: specular blue,
@@ -370,56 +426,78 @@ def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0, *,
             (:func:`ray_style`).
 
     Returns:
-        ``(sizes [C], positions [3 P] flat, colours [4 P] flat RGBA, radii [P] m)`` as
-        lists (C curves, P points).
+        ``(sizes [C] int, positions [P, 3], colours [P, 4] RGBA, radii [P] m)``, numpy
+        arrays (float32; C curves, P points).
     """
-    links = msg["links"]
     lo, hi = RAY_SCALE_DB
-    span = hi - lo
+    r0, r1 = RAY_RADIUS_RANGE_M
     sizes, pos, col, rad = [], [], [], []
-    tc = TYPE_COLORS
-    styled = width_by_power or opacity_by_power
-    for lk in links:
-        for p in strongest_paths(lk["paths"], max_paths):
-            pts = p["points"]
-            n = len(pts)
-            sizes.append(n)
-            for q in pts:
-                pos += q
-            r, a = (ray_style(p["power_db"], width=width_by_power, opacity=opacity_by_power)
-                    if styled else (RAY_RADIUS_M, 1.0))
-            rad += [r] * n
-            if mode == "TYPE":
-                cs = [tc[0]] + [tc.get(t, tc[0]) for t in p["types"]] + [tc[0]]
-                for c in cs:
-                    col += (c[0], c[1], c[2], a)
-            else:
-                c = power_color((p["power_db"] - lo) / span)
-                col += (c[0], c[1], c[2], a) * n
-    return sizes, pos, col, rad
+    for lk in msg["links"]:
+        s, pts, types, power = _link_arrays(lk)
+        curves = _select(s, power, max_paths)
+        if isinstance(curves, slice):
+            s, power = s[curves], power[curves]
+            n = int(s.sum())
+            pts, types = pts[:n], types[:n]
+        else:
+            idx = _point_index(s, curves)
+            s, power = s[curves], power[curves]
+            pts, types = pts[idx], types[idx]
+        t = np.clip((power.astype(np.float64) - lo) / (hi - lo), 0.0, 1.0)
+        alpha = (RAY_ALPHA_MIN + t * (1.0 - RAY_ALPHA_MIN) if opacity_by_power
+                 else np.ones(len(s)))
+        c = np.empty((len(pts), 4), np.float32)
+        c[:, :3] = (_TYPE_LUT[types, :3] if mode == "TYPE"
+                    else np.repeat(_power_rgb(t), s, axis=0))
+        c[:, 3] = np.repeat(alpha, s)
+        sizes.append(s)
+        pos.append(pts)
+        col.append(c)
+        rad.append(np.repeat(r0 + t * (r1 - r0), s) if width_by_power
+                   else np.full(len(pts), RAY_RADIUS_M))
+    if not sizes:
+        return (np.zeros(0, np.intp), np.zeros((0, 3), np.float32),
+                np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
+    return (np.concatenate(sizes), np.concatenate(pos), np.concatenate(col),
+            np.concatenate(rad).astype(np.float32))
 
 
 def set_rays(scene, sizes, positions, colors, radii=None, *, visible: bool = True):
-    """Rebuild the rays object from flat arrays (see :func:`ray_arrays`; ``radii`` None:
+    """Rebuild the rays object from arrays (see :func:`ray_arrays`; ``radii`` None:
     :data:`RAY_RADIUS_M` everywhere)."""
     obj = ensure_rays(scene)
     cv = obj.data
-    if len(cv.curves):
-        cv.remove_curves()
-    obj.hide_render = obj.hide_viewport = not (visible and sizes)
-    if not sizes:
+    shown = bool(visible and len(sizes))
+    if obj.hide_render == shown:
+        obj.hide_render = obj.hide_viewport = not shown
+    if not len(sizes):
+        if len(cv.curves):
+            cv.remove_curves()
         return obj
-    cv.add_curves(sizes)
-    cv.set_types(type="POLY")  # straight segments between interactions (default: Catmull-Rom)
-    cv.attributes["position"].data.foreach_set("vector", positions)
+    sizes = np.asarray(sizes)
+    old = len(cv.curves)
+    if old != len(sizes) or not np.array_equal(_curve_sizes(cv), sizes):
+        if old:
+            cv.remove_curves()
+        cv.add_curves(sizes.tolist())
+        cv.set_types(type="POLY")  # straight segments between interactions (default: Catmull-Rom)
     attrs = cv.attributes
+    attrs["position"].data.foreach_set(
+        "vector", np.ascontiguousarray(positions, np.float32).reshape(-1))
     rad = attrs.get("radius") or attrs.new("radius", "FLOAT", "POINT")
-    rad.data.foreach_set("value", radii if radii is not None
-                         else [RAY_RADIUS_M] * len(cv.points))
+    rad.data.foreach_set("value", np.full(len(cv.points), RAY_RADIUS_M, np.float32)
+                         if radii is None else np.ascontiguousarray(radii, np.float32))
     colr = attrs.get(RAY_COLOR_ATTR) or attrs.new(RAY_COLOR_ATTR, "FLOAT_COLOR", "POINT")
-    colr.data.foreach_set("color", colors)
+    colr.data.foreach_set("color", np.ascontiguousarray(colors, np.float32).reshape(-1))
     cv.update_tag()
     return obj
+
+
+def _curve_sizes(cv):
+    """Points per curve of a hair-curves datablock ``[C]``."""
+    off = np.empty(len(cv.curves) + 1, np.int32)
+    cv.curve_offset_data.foreach_get("value", off)
+    return np.diff(off)
 
 
 # --------------------------------------------------------------------------- messages
@@ -499,7 +577,8 @@ def apply_state(scene, msg: dict, view: LiveView) -> None:
 
 
 def apply_paths(scene, msg: dict, view: LiveView) -> None:
-    """``paths``: rebuild the rays object."""
+    """``rays`` (packed, wire 1.3) or ``paths`` (JSON, from an engine before 1.3): rebuild
+    the rays object."""
     p = _props(scene)
     mode = p.ray_color_mode if p is not None else "POWER"
     cap = p.max_paths_per_link if p is not None else 0
@@ -508,7 +587,7 @@ def apply_paths(scene, msg: dict, view: LiveView) -> None:
         msg, mode, cap, width_by_power=p.ray_width_by_power if p is not None else True,
         opacity_by_power=p.ray_opacity_by_power if p is not None else False)
     set_rays(scene, sizes, pos, col, rad, visible=visible)
-    show_rays_legend(scene, view, visible and mode == "POWER" and bool(sizes))
+    show_rays_legend(scene, view, visible and mode == "POWER" and bool(len(sizes)))
     view.rays_built += 1
     _set(p, "num_rays", len(sizes))
     _set(p, "paths_step", msg["step"])
@@ -595,7 +674,7 @@ def apply_hello(scene, msg: dict, view: LiveView) -> None:
     _set(_props(scene), "engine_name", msg.get("name", ""))
 
 
-_APPLY = {"scene": apply_scene, "state": apply_state, "paths": apply_paths,
+_APPLY = {"scene": apply_scene, "state": apply_state, "paths": apply_paths, "rays": apply_paths,
           "metrics": apply_metrics, "status": apply_status, "error": apply_error,
           "hello": apply_hello}
 
