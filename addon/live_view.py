@@ -6,7 +6,11 @@ the collection :data:`COLLECTION` and is named ``ISAC_Live_*``:
 
 * robots: a TurtleBot3-like proxy mesh (cylinder body, two wheels, a nose
   showing +x), the estimated position as a small marker, and two trails
-  (truth, estimate) as poly curves;
+  (truth, estimate);
+* trails: every trail (robots' truth and estimate, radar tracks) is one curve of ONE
+  hair-curves object (``ISAC_Live_Trails``) coloured by the point attribute
+  ``trail_color``; a state moves its points in place (bevelled poly curves cost ten
+  times as much to evaluate per state);
 * rays: ONE hair-curves object (``ISAC_Live_Rays``) rebuilt per ``paths``
   message: one curve per path, tx -> interaction vertices -> rx, with a
   per-point colour attribute ``ray_color`` (by path power or by interaction
@@ -22,7 +26,6 @@ the collection :data:`COLLECTION` and is named ``ISAC_Live_*``:
 
 from __future__ import annotations
 
-import collections
 import math
 import time
 
@@ -48,9 +51,13 @@ RAY_ALPHA_MIN = 0.15
 #: same power has the same colour in every frame and every scene (the legend shows it).
 RAY_SCALE_DB = (-110.0, -40.0)
 RAYS_LEGEND = PREFIX + "RaysLegend"
-#: Bevel resolution of the trail curves (Blender's default 4 makes 4x the vertices to
-#: evaluate per state; a 8 mm tube reads the same at 1).
-TRAIL_BEVEL_RESOLUTION = 1
+#: The hair-curves object of every trail, its colour attribute and radius (m).
+TRAILS = PREFIX + "Trails"
+TRAIL_COLOR_ATTR = "trail_color"
+TRAIL_RADIUS_M = 0.008
+#: Trail colours (RGBA): a robot's truth, its estimate, a radar track.
+TRAIL_COLORS = {"truth": (0.1, 0.9, 0.9, 1.0), "estimate": (1.0, 0.3, 0.1, 1.0),
+                "track": (0.2, 1.0, 0.2, 1.0)}
 #: Text object with one line per link (SNR, Shannon and MCS rate), behind the scene's north edge.
 METRICS_TEXT = PREFIX + "Metrics"
 #: Emission strength of the rays (1: the colour map's colours, not washed out to white).
@@ -66,20 +73,60 @@ _POWER_STOPS = ((0.0, (0.05, 0.05, 0.4)), (0.4, (0.1, 0.5, 0.9)), (0.7, (0.2, 0.
 # --------------------------------------------------------------------------- state holders
 
 
+class Trail:
+    """The last ``maxlen`` points ``(x, y, z)`` (m) of a trail, oldest first, kept so that
+    :meth:`array` is a contiguous ``[n, 3]`` float32 view without copying (each point is
+    stored twice, ``maxlen`` apart, in a ring of ``2 maxlen``): a state's trail update is a
+    slice, not a conversion of 500 tuples."""
+
+    def __init__(self, maxlen: int, points=()):
+        self.maxlen = int(maxlen)
+        self._buf = np.zeros((2 * self.maxlen, 3), np.float32)
+        self._head = 0  # index of the oldest point
+        self._n = 0
+        for p in points:
+            self.append(p)
+
+    def append(self, p) -> None:
+        """Add the newest point (the oldest drops out at ``maxlen``)."""
+        m = self.maxlen
+        if self._n < m:
+            i = self._head + self._n
+            self._n += 1
+        else:
+            i = self._head + m
+            self._head = (self._head + 1) % m
+        i %= m
+        self._buf[i] = self._buf[i + m] = p[:3]
+
+    def array(self) -> np.ndarray:
+        """The points, oldest first, ``[n, 3]`` float32 (a view: do not keep it)."""
+        return self._buf[self._head:self._head + self._n]
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __iter__(self):
+        return iter(map(tuple, self.array().tolist()))
+
+
+
 class LiveView:
     """What the view keeps between messages: trails and the devices the scene announced."""
 
     def __init__(self, trail_length: int = 500):
         self.trail_length = trail_length
-        self.trails: dict[str, collections.deque] = {}
-        self.estimates: dict[str, collections.deque] = {}
+        self.trails: dict[str, Trail] = {}
+        self.estimates: dict[str, Trail] = {}
         self.robot_models: dict[str, str] = {}
         self.last_step = -1
         self.rays_built = 0
         #: Engine publish -> applied here, s (from ``state.sent_at``; same-host clocks).
         self.last_latency_s: float | None = None
+        #: ``(name, points)`` of each curve of the trails object, in order
+        self.trail_layout: list[tuple[str, int]] = []
         #: radar track id -> positions (m), for the track trails
-        self.tracks: dict[int, collections.deque] = {}
+        self.tracks: dict[int, Trail] = {}
         self.num_detections = 0
         #: the last ``radiomap`` message (addon/radiomap_view.py shows its layers)
         self.radiomap: dict | None = None
@@ -249,40 +296,67 @@ def apply_sensing(scene, msg: dict, view: LiveView) -> None:
         pts = [(t["position"][0], t["position"][1], z) for t in msg["tracks"]]
         _set_markers(scene, "Tracks", pts, 0.08, (0.2, 1.0, 0.2, 1.0))
         for t in msg["tracks"]:
-            tr = view.tracks.setdefault(int(t["id"]),
-                                        collections.deque(maxlen=view.trail_length))
+            tr = view.tracks.setdefault(int(t["id"]), Trail(view.trail_length))
             tr.append((t["position"][0], t["position"][1], z))
-            _set_trail(scene, f"track_{int(t['id'])}_trail", tr, (0.2, 1.0, 0.2, 1.0))
 
 
-def _set_trail(scene, name: str, points, rgba) -> None:
-    """Poly curve ``name`` through ``points`` ``[(x, y, z), ...]`` (m); a trail at its full
-    length keeps its spline and only moves the points (no spline rebuild per state)."""
-    oname = f"{PREFIX}{name}"
-    obj = bpy.data.objects.get(oname)
+def trail_list(view: "LiveView") -> list[tuple[str, Trail, tuple]]:
+    """Every trail of the view, in the order of the trails object's curves:
+    ``(name, points, rgba)``; names ``<robot>_trail``, ``<robot>_estimate_trail``,
+    ``track_<id>_trail``."""
+    out = [(f"{n}_trail", pts, TRAIL_COLORS["truth"]) for n, pts in view.trails.items()]
+    out += [(f"{n}_estimate_trail", pts, TRAIL_COLORS["estimate"])
+            for n, pts in view.estimates.items()]
+    out += [(f"track_{i}_trail", pts, TRAIL_COLORS["track"]) for i, pts in view.tracks.items()]
+    return out
+
+
+def set_trails(scene, view: "LiveView") -> None:
+    """The trails object (:data:`TRAILS`): one poly curve per trail of at least 2 points.
+    Trails of unchanged lengths (every trail at its full length) only move their points;
+    a new layout rebuilds the curves and their colours. Records the layout in
+    ``view.trail_layout`` (names in curve order)."""
+    trails = [(n, pts, c) for n, pts, c in trail_list(view) if len(pts) >= 2]
+    obj = bpy.data.objects.get(TRAILS)
     if obj is None:
-        cu = bpy.data.curves.new(oname, "CURVE")
-        cu.dimensions = "3D"
-        cu.bevel_depth = 0.008
-        cu.bevel_resolution = TRAIL_BEVEL_RESOLUTION
-        cu.materials.append(_material(oname, rgba, emission=True))
-        obj = legend.scene_object(scene, oname, cu)
-    cu = obj.data
-    if len(points) < 2:
-        if len(cu.splines):
-            cu.splines.clear()
+        cv = bpy.data.hair_curves.new(TRAILS)
+        cv.materials.append(_material(TRAILS, (1.0, 1.0, 1.0, 1.0), emission=True,
+                                      attribute=TRAIL_COLOR_ATTR))
+        obj = legend.scene_object(scene, TRAILS, cv)
+        obj.visible_shadow = False
+    cv = obj.data
+    sizes = [len(pts) for _, pts, _ in trails]
+    layout = [(n, k) for (n, _, _), k in zip(trails, sizes)]
+    if layout != view.trail_layout:
+        if len(cv.curves):
+            cv.remove_curves()
+        view.trail_layout = layout
+        if not trails:
+            return
+        cv.add_curves(sizes)
+        cv.set_types(type="POLY")
+        attrs = cv.attributes
+        rad = attrs.get("radius") or attrs.new("radius", "FLOAT", "POINT")
+        rad.data.foreach_set("value", np.full(sum(sizes), TRAIL_RADIUS_M, np.float32))
+        col = attrs.get(TRAIL_COLOR_ATTR) or attrs.new(TRAIL_COLOR_ATTR, "FLOAT_COLOR", "POINT")
+        col.data.foreach_set("color", np.repeat(np.array([c for _, _, c in trails], np.float32),
+                                                sizes, axis=0).reshape(-1))
+    if not trails:
         return
-    flat = []
-    for p in points:
-        flat += (p[0], p[1], p[2], 1.0)
-    if len(cu.splines) == 1 and len(cu.splines[0].points) == len(points):
-        cu.splines[0].points.foreach_set("co", flat)
-        cu.update_tag()
-        return
-    cu.splines.clear()
-    sp = cu.splines.new("POLY")
-    sp.points.add(len(points) - 1)
-    sp.points.foreach_set("co", flat)
+    pos = np.concatenate([pts.array() for _, pts, _ in trails])
+    cv.attributes["position"].data.foreach_set("vector", pos.reshape(-1))
+    cv.update_tag()
+
+
+def trail_points(view: "LiveView", name: str) -> list[tuple[float, float, float]]:
+    """The points of trail ``name`` as drawn (read back from the trails object)."""
+    cv = bpy.data.objects[TRAILS].data
+    start = 0
+    for n, k in view.trail_layout:
+        if n == name:
+            return [tuple(cv.points[i].position) for i in range(start, start + k)]
+        start += k
+    raise KeyError(f"no trail {name!r} is drawn")
 
 
 # --------------------------------------------------------------------------- rays
@@ -560,17 +634,16 @@ def apply_state(scene, msg: dict, view: LiveView) -> None:
         label = bpy.data.objects.get(f"{PREFIX}{name}_Label")
         if label is not None:  # follows the robot, stays upright in the world
             label.location = _label_at(pose)
-        trail = view.trails.setdefault(name, collections.deque(maxlen=view.trail_length))
+        trail = view.trails.setdefault(name, Trail(view.trail_length))
         trail.append((pose[0], pose[1], 0.01))
-        _set_trail(scene, f"{name}_trail", trail, (0.1, 0.9, 0.9, 1.0))
         est = r.get("estimate")
         if est is not None:
             m = _ensure_marker(scene, name)
             m.location = est
-            etrail = view.estimates.setdefault(name, collections.deque(maxlen=view.trail_length))
+            etrail = view.estimates.setdefault(name, Trail(view.trail_length))
             etrail.append(tuple(est))
-            _set_trail(scene, f"{name}_estimate_trail", etrail, (1.0, 0.3, 0.1, 1.0))
     apply_sensing(scene, msg, view)
+    set_trails(scene, view)
     view.last_step = msg["step"]
     if "sent_at" in msg:
         view.last_latency_s = time.time() - msg["sent_at"]

@@ -73,8 +73,10 @@ def messages(step: int, n_rays: int = 500, seed: int = 0) -> list[dict]:
                      "estimate": [rx[0] + 0.05, rx[1] - 0.03, 0.0]}]},
         {"type": "paths", "step": step,
          "links": [{"tx": "AP1", "rx": "robot1", "num_paths": n_rays, "paths": paths}]},
-        {"type": "metrics", "step": step, "links": [{"tx": "AP1", "rx": "robot1", "snr_db": 30.0,
-                                                     "rate_bps": 1e8, "num_paths": n_rays}]},
+        # the SNR changes every step, as it does for a moving robot (the text is re-laid out)
+        {"type": "metrics", "step": step, "links": [{
+            "tx": "AP1", "rx": "robot1", "snr_db": 30.0 + 0.1 * (step % 50),
+            "rate_bps": 1e8 + 1e6 * (step % 50), "num_paths": n_rays}]},
     ]
 
 
@@ -205,9 +207,9 @@ def bench_view_cost(scene, reps: int) -> None:
     packed_frames = [b"".join(wire.encode(packed(m) if m["type"] == "paths" else m)
                               for m in ms) for ms in states]
     for k in range(view.trail_length):  # trails at their full length from the start
-        view.trails.setdefault("robot1", collections.deque(maxlen=view.trail_length)).append(
+        view.trails.setdefault("robot1", live_view.Trail(view.trail_length)).append(
             (4 + math.cos(k / 50), 3 + math.sin(k / 50), 0.01))
-        view.estimates.setdefault("robot1", collections.deque(maxlen=view.trail_length)).append(
+        view.estimates.setdefault("robot1", live_view.Trail(view.trail_length)).append(
             (4.05 + math.cos(k / 50), 2.97 + math.sin(k / 50), 0.0))
     for m in dec.feed(json_frames[0]):
         live_view.apply_message(scene, m, view)

@@ -160,23 +160,51 @@ def test_ray_width_and_opacity_by_power(scene):
     assert {d.color[3] for d in cv.attributes[live_view.RAY_COLOR_ATTR].data} == {1.0}
 
 
+@pytest.mark.parametrize("maxlen", [1, 2, 5])
+def test_a_trail_keeps_the_last_points_like_a_bounded_deque(addon_module, maxlen):
+    """:class:`live_view.Trail` against ``collections.deque(maxlen=...)``: the same points
+    in the same order after every append, as one contiguous float32 array."""
+    import collections
+
+    from addon import live_view
+
+    tr, ref = live_view.Trail(maxlen), collections.deque(maxlen=maxlen)
+    for k in range(3 * maxlen + 2):
+        p = (k + 0.5, -2.0 * k, 0.25)
+        tr.append(p)
+        ref.append(p)
+        assert list(tr) == list(ref) and len(tr) == len(ref)
+        a = tr.array()
+        assert a.shape == (len(ref), 3) and a.flags["C_CONTIGUOUS"] and a.dtype == "float32"
+
+
 def test_a_full_trail_moves_its_points(scene):
-    """A trail at its full length is updated in place: its last point is the newest pose."""
+    """Every trail is a curve of one hair-curves object; a trail at its full length is
+    updated in place (the same curves): its last point is the newest pose."""
     from addon import live_view
 
     view = live_view.LiveView(trail_length=3)
     for step in range(6):
         live_view.apply_state(scene, {"type": "state", "step": step, "time_s": 0.0, "robots": [
-            {"name": "robot1", "pose": [float(step), 2, 0, 0, 0, 0], "velocity": [0, 0]}]},
-            view)
-        splines = bpy.data.objects["ISAC_Live_robot1_trail"].data.splines
+            {"name": "robot1", "pose": [float(step), 2, 0, 0, 0, 0], "velocity": [0, 0],
+             "estimate": [step + 0.5, 2.1, 0.0]}]}, view)
+        cv = bpy.data.objects[live_view.TRAILS].data
         if step == 0:
-            assert len(splines) == 0                     # one point: no line yet
+            assert len(cv.curves) == 0                   # one point: no line yet
             continue
-        assert [round(p.co[0], 6) for p in splines[0].points] == [
+        assert [round(p[0], 6) for p in live_view.trail_points(view, "robot1_trail")] == [
             float(k) for k in range(max(0, step - 2), step + 1)]
-    cu = bpy.data.objects["ISAC_Live_robot1_trail"].data
-    assert len(cu.splines) == 1 and cu.bevel_resolution == live_view.TRAIL_BEVEL_RESOLUTION
+        assert live_view.trail_points(view, "robot1_estimate_trail")[-1] == pytest.approx(
+            (step + 0.5, 2.1, 0.0))
+        if step == 2:   # both trails full from here: a rebuild would reset this radius
+            cv.attributes["radius"].data[0].value = 0.123
+    assert view.trail_layout == [("robot1_trail", 3), ("robot1_estimate_trail", 3)]
+    assert len(cv.curves) == 2
+    assert cv.attributes["radius"].data[0].value == pytest.approx(0.123)   # moved in place
+    colours = [c for d in cv.attributes[live_view.TRAIL_COLOR_ATTR].data for c in d.color]
+    assert colours == pytest.approx([*live_view.TRAIL_COLORS["truth"]] * 3
+                                    + [*live_view.TRAIL_COLORS["estimate"]] * 3)
+    assert cv.materials[0].node_tree.nodes["Attribute"].attribute_name == "trail_color"
 
 
 def test_paths_state_metrics_are_applied(scene):
@@ -200,8 +228,7 @@ def test_paths_state_metrics_are_applied(scene):
     assert bot.rotation_euler.z == pytest.approx(math.pi / 2)
     assert len(bot.data.polygons) > 30  # body + wheels + nose
     assert bpy.data.objects["ISAC_Live_robot1_estimate"].location.x == pytest.approx(1.25)
-    trail = bpy.data.objects["ISAC_Live_robot1_trail"].data.splines[0]
-    assert len(trail.points) == 3
+    assert len(live_view.trail_points(view, "robot1_trail")) == 3
     live_view.apply_message(scene, {"type": "metrics", "step": 2, "links": [
         {"tx": "AP1", "rx": "robot1", "snr_db": 31.5, "rate_bps": 2.5e8, "num_paths": 40,
          "los": True}, {"tx": "AP2", "rx": "robot1", "snr_db": None, "rate_bps": None}]}, view)
@@ -383,7 +410,7 @@ def test_radar_detections_and_tracks_are_drawn(scene):
     assert tuple(round(x, 4) for x in centre) == (5.5, 3.2, 0.096)
     tracks = bpy.data.objects["ISAC_Live_Tracks"].data
     assert len(tracks.vertices) == 6
-    assert len(bpy.data.objects["ISAC_Live_track_4_trail"].data.splines[0].points) == 2
+    assert len(live_view.trail_points(view, "track_4_trail")) == 2
     # a state without radar fields keeps the last radar picture
     live_view.apply_message(scene, {"type": "state", "step": 3, "time_s": 1.5,
                                     "robots": []}, view)
