@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import collections
 import math
+import os
 import random
 import socket
 import statistics
@@ -219,6 +220,7 @@ def bench_view_cost(scene, reps: int) -> None:
         per_type: dict[str, list] = collections.defaultdict(list)
         ts, te = [], []
         for f in frames:
+            c0 = time.process_time()
             t0 = time.perf_counter()
             msgs = dec.feed(f)
             per_type["decode"].append(time.perf_counter() - t0)
@@ -231,6 +233,9 @@ def bench_view_cost(scene, reps: int) -> None:
             bpy.context.view_layer.update()
             te.append(time.perf_counter() - t0)
             per_type["depsgraph"].append(time.perf_counter() - t1)
+            # CPU time of the process (every thread): what the state costs whatever the
+            # machine's load (wall-clock medians on shared cores include preemptions)
+            per_type["cpu"].append(time.process_time() - c0)
         return ts, te, per_type
 
     def ms(v):
@@ -260,7 +265,9 @@ def bench_view_cost(scene, reps: int) -> None:
         print(f"[view]   median ms per part: {parts}")
     print(f"[view] ratio JSON / packed: decode + apply "
           f"{statistics.median(jts) / statistics.median(pts):.2f}x, with the depsgraph update "
-          f"{statistics.median(jte) / statistics.median(pte):.2f}x")
+          f"{statistics.median(jte) / statistics.median(pte):.2f}x, CPU time "
+          f"{statistics.median(jper['cpu']) / statistics.median(pper['cpu']):.2f}x "
+          f"(load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
     live_view.clear(scene)
 
 
