@@ -150,7 +150,7 @@ def bench_update_cost(scene, reps: int) -> None:
         bpy.data.objects.remove(obj)
         bpy.data.curves.remove(data)
     bpy.data.collections.remove(coll)
-    print(f"[cost] 1 robot + 500 ray polylines, decode + apply state/paths/metrics: "
+    print(f"[cost] 1 robot + 500 ray polylines, decode + apply state/rays/metrics: "
           f"median {ours * 1e3:.2f} ms, p95 {sorted(ts)[int(0.95 * len(ts))] * 1e3:.2f} ms "
           f"over {len(ts)} updates (frame {len(frames[1]) / 1024:.0f} KiB)")
     print(f"[cost] baseline, one curve object per ray (rays only): median {base * 1e3:.1f} ms "
