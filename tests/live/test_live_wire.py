@@ -357,3 +357,33 @@ def test_packed_rays_that_are_not_base64_are_refused(wire):
     assert "field 'points' is not base64" in wire.validate(msg)
     msg["links"][0]["points"] = 12
     assert "field 'points' must be a base64 string, got 12" in wire.validate(msg)
+
+
+def test_engine_packs_the_strongest_paths_like_its_json_form(wire):
+    """``protocol.link_rays`` (1.3) against ``protocol.link_polylines`` (1.2) on a hand-made
+    link: 4 paths of 0-2 interactions, capped at the 3 strongest."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from engine.live.protocol import link_polylines, link_rays
+
+    lp = SimpleNamespace(
+        tx="AP1", rx="robot1", num_paths=4, power=np.array([1e-7, 1e-5, 1e-9, 1e-6]),
+        tau=np.array([3e-8, 1e-8, 5e-8, 2e-8]),
+        interactions=np.array([[1, 4], [0, 0], [8, 0], [2, 0]], np.int32),
+        vertices=np.array([[[1, 2, 3], [4, 5, 1]], [[0, 0, 0], [0, 0, 0]],
+                           [[7, 1, 2], [0, 0, 0]], [[3.5, 0.25, 1], [0, 0, 0]]], float),
+        tx_position=np.array([0.05, 3.0, 2.0]), rx_position=np.array([5.5, 3.0, 0.25]))
+    packed = {"type": "rays", "step": 1, "links": [link_rays(lp, 3)]}
+    assert wire.validate(packed) is None and packed["links"][0]["count"] == 3
+    back = wire.rays_as_paths(packed)["links"][0]
+    want = link_polylines(lp, 3)
+    assert back["num_paths"] == want["num_paths"] == 4
+    for a, b in zip(back["paths"], want["paths"], strict=True):
+        assert a["types"] == b["types"]
+        np.testing.assert_allclose(a["points"], b["points"], atol=1e-6)
+        assert a["power_db"] == pytest.approx(b["power_db"], abs=1e-4)
+        assert a["tau_s"] == pytest.approx(b["tau_s"], rel=1e-6)
+    assert [len(p["types"]) for p in back["paths"]] == [0, 1, 2]     # strongest first
+    assert wire.validate({"type": "rays", "step": 1, "links": [link_rays(lp, 0)]}) is None
