@@ -100,7 +100,7 @@ class LiveClient:
         """Do one bounded, non-blocking slice of work.
 
         Returns the messages that arrived, in order, except that of the
-        coalescable types (``state``, ``paths``, ``metrics``, ``status``)
+        coalescable types (``state``, ``paths``/``rays``, ``metrics``, ``status``)
         only the newest of each is kept: a viewer that falls behind skips to
         the latest state instead of replaying history.
 
@@ -177,7 +177,8 @@ class LiveClient:
         self.decoder = wire.Decoder("e2v", peer=f"engine {self.host}:{self.port}")
         self.state = HANDSHAKE
         self._wbuf = wire.encode(wire.hello("viewer", self.name, token=self.token,
-                                            capabilities=("edit", "command")))
+                                            capabilities=("edit", "command",
+                                                          wire.RAYS_CAPABILITY)))
         self._write()
 
     def _on_hello(self, m: dict) -> bool:

@@ -6,7 +6,11 @@ the collection :data:`COLLECTION` and is named ``ISAC_Live_*``:
 
 * robots: a TurtleBot3-like proxy mesh (cylinder body, two wheels, a nose
   showing +x), the estimated position as a small marker, and two trails
-  (truth, estimate) as poly curves;
+  (truth, estimate);
+* trails: every trail (robots' truth and estimate, radar tracks) is one curve of ONE
+  hair-curves object (``ISAC_Live_Trails``) coloured by the point attribute
+  ``trail_color``; a state moves its points in place (bevelled poly curves cost ten
+  times as much to evaluate per state);
 * rays: ONE hair-curves object (``ISAC_Live_Rays``) rebuilt per ``paths``
   message: one curve per path, tx -> interaction vertices -> rx, with a
   per-point colour attribute ``ray_color`` (by path power or by interaction
@@ -22,11 +26,11 @@ the collection :data:`COLLECTION` and is named ``ISAC_Live_*``:
 
 from __future__ import annotations
 
-import collections
 import math
 import time
 
 import bpy
+import numpy as np
 from mathutils import Matrix, Vector
 
 from . import legend, schema
@@ -47,9 +51,13 @@ RAY_ALPHA_MIN = 0.15
 #: same power has the same colour in every frame and every scene (the legend shows it).
 RAY_SCALE_DB = (-110.0, -40.0)
 RAYS_LEGEND = PREFIX + "RaysLegend"
-#: Bevel resolution of the trail curves (Blender's default 4 makes 4x the vertices to
-#: evaluate per state; a 8 mm tube reads the same at 1).
-TRAIL_BEVEL_RESOLUTION = 1
+#: The hair-curves object of every trail, its colour attribute and radius (m).
+TRAILS = PREFIX + "Trails"
+TRAIL_COLOR_ATTR = "trail_color"
+TRAIL_RADIUS_M = 0.008
+#: Trail colours (RGBA): a robot's truth, its estimate, a radar track.
+TRAIL_COLORS = {"truth": (0.1, 0.9, 0.9, 1.0), "estimate": (1.0, 0.3, 0.1, 1.0),
+                "track": (0.2, 1.0, 0.2, 1.0)}
 #: Text object with one line per link (SNR, Shannon and MCS rate), behind the scene's north edge.
 METRICS_TEXT = PREFIX + "Metrics"
 #: Emission strength of the rays (1: the colour map's colours, not washed out to white).
@@ -65,20 +73,60 @@ _POWER_STOPS = ((0.0, (0.05, 0.05, 0.4)), (0.4, (0.1, 0.5, 0.9)), (0.7, (0.2, 0.
 # --------------------------------------------------------------------------- state holders
 
 
+class Trail:
+    """The last ``maxlen`` points ``(x, y, z)`` (m) of a trail, oldest first, kept so that
+    :meth:`array` is a contiguous ``[n, 3]`` float32 view without copying (each point is
+    stored twice, ``maxlen`` apart, in a ring of ``2 maxlen``): a state's trail update is a
+    slice, not a conversion of 500 tuples."""
+
+    def __init__(self, maxlen: int, points=()):
+        self.maxlen = int(maxlen)
+        self._buf = np.zeros((2 * self.maxlen, 3), np.float32)
+        self._head = 0  # index of the oldest point
+        self._n = 0
+        for p in points:
+            self.append(p)
+
+    def append(self, p) -> None:
+        """Add the newest point (the oldest drops out at ``maxlen``)."""
+        m = self.maxlen
+        if self._n < m:
+            i = self._head + self._n
+            self._n += 1
+        else:
+            i = self._head + m
+            self._head = (self._head + 1) % m
+        i %= m
+        self._buf[i] = self._buf[i + m] = p[:3]
+
+    def array(self) -> np.ndarray:
+        """The points, oldest first, ``[n, 3]`` float32 (a view: do not keep it)."""
+        return self._buf[self._head:self._head + self._n]
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __iter__(self):
+        return iter(map(tuple, self.array().tolist()))
+
+
+
 class LiveView:
     """What the view keeps between messages: trails and the devices the scene announced."""
 
     def __init__(self, trail_length: int = 500):
         self.trail_length = trail_length
-        self.trails: dict[str, collections.deque] = {}
-        self.estimates: dict[str, collections.deque] = {}
+        self.trails: dict[str, Trail] = {}
+        self.estimates: dict[str, Trail] = {}
         self.robot_models: dict[str, str] = {}
         self.last_step = -1
         self.rays_built = 0
         #: Engine publish -> applied here, s (from ``state.sent_at``; same-host clocks).
         self.last_latency_s: float | None = None
+        #: ``(name, points)`` of each curve of the trails object, in order
+        self.trail_layout: list[tuple[str, int]] = []
         #: radar track id -> positions (m), for the track trails
-        self.tracks: dict[int, collections.deque] = {}
+        self.tracks: dict[int, Trail] = {}
         self.num_detections = 0
         #: the last ``radiomap`` message (addon/radiomap_view.py shows its layers)
         self.radiomap: dict | None = None
@@ -248,40 +296,67 @@ def apply_sensing(scene, msg: dict, view: LiveView) -> None:
         pts = [(t["position"][0], t["position"][1], z) for t in msg["tracks"]]
         _set_markers(scene, "Tracks", pts, 0.08, (0.2, 1.0, 0.2, 1.0))
         for t in msg["tracks"]:
-            tr = view.tracks.setdefault(int(t["id"]),
-                                        collections.deque(maxlen=view.trail_length))
+            tr = view.tracks.setdefault(int(t["id"]), Trail(view.trail_length))
             tr.append((t["position"][0], t["position"][1], z))
-            _set_trail(scene, f"track_{int(t['id'])}_trail", tr, (0.2, 1.0, 0.2, 1.0))
 
 
-def _set_trail(scene, name: str, points, rgba) -> None:
-    """Poly curve ``name`` through ``points`` ``[(x, y, z), ...]`` (m); a trail at its full
-    length keeps its spline and only moves the points (no spline rebuild per state)."""
-    oname = f"{PREFIX}{name}"
-    obj = bpy.data.objects.get(oname)
+def trail_list(view: "LiveView") -> list[tuple[str, Trail, tuple]]:
+    """Every trail of the view, in the order of the trails object's curves:
+    ``(name, points, rgba)``; names ``<robot>_trail``, ``<robot>_estimate_trail``,
+    ``track_<id>_trail``."""
+    out = [(f"{n}_trail", pts, TRAIL_COLORS["truth"]) for n, pts in view.trails.items()]
+    out += [(f"{n}_estimate_trail", pts, TRAIL_COLORS["estimate"])
+            for n, pts in view.estimates.items()]
+    out += [(f"track_{i}_trail", pts, TRAIL_COLORS["track"]) for i, pts in view.tracks.items()]
+    return out
+
+
+def set_trails(scene, view: "LiveView") -> None:
+    """The trails object (:data:`TRAILS`): one poly curve per trail of at least 2 points.
+    Trails of unchanged lengths (every trail at its full length) only move their points;
+    a new layout rebuilds the curves and their colours. Records the layout in
+    ``view.trail_layout`` (names in curve order)."""
+    trails = [(n, pts, c) for n, pts, c in trail_list(view) if len(pts) >= 2]
+    obj = bpy.data.objects.get(TRAILS)
     if obj is None:
-        cu = bpy.data.curves.new(oname, "CURVE")
-        cu.dimensions = "3D"
-        cu.bevel_depth = 0.008
-        cu.bevel_resolution = TRAIL_BEVEL_RESOLUTION
-        cu.materials.append(_material(oname, rgba, emission=True))
-        obj = legend.scene_object(scene, oname, cu)
-    cu = obj.data
-    if len(points) < 2:
-        if len(cu.splines):
-            cu.splines.clear()
+        cv = bpy.data.hair_curves.new(TRAILS)
+        cv.materials.append(_material(TRAILS, (1.0, 1.0, 1.0, 1.0), emission=True,
+                                      attribute=TRAIL_COLOR_ATTR))
+        obj = legend.scene_object(scene, TRAILS, cv)
+        obj.visible_shadow = False
+    cv = obj.data
+    sizes = [len(pts) for _, pts, _ in trails]
+    layout = [(n, k) for (n, _, _), k in zip(trails, sizes)]
+    if layout != view.trail_layout:
+        if len(cv.curves):
+            cv.remove_curves()
+        view.trail_layout = layout
+        if not trails:
+            return
+        cv.add_curves(sizes)
+        cv.set_types(type="POLY")
+        attrs = cv.attributes
+        rad = attrs.get("radius") or attrs.new("radius", "FLOAT", "POINT")
+        rad.data.foreach_set("value", np.full(sum(sizes), TRAIL_RADIUS_M, np.float32))
+        col = attrs.get(TRAIL_COLOR_ATTR) or attrs.new(TRAIL_COLOR_ATTR, "FLOAT_COLOR", "POINT")
+        col.data.foreach_set("color", np.repeat(np.array([c for _, _, c in trails], np.float32),
+                                                sizes, axis=0).reshape(-1))
+    if not trails:
         return
-    flat = []
-    for p in points:
-        flat += (p[0], p[1], p[2], 1.0)
-    if len(cu.splines) == 1 and len(cu.splines[0].points) == len(points):
-        cu.splines[0].points.foreach_set("co", flat)
-        cu.update_tag()
-        return
-    cu.splines.clear()
-    sp = cu.splines.new("POLY")
-    sp.points.add(len(points) - 1)
-    sp.points.foreach_set("co", flat)
+    pos = np.concatenate([pts.array() for _, pts, _ in trails])
+    cv.attributes["position"].data.foreach_set("vector", pos.reshape(-1))
+    cv.update_tag()
+
+
+def trail_points(view: "LiveView", name: str) -> list[tuple[float, float, float]]:
+    """The points of trail ``name`` as drawn (read back from the trails object)."""
+    cv = bpy.data.objects[TRAILS].data
+    start = 0
+    for n, k in view.trail_layout:
+        if n == name:
+            return [tuple(cv.points[i].position) for i in range(start, start + k)]
+        start += k
+    raise KeyError(f"no trail {name!r} is drawn")
 
 
 # --------------------------------------------------------------------------- rays
@@ -354,12 +429,67 @@ def ray_style(power_db: float, *, width: bool = True, opacity: bool = False
             RAY_ALPHA_MIN + t * (1.0 - RAY_ALPHA_MIN) if opacity else 1.0)
 
 
+def _link_arrays(lk: dict):
+    """One link of a ``rays`` (packed, as :class:`wire.Decoder` delivers it: bytes) or
+    ``paths`` (JSON lists) message as arrays: ``(sizes [C] int, points [P, 3] float32,
+    types [P] uint8 (0 at each path's ends), power_db [C] float32)``."""
+    if "count" in lk:  # packed (wire 1.3): straight from the bytes, no copy
+        sizes = np.frombuffer(lk["sizes"], np.uint8).astype(np.intp)
+        points = np.frombuffer(lk["points"], "<f4").reshape(-1, 3)
+        inner = np.frombuffer(lk["types"], np.uint8)
+        power = np.frombuffer(lk["power_db"], "<f4")
+    else:
+        paths = lk["paths"]
+        sizes = np.fromiter((len(p["points"]) for p in paths), np.intp, len(paths))
+        points = np.array([q for p in paths for q in p["points"]], np.float32).reshape(-1, 3)
+        inner = np.fromiter((t for p in paths for t in p["types"]), np.uint8)
+        power = np.fromiter((p["power_db"] for p in paths), np.float32, len(paths))
+    types = np.zeros(len(points), np.uint8)
+    if len(inner):
+        ends = np.zeros(len(points), bool)
+        stop = np.cumsum(sizes)
+        ends[stop - 1] = True
+        ends[stop - sizes] = True
+        types[~ends] = inner
+    return sizes, points, types, power
+
+
+def _select(sizes, power, n: int):
+    """Indices of the curves to draw: the ``n`` strongest (all when ``n <= 0``), strongest
+    first; a prefix (a slice) when the link is already in that order (the engine's)."""
+    c = len(sizes)
+    if n <= 0:
+        return slice(0, c)
+    if c <= 1 or bool(np.all(power[:-1] >= power[1:])):
+        return slice(0, min(n, c))
+    return np.argsort(-power, kind="stable")[:n]
+
+
+def _point_index(sizes, curves):
+    """Point indices ``[P']`` of the curves ``curves`` (indices) of a link with ``sizes``."""
+    starts = np.cumsum(sizes) - sizes
+    lens = sizes[curves]
+    first = np.repeat(starts[curves] - (np.cumsum(lens) - lens), lens)
+    return first + np.arange(int(lens.sum()))
+
+
+def _power_rgb(t):
+    """:func:`power_color` over an array ``t`` in [0, 1]: RGB ``[N, 3]`` float32."""
+    ts = [s[0] for s in _POWER_STOPS]
+    return np.stack([np.interp(t, ts, [s[1][k] for s in _POWER_STOPS]) for k in range(3)],
+                    axis=1).astype(np.float32)
+
+
+_TYPE_LUT = np.array([TYPE_COLORS.get(k, TYPE_COLORS[0]) for k in range(256)], np.float32)
+
+
 def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0, *,
                width_by_power: bool = False, opacity_by_power: bool = False):
-    """Flatten a ``paths`` message: curve sizes, positions, colours, radii.
+    """Flatten a ``rays`` or ``paths`` message: curve sizes, positions, colours, radii.
 
     Args:
-        msg: a ``paths`` message.
+        msg: a ``rays`` message (packed arrays as bytes, what :class:`wire.Decoder`
+            delivers) or a ``paths`` message.
         mode: ``"POWER"`` (colour by path power on :data:`RAY_SCALE_DB`, strong = yellow)
             or ``"TYPE"``
             (each point coloured by the interaction it is: specular blue,
@@ -370,56 +500,78 @@ def ray_arrays(msg: dict, mode: str = "POWER", max_paths: int = 0, *,
             (:func:`ray_style`).
 
     Returns:
-        ``(sizes [C], positions [3 P] flat, colours [4 P] flat RGBA, radii [P] m)`` as
-        lists (C curves, P points).
+        ``(sizes [C] int, positions [P, 3], colours [P, 4] RGBA, radii [P] m)``, numpy
+        arrays (float32; C curves, P points).
     """
-    links = msg["links"]
     lo, hi = RAY_SCALE_DB
-    span = hi - lo
+    r0, r1 = RAY_RADIUS_RANGE_M
     sizes, pos, col, rad = [], [], [], []
-    tc = TYPE_COLORS
-    styled = width_by_power or opacity_by_power
-    for lk in links:
-        for p in strongest_paths(lk["paths"], max_paths):
-            pts = p["points"]
-            n = len(pts)
-            sizes.append(n)
-            for q in pts:
-                pos += q
-            r, a = (ray_style(p["power_db"], width=width_by_power, opacity=opacity_by_power)
-                    if styled else (RAY_RADIUS_M, 1.0))
-            rad += [r] * n
-            if mode == "TYPE":
-                cs = [tc[0]] + [tc.get(t, tc[0]) for t in p["types"]] + [tc[0]]
-                for c in cs:
-                    col += (c[0], c[1], c[2], a)
-            else:
-                c = power_color((p["power_db"] - lo) / span)
-                col += (c[0], c[1], c[2], a) * n
-    return sizes, pos, col, rad
+    for lk in msg["links"]:
+        s, pts, types, power = _link_arrays(lk)
+        curves = _select(s, power, max_paths)
+        if isinstance(curves, slice):
+            s, power = s[curves], power[curves]
+            n = int(s.sum())
+            pts, types = pts[:n], types[:n]
+        else:
+            idx = _point_index(s, curves)
+            s, power = s[curves], power[curves]
+            pts, types = pts[idx], types[idx]
+        t = np.clip((power.astype(np.float64) - lo) / (hi - lo), 0.0, 1.0)
+        alpha = (RAY_ALPHA_MIN + t * (1.0 - RAY_ALPHA_MIN) if opacity_by_power
+                 else np.ones(len(s)))
+        c = np.empty((len(pts), 4), np.float32)
+        c[:, :3] = (_TYPE_LUT[types, :3] if mode == "TYPE"
+                    else np.repeat(_power_rgb(t), s, axis=0))
+        c[:, 3] = np.repeat(alpha, s)
+        sizes.append(s)
+        pos.append(pts)
+        col.append(c)
+        rad.append(np.repeat(r0 + t * (r1 - r0), s) if width_by_power
+                   else np.full(len(pts), RAY_RADIUS_M))
+    if not sizes:
+        return (np.zeros(0, np.intp), np.zeros((0, 3), np.float32),
+                np.zeros((0, 4), np.float32), np.zeros(0, np.float32))
+    return (np.concatenate(sizes), np.concatenate(pos), np.concatenate(col),
+            np.concatenate(rad).astype(np.float32))
 
 
 def set_rays(scene, sizes, positions, colors, radii=None, *, visible: bool = True):
-    """Rebuild the rays object from flat arrays (see :func:`ray_arrays`; ``radii`` None:
+    """Rebuild the rays object from arrays (see :func:`ray_arrays`; ``radii`` None:
     :data:`RAY_RADIUS_M` everywhere)."""
     obj = ensure_rays(scene)
     cv = obj.data
-    if len(cv.curves):
-        cv.remove_curves()
-    obj.hide_render = obj.hide_viewport = not (visible and sizes)
-    if not sizes:
+    shown = bool(visible and len(sizes))
+    if obj.hide_render == shown:
+        obj.hide_render = obj.hide_viewport = not shown
+    if not len(sizes):
+        if len(cv.curves):
+            cv.remove_curves()
         return obj
-    cv.add_curves(sizes)
-    cv.set_types(type="POLY")  # straight segments between interactions (default: Catmull-Rom)
-    cv.attributes["position"].data.foreach_set("vector", positions)
+    sizes = np.asarray(sizes)
+    old = len(cv.curves)
+    if old != len(sizes) or not np.array_equal(_curve_sizes(cv), sizes):
+        if old:
+            cv.remove_curves()
+        cv.add_curves(sizes.tolist())
+        cv.set_types(type="POLY")  # straight segments between interactions (default: Catmull-Rom)
     attrs = cv.attributes
+    attrs["position"].data.foreach_set(
+        "vector", np.ascontiguousarray(positions, np.float32).reshape(-1))
     rad = attrs.get("radius") or attrs.new("radius", "FLOAT", "POINT")
-    rad.data.foreach_set("value", radii if radii is not None
-                         else [RAY_RADIUS_M] * len(cv.points))
+    rad.data.foreach_set("value", np.full(len(cv.points), RAY_RADIUS_M, np.float32)
+                         if radii is None else np.ascontiguousarray(radii, np.float32))
     colr = attrs.get(RAY_COLOR_ATTR) or attrs.new(RAY_COLOR_ATTR, "FLOAT_COLOR", "POINT")
-    colr.data.foreach_set("color", colors)
+    colr.data.foreach_set("color", np.ascontiguousarray(colors, np.float32).reshape(-1))
     cv.update_tag()
     return obj
+
+
+def _curve_sizes(cv):
+    """Points per curve of a hair-curves datablock ``[C]``."""
+    off = np.empty(len(cv.curves) + 1, np.int32)
+    cv.curve_offset_data.foreach_get("value", off)
+    return np.diff(off)
 
 
 # --------------------------------------------------------------------------- messages
@@ -482,24 +634,24 @@ def apply_state(scene, msg: dict, view: LiveView) -> None:
         label = bpy.data.objects.get(f"{PREFIX}{name}_Label")
         if label is not None:  # follows the robot, stays upright in the world
             label.location = _label_at(pose)
-        trail = view.trails.setdefault(name, collections.deque(maxlen=view.trail_length))
+        trail = view.trails.setdefault(name, Trail(view.trail_length))
         trail.append((pose[0], pose[1], 0.01))
-        _set_trail(scene, f"{name}_trail", trail, (0.1, 0.9, 0.9, 1.0))
         est = r.get("estimate")
         if est is not None:
             m = _ensure_marker(scene, name)
             m.location = est
-            etrail = view.estimates.setdefault(name, collections.deque(maxlen=view.trail_length))
+            etrail = view.estimates.setdefault(name, Trail(view.trail_length))
             etrail.append(tuple(est))
-            _set_trail(scene, f"{name}_estimate_trail", etrail, (1.0, 0.3, 0.1, 1.0))
     apply_sensing(scene, msg, view)
+    set_trails(scene, view)
     view.last_step = msg["step"]
     if "sent_at" in msg:
         view.last_latency_s = time.time() - msg["sent_at"]
 
 
 def apply_paths(scene, msg: dict, view: LiveView) -> None:
-    """``paths``: rebuild the rays object."""
+    """``rays`` (packed, wire 1.3) or ``paths`` (JSON, from an engine before 1.3): rebuild
+    the rays object."""
     p = _props(scene)
     mode = p.ray_color_mode if p is not None else "POWER"
     cap = p.max_paths_per_link if p is not None else 0
@@ -508,7 +660,7 @@ def apply_paths(scene, msg: dict, view: LiveView) -> None:
         msg, mode, cap, width_by_power=p.ray_width_by_power if p is not None else True,
         opacity_by_power=p.ray_opacity_by_power if p is not None else False)
     set_rays(scene, sizes, pos, col, rad, visible=visible)
-    show_rays_legend(scene, view, visible and mode == "POWER" and bool(sizes))
+    show_rays_legend(scene, view, visible and mode == "POWER" and bool(len(sizes)))
     view.rays_built += 1
     _set(p, "num_rays", len(sizes))
     _set(p, "paths_step", msg["step"])
@@ -595,7 +747,7 @@ def apply_hello(scene, msg: dict, view: LiveView) -> None:
     _set(_props(scene), "engine_name", msg.get("name", ""))
 
 
-_APPLY = {"scene": apply_scene, "state": apply_state, "paths": apply_paths,
+_APPLY = {"scene": apply_scene, "state": apply_state, "paths": apply_paths, "rays": apply_paths,
           "metrics": apply_metrics, "status": apply_status, "error": apply_error,
           "hello": apply_hello}
 

@@ -17,6 +17,14 @@ of more than :data:`MAX_INT_DIGITS` digits is rejected like any malformed
 frame; no payload makes :meth:`Decoder.feed` raise or keep bytes it consumed.
 Every number a valid message holds is finite.
 
+Packed rays (1.3):
+    A ``rays`` message is the ``paths`` message with each link's polylines packed as
+    little-endian binary arrays, base64 in JSON strings (decoding 500 rays from JSON
+    lists dominated the viewer's cost per state). :class:`Decoder` checks them (lengths,
+    counts, finiteness, interaction codes) and hands them on as ``bytes``; see
+    :func:`rays_link` and :func:`unpack_rays`. The engine sends ``rays`` instead of
+    ``paths`` to viewers whose ``hello`` lists the capability ``"rays"``.
+
 Versioning:
     Both peers open with ``hello`` carrying ``protocol: [major, minor]``. A
     peer with another *major* version is refused with an ``error`` message
@@ -31,16 +39,19 @@ Z up. Poses are ``[x, y, z, roll, pitch, yaw]``.
 from __future__ import annotations
 
 import base64
+import binascii
 import json
 import logging
 import math
 import struct
+import sys
+from array import array
 from collections import Counter
 
 log = logging.getLogger(__name__)
 
 #: Protocol version ``(major, minor)``: bump major for incompatible changes.
-PROTOCOL_VERSION = (1, 2)
+PROTOCOL_VERSION = (1, 3)
 #: Largest frame payload a peer sends or accepts, bytes.
 MAX_FRAME_BYTES = 8 * 1024 * 1024
 #: Deepest nesting of arrays/objects a payload may have (the deepest message, ``paths``,
@@ -61,6 +72,14 @@ COMMAND_OPS = ("run", "pause", "step", "reset", "set_path", "set_goal", "teleop"
 #: Sionna interaction codes (``engine.raytrace.base``): none, specular, diffuse, refraction,
 #: diffraction.
 INTERACTION_NAMES = {0: "none", 1: "specular", 2: "diffuse", 4: "refraction", 8: "diffraction"}
+#: The hello capability of a viewer that takes packed ``rays`` instead of ``paths`` (1.3).
+RAYS_CAPABILITY = "rays"
+#: The packed arrays of a ``rays`` link: field -> (array typecode, items per path or point,
+#: what it holds). ``sizes``: points per path (interactions + 2, uint8); ``points``:
+#: ``[P, 3]`` float32 m; ``types``: interaction codes of the interior points (uint8);
+#: ``power_db``, ``tau_s``: per path, float32.
+RAYS_FIELDS = ("sizes", "points", "types", "power_db", "tau_s")
+_RAYS_CODES = frozenset(k for k in INTERACTION_NAMES if k)
 
 
 class WireError(ValueError):
@@ -110,6 +129,11 @@ def _grid_values(v):
     if type(v) is list and all(x is None or type(x) in nums for x in v):
         return None
     return "a list of numbers or null"
+
+
+def _packed(v):
+    """A packed array: base64 text on the wire, ``bytes`` once :class:`Decoder` unpacked it."""
+    return None if type(v) in (str, bytes) else "a base64 string"
 
 
 def _ints(v):
@@ -232,6 +256,11 @@ _LINK_PATHS = {
     "tx": (_str, _R), "rx": (_str, _R), "num_paths": (_int, _R),
     "paths": (_paths_list, _R),
 }
+#: a ``rays`` link (1.3): ``count`` paths packed in base64 strings (bytes once decoded)
+_LINK_RAYS = {
+    "tx": (_str, _R), "rx": (_str, _R), "num_paths": (_int, _R), "count": (_int, _R),
+    **{f: (_packed, _R) for f in RAYS_FIELDS},
+}
 _LINK_METRICS = {
     "tx": (_str, _R), "rx": (_str, _R), "snr_db": (_opt(_num), _R),
     "rate_bps": (_opt(_num), _R), "num_paths": (_int, _O), "los": (_bool, _O),
@@ -283,6 +312,9 @@ MESSAGES: dict[str, tuple[frozenset, dict]] = {
     "paths": (frozenset({"e2v"}), {
         "step": (_int, _R), "links": (_list_of(_record(_LINK_PATHS)), _R),
     }),
+    "rays": (frozenset({"e2v"}), {
+        "step": (_int, _R), "links": (_list_of(_record(_LINK_RAYS)), _R),
+    }),
     "metrics": (frozenset({"e2v"}), {
         "step": (_int, _R), "links": (_list_of(_record(_LINK_METRICS)), _R),
     }),
@@ -309,15 +341,17 @@ MESSAGES: dict[str, tuple[frozenset, dict]] = {
 
 #: Engine -> viewer messages that only matter in their latest version (the server
 #: coalesces them per viewer: a slow viewer gets the newest, drops are counted).
-COALESCED_TYPES = ("state", "paths", "metrics", "status", "radiomap")
+COALESCED_TYPES = ("state", "paths", "rays", "metrics", "status", "radiomap")
 
 
-def validate(msg, direction: str | None = None) -> str | None:
+def validate(msg, direction: str | None = None, *, unpack: bool = False) -> str | None:
     """Why ``msg`` is not a valid message (None when it is).
 
     Args:
         msg: the decoded JSON value.
         direction: ``"e2v"`` or ``"v2e"`` to also check who may send it; None = either.
+        unpack: a valid ``rays`` message's packed fields are replaced by their ``bytes``
+            (what :class:`Decoder` delivers; the check decodes them anyway).
     """
     if not isinstance(msg, dict):
         return f"a message must be a JSON object, got {type(msg).__name__}"
@@ -338,6 +372,16 @@ def validate(msg, direction: str | None = None) -> str | None:
                 if len(p["points"]) != len(p["types"]) + 2:
                     return (f"paths: link {lk['tx']}->{lk['rx']} path {i}: {len(p['points'])} "
                             f"points for {len(p['types'])} interactions (expected n + 2)")
+    if t == "rays":
+        unpacked = []
+        for i, lk in enumerate(msg["links"]):
+            try:
+                unpacked.append(_unpack_link(lk))
+            except ValueError as exc:
+                return f"rays: link {i} ({lk['tx']}->{lk['rx']}): {exc}"
+        if unpack:
+            for lk, arrays in zip(msg["links"], unpacked):
+                lk.update(arrays)
     if t == "radiomap":
         shape = msg["shape"]
         if len(shape) != 2 or min(shape) < 1:
@@ -349,6 +393,113 @@ def validate(msg, direction: str | None = None) -> str | None:
                 return (f"radiomap: layer {lay['name']!r}: {len(lay['values'])} values for "
                         f"shape {shape} (expected {shape[0] * shape[1]})")
     return None
+
+
+# --------------------------------------------------------------------------- packed rays
+
+
+def _b64(lk: dict, field: str) -> bytes:
+    v = lk[field]
+    if type(v) is bytes:
+        return v
+    try:
+        return base64.b64decode(v, validate=True)
+    except (binascii.Error, ValueError):
+        raise ValueError(f"field {field!r} is not base64") from None
+
+
+def _floats(data: bytes, field: str, n: int) -> array:
+    """``n`` little-endian float32 from ``data``; refuses a wrong length or a NaN/inf."""
+    if len(data) != 4 * n:
+        raise ValueError(f"field {field!r} holds {len(data)} bytes, expected {4 * n} "
+                         f"({n} float32)")
+    a = array("f")
+    a.frombytes(data)
+    if sys.byteorder != "little":
+        a.byteswap()
+    # the float64 sum of float32 values cannot overflow: it is finite iff every value is
+    if not math.isfinite(sum(a)):
+        bad = next(i for i, x in enumerate(a) if not math.isfinite(x))
+        raise ValueError(f"field {field!r} value {bad} is {a[bad]} (expected finite numbers)")
+    return a
+
+
+def _unpack_link(lk: dict) -> dict:
+    """The five packed arrays of a ``rays`` link as ``bytes``, checked against each other.
+
+    Raises:
+        ValueError: naming the field: not base64, a length that does not match ``count``
+            and ``sizes``, a path of fewer than 2 points, an unknown interaction code, a
+            non-finite number, ``count`` > ``num_paths``.
+    """
+    count = lk["count"]
+    if count < 0 or count > lk["num_paths"]:
+        raise ValueError(f"field 'count' must be 0..num_paths ({lk['num_paths']}), got {count}")
+    out = {f: _b64(lk, f) for f in RAYS_FIELDS}
+    sizes = out["sizes"]
+    if len(sizes) != count:
+        raise ValueError(f"field 'sizes' holds {len(sizes)} paths, expected count = {count}")
+    if count and min(sizes) < 2:
+        i = next(i for i, n in enumerate(sizes) if n < 2)
+        raise ValueError(f"field 'sizes' path {i} has {sizes[i]} points (at least 2: tx, rx)")
+    n_points = sum(sizes)
+    _floats(out["points"], "points", 3 * n_points)
+    types = out["types"]
+    if len(types) != n_points - 2 * count:
+        raise ValueError(f"field 'types' holds {len(types)} interactions, expected "
+                         f"{n_points - 2 * count} (sizes - 2 per path)")
+    if not _RAYS_CODES.issuperset(types):
+        bad = next(t for t in types if t not in _RAYS_CODES)
+        raise ValueError(f"field 'types' holds interaction code {bad} (expected one of "
+                         f"{sorted(_RAYS_CODES)})")
+    _floats(out["power_db"], "power_db", count)
+    _floats(out["tau_s"], "tau_s", count)
+    return out
+
+
+def rays_link(tx: str, rx: str, num_paths: int, *, sizes: bytes, points: bytes, types: bytes,
+              power_db: bytes, tau_s: bytes) -> dict:
+    """One link of a ``rays`` message from its packed arrays (the engine builds them with
+    numpy): ``sizes`` uint8 ``[C]`` points per path (interactions + 2), ``points`` float32
+    little-endian ``[P, 3]`` m (tx -> interaction vertices -> rx per path, P = sum of
+    sizes), ``types`` uint8 ``[P - 2 C]`` interaction codes, ``power_db`` float32 ``[C]``
+    (``10 log10 |a|^2``), ``tau_s`` float32 ``[C]`` s; C paths of the ``num_paths`` the
+    tracer found."""
+    b64 = base64.b64encode
+    return {"tx": tx, "rx": rx, "num_paths": int(num_paths), "count": len(sizes),
+            "sizes": b64(bytes(sizes)).decode("ascii"),
+            "points": b64(bytes(points)).decode("ascii"),
+            "types": b64(bytes(types)).decode("ascii"),
+            "power_db": b64(bytes(power_db)).decode("ascii"),
+            "tau_s": b64(bytes(tau_s)).decode("ascii")}
+
+
+def rays_as_paths(msg: dict) -> dict:
+    """A valid ``rays`` message (packed fields base64 or bytes) as the equivalent ``paths``
+    message (lists; float32 values widened to float). For tests and for tools that read the
+    JSON form; the add-on reads the arrays with numpy instead.
+
+    Raises:
+        ValueError: a packed field is malformed (naming the link and field).
+    """
+    links = []
+    for i, lk in enumerate(msg["links"]):
+        try:
+            arr = _unpack_link(lk)
+        except ValueError as exc:
+            raise ValueError(f"rays: link {i} ({lk['tx']}->{lk['rx']}): {exc}") from None
+        pts = _floats(arr["points"], "points", len(arr["points"]) // 4)
+        pdb = _floats(arr["power_db"], "power_db", lk["count"])
+        tau = _floats(arr["tau_s"], "tau_s", lk["count"])
+        paths, p, t = [], 0, 0
+        for j, n in enumerate(arr["sizes"]):
+            paths.append({"points": [list(pts[3 * k:3 * k + 3]) for k in range(p, p + n)],
+                          "types": list(arr["types"][t:t + n - 2]),
+                          "power_db": pdb[j], "tau_s": tau[j]})
+            p, t = p + n, t + n - 2
+        links.append({"tx": lk["tx"], "rx": lk["rx"], "num_paths": lk["num_paths"],
+                      "paths": paths})
+    return {"type": "paths", "step": msg["step"], "links": links}
 
 
 # --------------------------------------------------------------------------- encode / decode
@@ -533,7 +684,7 @@ class Decoder:
             self._reject("malformed", f"not UTF-8 JSON: {exc}")
             return None
         try:
-            r = validate(msg, self.direction)
+            r = validate(msg, self.direction, unpack=True)
         except Exception as exc:  # noqa: BLE001 - a frame must never break the reader
             r = f"could not be checked ({type(exc).__name__})"
         if r is None:

@@ -6,14 +6,15 @@ Run with the project's interpreter (needs ``bpy``)::
     .venv/bin/python bench/bench_live.py --quick    # 1,000 updates
 
 1. Cost per update (1 robot, 500 ray polylines): decode the frames and apply
-   ``state`` + ``paths`` + ``metrics`` with the add-on's live view (one
+   ``state`` + ``rays`` (packed) + ``metrics`` with the add-on's live view (one
    hair-curves object rebuilt), against a baseline measured in the same run:
    the naive view that rebuilds one curve object per ray.
 1b. The full view per state (``--view-only`` runs just this): the lab's ``scene`` message
    (labelled APs and robot), a 5 cm radio map shown, 500 rays, trails at their full 500
    points, the metrics text: decode, each ``apply_*`` and the depsgraph update (what
-   Blender evaluates before it draws) per state, median and minimum, against the same
-   view with Blender's default curve resolutions (trail bevel 4, text 12) in the same run.
+   Blender evaluates before it draws) per state, median and minimum, with the rays packed
+   (``rays``, wire 1.3) against the same states as JSON ``paths`` (wire 1.2) in the same
+   run (interleaved halves), and their ratio.
 2. Latency: ``isac-twin serve`` (real Sionna tracing, box room) in a
    subprocess; time from the engine publishing a step (``state.sent_at``) to
    the add-on having applied it, over loopback.
@@ -27,6 +28,7 @@ from __future__ import annotations
 import argparse
 import collections
 import math
+import os
 import random
 import socket
 import statistics
@@ -72,9 +74,35 @@ def messages(step: int, n_rays: int = 500, seed: int = 0) -> list[dict]:
                      "estimate": [rx[0] + 0.05, rx[1] - 0.03, 0.0]}]},
         {"type": "paths", "step": step,
          "links": [{"tx": "AP1", "rx": "robot1", "num_paths": n_rays, "paths": paths}]},
-        {"type": "metrics", "step": step, "links": [{"tx": "AP1", "rx": "robot1", "snr_db": 30.0,
-                                                     "rate_bps": 1e8, "num_paths": n_rays}]},
+        # the SNR changes every step, as it does for a moving robot (the text is re-laid out)
+        {"type": "metrics", "step": step, "links": [{
+            "tx": "AP1", "rx": "robot1", "snr_db": 30.0 + 0.1 * (step % 50),
+            "rate_bps": 1e8 + 1e6 * (step % 50), "num_paths": n_rays}]},
     ]
+
+
+def packed(msg: dict) -> dict:
+    """The ``rays`` message (wire 1.3, what the engine sends a 1.3 viewer) of a ``paths``
+    message: the same polylines as float32 little-endian arrays."""
+    import numpy as np
+
+    links = []
+    for lk in msg["links"]:
+        ps = lk["paths"]
+        links.append(wire.rays_link(
+            lk["tx"], lk["rx"], lk["num_paths"],
+            sizes=np.array([len(p["points"]) for p in ps], np.uint8).tobytes(),
+            points=np.array([q for p in ps for q in p["points"]], "<f4").tobytes(),
+            types=np.array([t for p in ps for t in p["types"]], np.uint8).tobytes(),
+            power_db=np.array([p["power_db"] for p in ps], "<f4").tobytes(),
+            tau_s=np.array([p["tau_s"] for p in ps], "<f4").tobytes()))
+    return {"type": "rays", "step": msg["step"], "links": links}
+
+
+def packed_messages(step: int, n_rays: int = 500, seed: int = 0) -> list[dict]:
+    """:func:`messages` with the rays packed (``rays`` instead of ``paths``)."""
+    ms = messages(step, n_rays, seed)
+    return [packed(m) if m["type"] == "paths" else m for m in ms]
 
 
 def naive_rays(scene, msg: dict) -> None:
@@ -97,7 +125,7 @@ def naive_rays(scene, msg: dict) -> None:
 
 
 def bench_update_cost(scene, reps: int) -> None:
-    frames = [b"".join(wire.encode(m) for m in messages(k)) for k in range(reps)]
+    frames = [b"".join(wire.encode(m) for m in packed_messages(k)) for k in range(reps)]
     view = live_view.LiveView()
     dec = wire.Decoder("e2v")
     for m in dec.feed(frames[0]):  # warm-up (creates the objects)
@@ -122,7 +150,7 @@ def bench_update_cost(scene, reps: int) -> None:
         bpy.data.objects.remove(obj)
         bpy.data.curves.remove(data)
     bpy.data.collections.remove(coll)
-    print(f"[cost] 1 robot + 500 ray polylines, decode + apply state/paths/metrics: "
+    print(f"[cost] 1 robot + 500 ray polylines, decode + apply state/rays/metrics: "
           f"median {ours * 1e3:.2f} ms, p95 {sorted(ts)[int(0.95 * len(ts))] * 1e3:.2f} ms "
           f"over {len(ts)} updates (frame {len(frames[1]) / 1024:.0f} KiB)")
     print(f"[cost] baseline, one curve object per ray (rays only): median {base * 1e3:.1f} ms "
@@ -163,7 +191,8 @@ def lab_radiomap_message(cell: float = 0.05, seed: int = 0) -> dict:
 
 def bench_view_cost(scene, reps: int) -> None:
     """Per state: the full view (lab scene with labels, a 5 cm radio map shown, 500 rays,
-    trails of 500 points, metrics text), apply only and apply + depsgraph evaluation."""
+    trails of 500 points, metrics text), decode + apply and + depsgraph evaluation, with
+    the rays packed (``rays``, wire 1.3) against the same states as JSON ``paths`` (1.2)."""
     from addon import radiomap_view
 
     live_view.clear(scene)
@@ -174,13 +203,16 @@ def bench_view_cost(scene, reps: int) -> None:
     t0 = time.perf_counter()
     radiomap_view.apply_radiomap(scene, rmsg, view)
     t_map = time.perf_counter() - t0
-    frames = [b"".join(wire.encode(m) for m in messages(k)) for k in range(reps)]
+    states = [messages(k) for k in range(reps)]
+    json_frames = [b"".join(wire.encode(m) for m in ms) for ms in states]
+    packed_frames = [b"".join(wire.encode(packed(m) if m["type"] == "paths" else m)
+                              for m in ms) for ms in states]
     for k in range(view.trail_length):  # trails at their full length from the start
-        view.trails.setdefault("robot1", collections.deque(maxlen=view.trail_length)).append(
+        view.trails.setdefault("robot1", live_view.Trail(view.trail_length)).append(
             (4 + math.cos(k / 50), 3 + math.sin(k / 50), 0.01))
-        view.estimates.setdefault("robot1", collections.deque(maxlen=view.trail_length)).append(
+        view.estimates.setdefault("robot1", live_view.Trail(view.trail_length)).append(
             (4.05 + math.cos(k / 50), 2.97 + math.sin(k / 50), 0.0))
-    for m in dec.feed(frames[0]):
+    for m in dec.feed(json_frames[0]):
         live_view.apply_message(scene, m, view)
     bpy.context.view_layer.update()
 
@@ -188,6 +220,7 @@ def bench_view_cost(scene, reps: int) -> None:
         per_type: dict[str, list] = collections.defaultdict(list)
         ts, te = [], []
         for f in frames:
+            c0 = time.process_time()
             t0 = time.perf_counter()
             msgs = dec.feed(f)
             per_type["decode"].append(time.perf_counter() - t0)
@@ -200,31 +233,41 @@ def bench_view_cost(scene, reps: int) -> None:
             bpy.context.view_layer.update()
             te.append(time.perf_counter() - t0)
             per_type["depsgraph"].append(time.perf_counter() - t1)
+            # CPU time of the process (every thread): what the state costs whatever the
+            # machine's load (wall-clock medians on shared cores include preemptions)
+            per_type["cpu"].append(time.process_time() - c0)
         return ts, te, per_type
 
     def ms(v):
         return f"{statistics.median(v) * 1e3:.2f} (min {min(v) * 1e3:.2f})"
 
-    ts, te, per_type = run(frames[1:])
-    # baseline in the same run: Blender's default curve resolutions on the trails (bevel 4)
-    # and texts (12), what the view used before they were set
-    for o in bpy.data.objects:
-        if o.name.startswith(live_view.PREFIX) and o.type == "CURVE":
-            o.data.bevel_resolution = 4
-        elif o.name.startswith(live_view.PREFIX) and o.type == "FONT":
-            o.data.resolution_u = 12
-    _, tb, per_base = run(frames[1:])
-    parts = ", ".join(f"{k} {ms(v)}" for k, v in per_type.items())
+    # interleaved halves, so that a change of the machine's load hits both forms alike
+    half = len(states) // 2
+    jts, jte, jper = run(json_frames[1:half])
+    pts, pte, pper = run(packed_frames[1:half])
+    a, b, c = run(json_frames[half:])
+    jts, jte = jts + a, jte + b
+    for k, v in c.items():
+        jper[k] += v
+    a, b, c = run(packed_frames[half:])
+    pts, pte = pts + a, pte + b
+    for k, v in c.items():
+        pper[k] += v
     print(f"[view] lab scene + 5 cm radio map ({rmsg['shape'][1]} x {rmsg['shape'][0]} cells, "
           f"4 layers; applied once in {t_map * 1e3:.0f} ms) + 500 rays + labels + trails of "
-          f"{view.trail_length} points, per state over {len(ts)} states, ms: decode + apply "
-          f"{ms(ts)}, + depsgraph update {ms(te)}; target <= 5 ms")
-    print(f"[view] median ms per part: {parts}")
-    dg_ratio = (statistics.median(per_base["depsgraph"])
-                / statistics.median(per_type["depsgraph"]))
-    print(f"[view] baseline, Blender's default curve resolutions (trail bevel 4, text 12): "
-          f"depsgraph {ms(per_base['depsgraph'])}, total {ms(tb)} -> ratio "
-          f"{statistics.median(tb) / statistics.median(te):.2f}x (depsgraph {dg_ratio:.2f}x)")
+          f"{view.trail_length} points, per state over {len(pts)} states (frames: JSON "
+          f"{len(json_frames[1]) / 1024:.0f} KiB, packed {len(packed_frames[1]) / 1024:.0f} "
+          f"KiB); target <= 5 ms")
+    for name, ts, te, per in (("before, JSON paths (wire 1.2)", jts, jte, jper),
+                              ("after, packed rays (wire 1.3)", pts, pte, pper)):
+        parts = ", ".join(f"{k} {ms(v)}" for k, v in per.items())
+        print(f"[view] {name}: decode + apply {ms(ts)}, + depsgraph update {ms(te)}")
+        print(f"[view]   median ms per part: {parts}")
+    print(f"[view] ratio JSON / packed: decode + apply "
+          f"{statistics.median(jts) / statistics.median(pts):.2f}x, with the depsgraph update "
+          f"{statistics.median(jte) / statistics.median(pte):.2f}x, CPU time "
+          f"{statistics.median(jper['cpu']) / statistics.median(pper['cpu']):.2f}x "
+          f"(load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
     live_view.clear(scene)
 
 
@@ -266,7 +309,7 @@ def _sender(port_box: list, n: int, rate: float, ready: threading.Event, stop: t
     c, _ = ls.accept()
     c.recv(4096)
     c.sendall(wire.encode(wire.hello("engine", "bench")))
-    pre = [b"".join(wire.encode(m) for m in messages(k)) for k in range(50)]
+    pre = [b"".join(wire.encode(m) for m in packed_messages(k)) for k in range(50)]
     t0 = time.perf_counter()
     for k in range(n):
         if stop.is_set():

@@ -18,13 +18,15 @@ For every ray count (``--samples``, rays per access point) it prints:
 
 Times are the fastest of ``--reps`` warm calls with the same seed (the machine is shared:
 the minimum is the least disturbed; the first call compiles Dr.Jit kernels and is printed
-apart). Then the grid trace's time and its ratio to the map.
-Asserts nothing.
+apart), with the CPU time of the same call (every thread; on 2 idle cores the wall time
+is about half of it) and the load average. Then the grid trace's time and its ratio to
+the map. Asserts nothing.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -104,15 +106,18 @@ def main(argv=None) -> int:
     for n in args.samples:
         ts = []
         for _ in range(args.reps):
-            t0 = time.perf_counter()
+            load = os.getloadavg()[0]
+            c0, t0 = time.process_time(), time.perf_counter()
             rm = compute_radio_map(scene, cell_size=args.cell, samples_per_tx=n)
-            ts.append(time.perf_counter() - t0)
-        ours = min(ts)
+            ts.append((time.perf_counter() - t0, time.process_time() - c0, load))
+        ours, cpu, load = min(ts)
         bare = bare_sionna(scene, rm, n, args.reps)
         maps[n] = (rm, ours)
         ny, nx = rm.shape
         print(f"{nx} x {ny} cells of {args.cell:g} m, {len(rm.tx_names)} APs, {n} rays/AP: "
-              f"ours {ours:.3f} s, bare Sionna {bare:.3f} s -> ours / bare {ours / bare:.2f}")
+              f"ours {ours:.3f} s (CPU {cpu:.3f} s, load average {load:.1f} on "
+              f"{os.cpu_count()} cores), bare Sionna {bare:.3f} s -> ours / bare "
+              f"{ours / bare:.2f}")
     if args.no_grid:
         return 0
     rm = maps[args.samples[-1]][0]

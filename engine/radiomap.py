@@ -54,9 +54,9 @@ RADIOMAP_FORMAT_VERSION = 1
 #: Default cell size, m (coarse: a live view needs it fast; the CLI takes --cell).
 DEFAULT_CELL_M = 0.25
 #: Default rays launched per access point. Sionna's one shoot-and-bounce kernel is the whole
-#: cost (ours adds ~20 ms: masks, dB, SINR), linear in rays: on 2 CPU cores ~0.5 s for the
-#: lab's two APs at 5 cm, median 0.9 dB from the project's grid trace there (1e6 rays:
-#: ~1.0 s, 0.6 dB; 250k: ~0.3 s, 1.4 dB; bench/bench_radiomap.py).
+#: cost (a bare RadioMapSolver call takes the same time), linear in rays: on 2 CPU cores
+#: 0.45 s for the lab's two APs at 5 cm, median 0.89 dB from the project's grid trace there
+#: (1e6 rays: 0.88 s, 0.59 dB; 250k: 0.24 s, 1.40 dB; bench/bench_radiomap.py, load 2.2).
 DEFAULT_SAMPLES = 500_000
 
 #: Arrays of a radio-map record besides ``meta``: name -> (dtype, axes, unit).

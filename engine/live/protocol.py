@@ -95,6 +95,40 @@ def link_polylines(lp, max_paths: int) -> dict:
     return out
 
 
+def link_rays(lp, max_paths: int) -> dict:
+    """One link's ``rays`` entry (wire 1.3): the ``max_paths`` strongest paths of
+    :func:`link_polylines`, packed (``wire.rays_link``): float32 vertices ``[P, 3]`` m,
+    uint8 points per path and interaction codes, float32 power (dB) and delay (s)."""
+    n = lp.num_paths
+    order = np.argsort(-np.asarray(lp.power, float), kind="stable")[:max(max_paths, 0)]
+    inter = np.asarray(lp.interactions)[order]
+    c, depth = inter.shape
+    counts = np.count_nonzero(inter != 0, axis=1)
+    if depth + 2 > 255:
+        raise ValueError(f"link {lp.tx}->{lp.rx}: {depth} interactions per path do not fit "
+                         "the wire's uint8 point counts")
+    full = np.empty((c, depth + 2, 3), np.float32)
+    full[:, 0] = np.asarray(lp.tx_position, float)
+    full[:, 1:depth + 1] = np.asarray(lp.vertices, float)[order]
+    full[np.arange(c), counts + 1] = np.asarray(lp.rx_position, float)
+    keep = np.arange(depth + 2)[None, :] < (counts + 2)[:, None]
+    with np.errstate(divide="ignore"):
+        pdb = 10.0 * np.log10(np.maximum(np.asarray(lp.power, float)[order], 1e-30))
+    return wire.rays_link(
+        lp.tx, lp.rx, int(n), sizes=(counts + 2).astype(np.uint8).tobytes(),
+        points=full[keep].astype("<f4").tobytes(),
+        types=inter[np.arange(depth)[None, :] < counts[:, None]].astype(np.uint8).tobytes(),
+        power_db=pdb.astype("<f4").tobytes(),
+        tau_s=np.asarray(lp.tau, float)[order].astype("<f4").tobytes())
+
+
+def rays_message(res: StepResult, max_paths: int = wire.DEFAULT_MAX_PATHS_PER_LINK) -> dict:
+    """``rays`` message (wire 1.3): the ``paths`` message's polylines packed per link."""
+    links = [link_rays(ls.paths, max_paths) for ls in res.links.values()
+             if ls.paths is not None]
+    return {"type": "rays", "step": int(res.step), "links": links}
+
+
 def paths_message(res: StepResult, max_paths: int = wire.DEFAULT_MAX_PATHS_PER_LINK) -> dict:
     """``paths`` message: per link the strongest ``max_paths`` polylines."""
     links = [link_polylines(ls.paths, max_paths) for ls in res.links.values()

@@ -56,7 +56,8 @@ PRE_HELLO_MAX_FRAME = 64 * 1024
 MAX_VIEWERS = 32
 #: In-order frames a viewer may have pending before it is dropped as stuck.
 MAX_QUEUED_FRAMES = 256
-_CAPABILITIES = ("state", "paths", "metrics", "status", "edit", "command")
+_CAPABILITIES = ("state", "paths", wire.RAYS_CAPABILITY, "metrics", "status", "edit",
+                 "command")
 
 
 @runtime_checkable
@@ -104,6 +105,7 @@ class _Viewer:
                                     max_frame=PRE_HELLO_MAX_FRAME)
         self.name = ""
         self.ready = False          # hello accepted
+        self.rays = False           # takes packed ``rays`` instead of ``paths`` (wire 1.3)
         self.closing = False        # close once the queue is flushed
         self.opened = time.monotonic()
         self.queue: collections.deque[bytes] = collections.deque()
@@ -180,6 +182,9 @@ class LiveServer:
         self._wake_loop = threading.Event()
         self._viewers: dict[int, _Viewer] = {}
         self._latest: dict[str, bytes] = {}  # for viewers that join later
+        # the last step's rays as a ``paths`` frame for viewers without the "rays"
+        # capability: (result, frame or None), the frame built on first need
+        self._paths_src: tuple[StepResult, bytes | None] | None = None
         self._scene_frame = b""
         self._scene_hash = ""
         self._sel: selectors.BaseSelector | None = None
@@ -283,6 +288,33 @@ class LiveServer:
                     v.queue.append(frame)
         self._wake()
 
+    def _paths_frame(self) -> bytes | None:
+        """The last step's ``paths`` frame (JSON polylines), built on first need: only
+        viewers without the ``rays`` capability (wire <= 1.2) get it. Call with the lock."""
+        if self._paths_src is None:
+            return None
+        res, frame = self._paths_src
+        if frame is None:
+            frame = wire.encode(protocol.paths_message(res, self.max_paths))
+            self._paths_src = (res, frame)
+        return frame
+
+    def publish_rays(self, res: StepResult) -> None:
+        """A step's rays: packed (``rays``) to viewers that announced the ``rays``
+        capability, as a ``paths`` message to the others (coalesced per viewer)."""
+        frame = wire.encode(protocol.rays_message(res, self.max_paths))
+        with self._lock:
+            self._latest["rays"] = frame
+            self._paths_src = (res, None)
+            for v in self._viewers.values():
+                if not v.ready or v.closing:
+                    continue
+                t, f = ("rays", frame) if v.rays else ("paths", self._paths_frame())
+                if t in v.latest:
+                    v.drops[t] += 1
+                v.latest[t] = f
+        self._wake()
+
     def _send_to(self, v: _Viewer, msg: dict, *, close: bool = False) -> None:
         with self._lock:
             v.queue.append(wire.encode(msg))
@@ -332,7 +364,7 @@ class LiveServer:
             self._refresh_scene()
         for build in (protocol.state_message, protocol.metrics_message):
             self.publish(build(res))
-        self.publish(protocol.paths_message(res, self.max_paths))
+        self.publish_rays(res)
         if self.step_log is not None:
             with self.step_log.open("a") as f:
                 f.write(json.dumps(protocol.step_summary(res)) + "\n")
@@ -546,6 +578,7 @@ class LiveServer:
                 self._send_to(v, wire.error("version", why, fatal=True), close=True)
                 return
             v.name = msg.get("name", "")[:64]
+            v.rays = wire.RAYS_CAPABILITY in msg.get("capabilities", ())
             v.decoder.max_frame = wire.MAX_FRAME_BYTES
             with self._lock:
                 v.ready = True
@@ -553,6 +586,11 @@ class LiveServer:
                                                       capabilities=_CAPABILITIES)))
                 v.queue.append(self._scene_frame)
                 v.latest.update(self._latest)
+                if not v.rays:
+                    v.latest.pop("rays", None)
+                    paths = self._paths_frame()
+                    if paths is not None:
+                        v.latest["paths"] = paths
             self.publish(self._status(f"viewer {v.name or v.addr} joined"))
             log.info("viewer %s (%s) ready", v.name, v.addr)
             return

@@ -96,6 +96,8 @@ def test_poses_rays_and_metrics_arrive_and_match_the_engine(lab):
     bot = bpy.data.objects["ISAC_Live_robot1"]
     assert list(bot.location) == pytest.approx(truth[:3], abs=1e-5)
     assert bot.rotation_euler.z == pytest.approx(truth[5], abs=1e-5)
+    # the add-on takes the packed form (wire 1.3), never the JSON one
+    assert s.applied["rays"] and not s.applied["paths"]
     # one polyline per traced path (all under the per-link cap here)
     want = sum(lk["num_paths"] for lk in steps[p.paths_step]["links"].values())
     assert p.num_rays == want > 10
@@ -116,10 +118,10 @@ def test_an_edit_in_blender_changes_the_engines_next_paths(lab):
     def fresh_step0(n_before):
         s.send_command("reset")
         s.send_command("step")
-        tick_until(s, lambda: s.applied["paths"] > n_before and p.paths_step == 0,
+        tick_until(s, lambda: s.applied["rays"] > n_before and p.paths_step == 0,
                    what="step 0 paths")
 
-    fresh_step0(s.applied["paths"])
+    fresh_step0(s.applied["rays"])
     before = [e for e in read_log(log) if e["step"] == 0][-1]
     xmax_before = max(q[0] for q in ray_points(s.scene))
     # the east wall's faces: x = 8.0 (reflections) and 8.2 m (refraction through it)
@@ -127,7 +129,7 @@ def test_an_edit_in_blender_changes_the_engines_next_paths(lab):
     wall = bpy.data.objects["Lab_Wall_2"]  # the east wall, x = 8.0 .. 8.2 m
     wall.location.x += 0.5
     bpy.context.view_layer.update()
-    n = s.applied["paths"]
+    n = s.applied["rays"]
     s.tick()  # the tracker sends the move
     fresh_step0(n)
     tick_until(s, lambda: p.edits_applied == 1, what="edit applied")

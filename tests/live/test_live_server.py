@@ -71,6 +71,40 @@ def test_handshake_scene_and_a_step(server, raw_viewer, wire, twin):
     assert metrics["links"][0]["snr_db"] == pytest.approx(res.links[("AP1", "robot1")].snr_db)
 
 
+def test_packed_rays_to_viewers_that_take_them_and_paths_to_the_others(server, raw_viewer,
+                                                                       wire):
+    """1.3: a viewer announcing the ``rays`` capability gets the packed form, one that does
+    not (a 1.2 add-on) the JSON ``paths`` of the same step, also when it joins later."""
+    new = raw_viewer(server.address)
+    new.hello(capabilities=[wire.RAYS_CAPABILITY])
+    old = raw_viewer(server.address)
+    old.send(dict(wire.hello("viewer", "old"), protocol=[1, 2]))
+    for v in (new, old):
+        v.until(lambda m: m["type"] == "scene")
+    new.send(wire.command("step"))
+    rays = new.until(lambda m: m["type"] == "rays")
+    paths = old.until(lambda m: m["type"] == "paths")
+    assert not any(m["type"] == "paths" for m in new.got)
+    assert not any(m["type"] == "rays" for m in old.got)
+    lp = server.last_result.links[("AP1", "robot1")].paths
+    link = rays["links"][0]
+    assert link["count"] == link["num_paths"] == lp.num_paths > 3
+    assert type(link["points"]) is bytes                # unpacked by the decoder
+    unpacked = wire.rays_as_paths(rays)
+    assert unpacked["step"] == paths["step"] == 0
+    for a, b in zip(unpacked["links"][0]["paths"], paths["links"][0]["paths"], strict=True):
+        assert a["types"] == b["types"]
+        np.testing.assert_allclose(a["points"], b["points"], atol=1e-4)   # JSON: 0.1 mm
+        assert a["power_db"] == pytest.approx(b["power_db"], abs=1e-3)
+        assert a["tau_s"] == pytest.approx(b["tau_s"], rel=1e-6)
+    # a viewer of either kind joining now gets the last step's rays in its own form
+    late_old, late_new = raw_viewer(server.address), raw_viewer(server.address)
+    late_old.hello()
+    late_new.hello(capabilities=["edit", wire.RAYS_CAPABILITY])
+    assert late_old.until(lambda m: m["type"] == "paths")["step"] == 0
+    assert late_new.until(lambda m: m["type"] == "rays")["links"][0]["count"] == lp.num_paths
+
+
 def test_faults_from_a_viewer_are_rejected_and_the_connection_survives(server, raw_viewer, wire):
     v = raw_viewer(server.address)
     v.hello()

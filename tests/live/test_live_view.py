@@ -35,15 +35,79 @@ def test_ray_arrays_colour_modes(addon_module):
     from addon import live_view
 
     sizes, pos, col, rad = live_view.ray_arrays(_paths(), "POWER")
-    assert sizes == [2, 3, 3] * 2 and len(pos) == 3 * 16 and len(col) == 4 * 16
-    assert rad == [live_view.RAY_RADIUS_M] * 16 and col[3::4] == [1.0] * 16
+    assert sizes.tolist() == [2, 3, 3] * 2 and pos.shape == (16, 3) and col.shape == (16, 4)
+    assert rad.tolist() == pytest.approx([live_view.RAY_RADIUS_M] * 16)
+    assert col[:, 3].tolist() == [1.0] * 16
+    assert pos[2].tolist() == [0, 0, 2] and pos[3].tolist() == [8, 1, 1]
     lo, hi = live_view.RAY_SCALE_DB                     # -50 dB on the fixed scale
-    assert tuple(col[:4]) == live_view.power_color((-50.0 - lo) / (hi - lo))
+    assert col[0].tolist() == pytest.approx(live_view.power_color((-50.0 - lo) / (hi - lo)))
     sizes, pos, col, _ = live_view.ray_arrays(_paths(), "TYPE", max_paths=2)
-    assert sizes == [2, 3] * 2
+    assert sizes.tolist() == [2, 3] * 2
     # second path: tx (white), specular vertex (blue), rx (white)
-    assert tuple(col[8:12]) == live_view.TYPE_COLORS[0]
-    assert tuple(col[12:16]) == live_view.TYPE_COLORS[1]
+    assert col[2].tolist() == pytest.approx(live_view.TYPE_COLORS[0])
+    assert col[3].tolist() == pytest.approx(live_view.TYPE_COLORS[1])
+    assert col[4].tolist() == pytest.approx(live_view.TYPE_COLORS[0])
+
+
+def _packed(wire, msg):
+    """The ``rays`` message (wire 1.3) of a ``paths`` message, as the add-on's decoder
+    delivers it (packed fields as bytes)."""
+    import struct
+
+    links = []
+    for lk in msg["links"]:
+        ps = lk["paths"]
+        pts = [c for p in ps for q in p["points"] for c in q]
+        links.append(wire.rays_link(
+            lk["tx"], lk["rx"], lk["num_paths"], sizes=bytes(len(p["points"]) for p in ps),
+            points=struct.pack(f"<{len(pts)}f", *pts),
+            types=bytes(t for p in ps for t in p["types"]),
+            power_db=struct.pack(f"<{len(ps)}f", *(p["power_db"] for p in ps)),
+            tau_s=struct.pack(f"<{len(ps)}f", *(p["tau_s"] for p in ps))))
+    (got,) = wire.Decoder("e2v").feed(wire.encode({"type": "rays", "step": msg["step"],
+                                                   "links": links}))
+    return got
+
+
+@pytest.mark.parametrize("mode, cap, width, opacity", [
+    ("POWER", 0, False, False), ("TYPE", 2, True, True), ("POWER", 1, True, False),
+    ("TYPE", 0, False, True)])
+def test_packed_rays_draw_what_the_json_paths_draw(addon_module, mode, cap, width, opacity):
+    """1.3: the packed form gives the same curves, points, colours and radii as the JSON
+    form of the same message, also when the cap must pick paths out of order."""
+    import numpy as np
+    from addon import live_view, wire
+
+    msg = _paths(2, 4)
+    msg["links"][1]["paths"].reverse()                  # out of order: the cap sorts
+    a = live_view.ray_arrays(msg, mode, cap, width_by_power=width, opacity_by_power=opacity)
+    b = live_view.ray_arrays(_packed(wire, msg), mode, cap, width_by_power=width,
+                             opacity_by_power=opacity)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-6)
+    assert len(a[0]) == (8 if cap == 0 else 2 * cap)
+
+
+def test_a_rays_message_rebuilds_the_rays_object(scene):
+    """The ``rays`` message applied (what a 1.3 engine sends): the hair curves hold its
+    polylines; the next message of the same curve sizes moves the points in place."""
+    import numpy as np
+    from addon import live_view, wire
+
+    view = live_view.LiveView()
+    scene.isac_live.max_paths_per_link = 0
+    msg = _packed(wire, _paths(2, 3))
+    live_view.apply_message(scene, msg, view)
+    cv = bpy.data.objects[live_view.RAYS].data
+    got = np.array([p.position[:] for p in cv.points])
+    np.testing.assert_allclose(got, live_view.ray_arrays(_paths(2, 3))[1])
+    assert [c.points_length for c in cv.curves] == [2, 3, 3] * 2
+    assert scene.isac_live.num_rays == 6 and scene.isac_live.paths_step == 7
+    moved = _paths(2, 3)
+    moved["links"][0]["paths"][1]["points"][1] = [7.5, 2.0, 1.25]
+    live_view.apply_message(scene, _packed(wire, moved), view)
+    assert cv.points[3].position[:] == pytest.approx((7.5, 2.0, 1.25))
+    assert view.rays_built == 2
 
 
 def test_strongest_paths_per_link(addon_module):
@@ -58,7 +122,8 @@ def test_strongest_paths_per_link(addon_module):
     msg["links"][0]["paths"].reverse()                  # -70, -60, -50 dB
     sizes, _, col, _ = live_view.ray_arrays(msg, "POWER", max_paths=1)
     lo, hi = live_view.RAY_SCALE_DB
-    assert sizes == [2] and tuple(col[:4]) == live_view.power_color((-50.0 - lo) / (hi - lo))
+    assert sizes.tolist() == [2]
+    assert col[0].tolist() == pytest.approx(live_view.power_color((-50.0 - lo) / (hi - lo)))
 
 
 def test_ray_width_and_opacity_by_power(scene):
@@ -75,9 +140,9 @@ def test_ray_width_and_opacity_by_power(scene):
     sizes, _, col, rad = live_view.ray_arrays(_paths(1, 3), "TYPE", width_by_power=True,
                                               opacity_by_power=True)
     # -50 dB (2 points), -60 dB and -70 dB (3 points each): thinner and fainter as they weaken
-    assert sizes == [2, 3, 3]
+    assert sizes.tolist() == [2, 3, 3]
     assert rad[0] > rad[2] > rad[5] and rad[0] == rad[1] and rad[2] == rad[4]
-    assert col[3] > col[11] > col[23] and (col[3], col[7]) == (col[3], col[3])
+    assert col[0, 3] > col[2, 3] > col[5, 3] and col[0, 3] == col[1, 3]
     # applied: the rays object's radius attribute and a material mixing by the alpha
     p = scene.isac_live
     p.ray_width_by_power, p.ray_opacity_by_power = True, True
@@ -95,23 +160,51 @@ def test_ray_width_and_opacity_by_power(scene):
     assert {d.color[3] for d in cv.attributes[live_view.RAY_COLOR_ATTR].data} == {1.0}
 
 
+@pytest.mark.parametrize("maxlen", [1, 2, 5])
+def test_a_trail_keeps_the_last_points_like_a_bounded_deque(addon_module, maxlen):
+    """:class:`live_view.Trail` against ``collections.deque(maxlen=...)``: the same points
+    in the same order after every append, as one contiguous float32 array."""
+    import collections
+
+    from addon import live_view
+
+    tr, ref = live_view.Trail(maxlen), collections.deque(maxlen=maxlen)
+    for k in range(3 * maxlen + 2):
+        p = (k + 0.5, -2.0 * k, 0.25)
+        tr.append(p)
+        ref.append(p)
+        assert list(tr) == list(ref) and len(tr) == len(ref)
+        a = tr.array()
+        assert a.shape == (len(ref), 3) and a.flags["C_CONTIGUOUS"] and a.dtype == "float32"
+
+
 def test_a_full_trail_moves_its_points(scene):
-    """A trail at its full length is updated in place: its last point is the newest pose."""
+    """Every trail is a curve of one hair-curves object; a trail at its full length is
+    updated in place (the same curves): its last point is the newest pose."""
     from addon import live_view
 
     view = live_view.LiveView(trail_length=3)
     for step in range(6):
         live_view.apply_state(scene, {"type": "state", "step": step, "time_s": 0.0, "robots": [
-            {"name": "robot1", "pose": [float(step), 2, 0, 0, 0, 0], "velocity": [0, 0]}]},
-            view)
-        splines = bpy.data.objects["ISAC_Live_robot1_trail"].data.splines
+            {"name": "robot1", "pose": [float(step), 2, 0, 0, 0, 0], "velocity": [0, 0],
+             "estimate": [step + 0.5, 2.1, 0.0]}]}, view)
+        cv = bpy.data.objects[live_view.TRAILS].data
         if step == 0:
-            assert len(splines) == 0                     # one point: no line yet
+            assert len(cv.curves) == 0                   # one point: no line yet
             continue
-        assert [round(p.co[0], 6) for p in splines[0].points] == [
+        assert [round(p[0], 6) for p in live_view.trail_points(view, "robot1_trail")] == [
             float(k) for k in range(max(0, step - 2), step + 1)]
-    cu = bpy.data.objects["ISAC_Live_robot1_trail"].data
-    assert len(cu.splines) == 1 and cu.bevel_resolution == live_view.TRAIL_BEVEL_RESOLUTION
+        assert live_view.trail_points(view, "robot1_estimate_trail")[-1] == pytest.approx(
+            (step + 0.5, 2.1, 0.0))
+        if step == 2:   # both trails full from here: a rebuild would reset this radius
+            cv.attributes["radius"].data[0].value = 0.123
+    assert view.trail_layout == [("robot1_trail", 3), ("robot1_estimate_trail", 3)]
+    assert len(cv.curves) == 2
+    assert cv.attributes["radius"].data[0].value == pytest.approx(0.123)   # moved in place
+    colours = [c for d in cv.attributes[live_view.TRAIL_COLOR_ATTR].data for c in d.color]
+    assert colours == pytest.approx([*live_view.TRAIL_COLORS["truth"]] * 3
+                                    + [*live_view.TRAIL_COLORS["estimate"]] * 3)
+    assert cv.materials[0].node_tree.nodes["Attribute"].attribute_name == "trail_color"
 
 
 def test_paths_state_metrics_are_applied(scene):
@@ -135,8 +228,7 @@ def test_paths_state_metrics_are_applied(scene):
     assert bot.rotation_euler.z == pytest.approx(math.pi / 2)
     assert len(bot.data.polygons) > 30  # body + wheels + nose
     assert bpy.data.objects["ISAC_Live_robot1_estimate"].location.x == pytest.approx(1.25)
-    trail = bpy.data.objects["ISAC_Live_robot1_trail"].data.splines[0]
-    assert len(trail.points) == 3
+    assert len(live_view.trail_points(view, "robot1_trail")) == 3
     live_view.apply_message(scene, {"type": "metrics", "step": 2, "links": [
         {"tx": "AP1", "rx": "robot1", "snr_db": 31.5, "rate_bps": 2.5e8, "num_paths": 40,
          "los": True}, {"tx": "AP2", "rx": "robot1", "snr_db": None, "rate_bps": None}]}, view)
@@ -318,7 +410,7 @@ def test_radar_detections_and_tracks_are_drawn(scene):
     assert tuple(round(x, 4) for x in centre) == (5.5, 3.2, 0.096)
     tracks = bpy.data.objects["ISAC_Live_Tracks"].data
     assert len(tracks.vertices) == 6
-    assert len(bpy.data.objects["ISAC_Live_track_4_trail"].data.splines[0].points) == 2
+    assert len(live_view.trail_points(view, "track_4_trail")) == 2
     # a state without radar fields keeps the last radar picture
     live_view.apply_message(scene, {"type": "state", "step": 3, "time_s": 1.5,
                                     "robots": []}, view)
@@ -389,9 +481,9 @@ def test_ray_colour_is_a_fixed_db_scale(addon_module):
     _, _, ca, _ = live_view.ray_arrays(a, "POWER")
     _, _, cb, _ = live_view.ray_arrays(b, "POWER")
     # path 1 (-60 dB) starts at point 2 in both
-    assert tuple(ca[8:12]) == tuple(cb[8:12])
+    assert ca[2].tolist() == cb[2].tolist()
     lo, hi = live_view.RAY_SCALE_DB
-    assert tuple(ca[8:12]) == live_view.power_color((-60.0 - lo) / (hi - lo))
+    assert ca[2].tolist() == pytest.approx(live_view.power_color((-60.0 - lo) / (hi - lo)))
 
 
 def test_rays_legend_follows_the_colour_mode(scene):

@@ -16,6 +16,36 @@ def _paths_msg():
              "tau_s": 2e-8}]}]}
 
 
+def _rays_msg(wire, **change):
+    """``_paths_msg`` packed (wire 1.3); ``change`` replaces a link field's bytes (or count)."""
+    import struct
+
+    fields = dict(sizes=bytes([2, 3]),
+                  points=struct.pack("<15f", 0, 0, 2, 1, 1, 1, 0, 0, 2, 3, 0, 1, 1, 1, 1),
+                  types=bytes([1]), power_db=struct.pack("<2f", -50.0, -60.0),
+                  tau_s=struct.pack("<2f", 1e-8, 2e-8))
+    count = change.pop("count", None)
+    fields.update(change)
+    link = wire.rays_link("AP1", "robot1", 2, **fields)
+    if count is not None:
+        link["count"] = count
+    return {"type": "rays", "step": 3, "links": [link]}
+
+
+def _received(wire, msg):
+    """``msg`` as :class:`wire.Decoder` delivers it (a ``rays`` link's packed fields as bytes)."""
+    import base64
+    import copy
+
+    if msg["type"] != "rays":
+        return msg
+    msg = copy.deepcopy(msg)
+    for lk in msg["links"]:
+        for f in wire.RAYS_FIELDS:
+            lk[f] = base64.b64decode(lk[f])
+    return msg
+
+
 def _radiomap_msg():
     return {"type": "radiomap", "scene_hash": "ab" * 32, "height": 0.25, "origin": [0.1, 0.1],
             "cell_size": 0.25, "shape": [2, 3], "step": 4,
@@ -40,6 +70,7 @@ def _all_messages(wire):
          "robots": [{"name": "robot1", "pose": [1, 2, 0, 0, 0, 1.5], "velocity": [0.2, 0],
                      "odometry": [1, 2, 1.5], "estimate": None}]},
         _paths_msg(),
+        _rays_msg(wire),
         {"type": "metrics", "step": 3, "links": [{"tx": "AP1", "rx": "robot1", "snr_db": 20.5,
                                                   "rate_bps": 1e8, "num_paths": 2}]},
         {"type": "status", "running": True, "step": 4, "rate_hz": 10.0, "viewers": 1},
@@ -57,7 +88,7 @@ def test_every_message_type_round_trips(wire):
     assert {m["type"] for m in msgs} == set(wire.MESSAGES)
     stream = b"".join(wire.encode(m) for m in msgs)
     dec = wire.Decoder()
-    assert dec.feed(stream) == msgs
+    assert dec.feed(stream) == [_received(wire, m) for m in msgs]
     assert not dec.rejections and dec.buffered == 0
 
 
@@ -81,7 +112,7 @@ def test_byte_by_byte_and_split_frames(wire):
     out = []
     for i in range(len(stream)):
         out += dec.feed(stream[i:i + 1])
-    assert out == msgs
+    assert out == [_received(wire, m) for m in msgs]
 
 
 def test_engine_and_addon_share_one_definition(wire):
@@ -267,3 +298,92 @@ def test_fast_paths_check_agrees_with_the_generic_one(wire, paths):
     """The flat loop that checks a link's paths answers exactly what the field-by-field
     check answers (None or the same reason)."""
     assert wire._paths_list(paths) == wire._paths_generic(paths)
+
+
+def test_packed_rays_carry_the_same_polylines_as_paths(wire):
+    """1.3: a ``rays`` message decodes to the arrays it was built from, and reads back as
+    the ``paths`` message of the same polylines (float32 precision)."""
+    msg = _rays_msg(wire)
+    (got,) = wire.Decoder("e2v").feed(wire.encode(msg))
+    link = got["links"][0]
+    assert link["count"] == 2 and link["sizes"] == bytes([2, 3]) and link["types"] == b"\x01"
+    back = wire.rays_as_paths(got)
+    want = _paths_msg()
+    assert back["step"] == want["step"] and len(back["links"][0]["paths"]) == 2
+    for a, b in zip(back["links"][0]["paths"], want["links"][0]["paths"]):
+        assert a["points"] == b["points"] and a["types"] == b["types"]
+        assert a["power_db"] == b["power_db"] and a["tau_s"] == pytest.approx(b["tau_s"])
+    assert wire.validate(back) is None
+    assert wire.rays_as_paths(msg) == back          # base64 or bytes alike
+    # a link without rays (count 0) is valid too
+    empty = _rays_msg(wire, sizes=b"", points=b"", types=b"", power_db=b"", tau_s=b"")
+    assert wire.validate(empty) is None and wire.rays_as_paths(empty)["links"][0]["paths"] == []
+
+
+@pytest.mark.parametrize("change, match", [
+    (dict(points=b"\x00" * 56), "field 'points' holds 56 bytes, expected 60 (15 float32)"),
+    (dict(points=b"\x00" * 64), "field 'points' holds 64 bytes, expected 60"),
+    (dict(points=b"\x00" * 12 + b"\x00\x00\xc0\x7f" + b"\x00" * 44),
+     "field 'points' value 3 is nan (expected finite numbers)"),
+    (dict(power_db=b"\x00\x00\x80\x7f" + b"\x00" * 4),
+     "field 'power_db' value 0 is inf (expected finite numbers)"),
+    (dict(tau_s=b"\x00" * 4), "field 'tau_s' holds 4 bytes, expected 8"),
+    (dict(count=3), "field 'count' must be 0..num_paths (2), got 3"),
+    (dict(count=1), "field 'sizes' holds 2 paths, expected count = 1"),
+    (dict(count=-1), "field 'count' must be 0..num_paths (2), got -1"),
+    (dict(sizes=bytes([1, 4])), "field 'sizes' path 0 has 1 points (at least 2: tx, rx)"),
+    (dict(types=b""), "field 'types' holds 0 interactions, expected 1"),
+    (dict(types=bytes([3])), "field 'types' holds interaction code 3"),
+])
+def test_malformed_packed_rays_are_refused_naming_the_field(wire, change, match):
+    """Wrong lengths, NaN/inf, counts that disagree, bad codes: one rejection naming the
+    field; the next frame still arrives."""
+    bad = _rays_msg(wire, **change)
+    r = wire.validate(bad)
+    assert r is not None and r.startswith("rays: link 0 (AP1->robot1): ") and match in r
+    with pytest.raises(wire.WireError, match="rays: link 0"):
+        wire.encode(bad)
+    dec = wire.Decoder("e2v")
+    out = dec.feed(wire.encode(bad, check=False) + wire.encode(_rays_msg(wire)))
+    assert len(out) == 1 and out[0]["links"][0]["count"] == 2
+    assert dict(dec.rejections) == {"invalid": 1} and match in dec.reasons[0]
+    with pytest.raises(ValueError, match="rays: link 0"):
+        wire.rays_as_paths(bad)
+
+
+def test_packed_rays_that_are_not_base64_are_refused(wire):
+    msg = _rays_msg(wire)
+    msg["links"][0]["points"] = "not*base64"
+    assert "field 'points' is not base64" in wire.validate(msg)
+    msg["links"][0]["points"] = 12
+    assert "field 'points' must be a base64 string, got 12" in wire.validate(msg)
+
+
+def test_engine_packs_the_strongest_paths_like_its_json_form(wire):
+    """``protocol.link_rays`` (1.3) against ``protocol.link_polylines`` (1.2) on a hand-made
+    link: 4 paths of 0-2 interactions, capped at the 3 strongest."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from engine.live.protocol import link_polylines, link_rays
+
+    lp = SimpleNamespace(
+        tx="AP1", rx="robot1", num_paths=4, power=np.array([1e-7, 1e-5, 1e-9, 1e-6]),
+        tau=np.array([3e-8, 1e-8, 5e-8, 2e-8]),
+        interactions=np.array([[1, 4], [0, 0], [8, 0], [2, 0]], np.int32),
+        vertices=np.array([[[1, 2, 3], [4, 5, 1]], [[0, 0, 0], [0, 0, 0]],
+                           [[7, 1, 2], [0, 0, 0]], [[3.5, 0.25, 1], [0, 0, 0]]], float),
+        tx_position=np.array([0.05, 3.0, 2.0]), rx_position=np.array([5.5, 3.0, 0.25]))
+    packed = {"type": "rays", "step": 1, "links": [link_rays(lp, 3)]}
+    assert wire.validate(packed) is None and packed["links"][0]["count"] == 3
+    back = wire.rays_as_paths(packed)["links"][0]
+    want = link_polylines(lp, 3)
+    assert back["num_paths"] == want["num_paths"] == 4
+    for a, b in zip(back["paths"], want["paths"], strict=True):
+        assert a["types"] == b["types"]
+        np.testing.assert_allclose(a["points"], b["points"], atol=1e-6)
+        assert a["power_db"] == pytest.approx(b["power_db"], abs=1e-4)
+        assert a["tau_s"] == pytest.approx(b["tau_s"], rel=1e-6)
+    assert [len(p["types"]) for p in back["paths"]] == [0, 1, 2]     # strongest first
+    assert wire.validate({"type": "rays", "step": 1, "links": [link_rays(lp, 0)]}) is None
