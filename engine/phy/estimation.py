@@ -212,6 +212,11 @@ def ideal_mdp(tau, b, max_paths: int | None = None,
     return _sorted_mdp(SPEED_OF_LIGHT * tau, power, max_paths, min_relative_power_db)
 
 
+#: smoothing windows up to this size get a full ``eigh`` of their covariance
+#: (faster than the randomised subspace iteration there: 43 vs 381 us at 16,
+#: 0.54 vs 0.73 ms at 64 on the lab machine)
+_DIRECT_EIGH_MAX = 96
+
 #: residual energy, relative to the CSI's, below which a fit is exact in float64
 #: (eps^2 ~ 5e-32 per sample; a margin for the refinement's own rounding)
 _RSS_FLOOR = 1e-24
@@ -244,27 +249,24 @@ def _vp_refine(h, fc, d, *, max_nfev: int, xtol: float = 1e-8, ftol: float = 1e-
     def evaluate(x):
         e = np.exp(np.outer(w, x))  # [N, k]
         eh = e.conj().T
-        g = eh @ e
         try:
-            c = np.linalg.solve(g, eh @ h)  # [k, S]
+            gi = np.linalg.inv(eh @ e)  # G^-1
         except np.linalg.LinAlgError:
             return None
+        c = gi @ (eh @ h)  # [k, S]
         r = h - e @ c
         cost = float(np.vdot(r, r).real)
-        return (e, eh, g, c, r, cost) if np.isfinite(cost) else None
+        return (e, eh, gi, c, r, cost) if np.isfinite(cost) else None
 
     cur = evaluate(d)
     if cur is None:
         return d
     nfev, lam = 1, 1e-3
     while nfev < max_nfev:
-        e, eh, g, c, r, cost = cur
+        e, eh, gi, c, r, cost = cur
         de = w[:, None] * e  # dE/dd  [N, k]
         dh = de.conj().T
-        try:
-            a = dh @ de - (dh @ e) @ np.linalg.solve(g, eh @ de)  # D^H P D
-        except np.linalg.LinAlgError:
-            break
+        a = dh @ de - (dh @ e) @ gi @ (eh @ de)  # D^H P D
         jtj = np.real(a * np.conj(c @ c.conj().T))
         grad = -np.real(np.sum(np.conj(c) * (dh @ r), axis=1))
         scale = np.maximum(np.diag(jtj), 1e-12 * max(float(np.max(np.diag(jtj))), 1e-300))
@@ -395,6 +397,9 @@ class MdpEstimator:
         cov = x @ np.conj(x.T) / x.shape[1]
         if self.forward_backward:
             cov = 0.5 * (cov + np.conj(cov[::-1, ::-1]))
+        if msub <= _DIRECT_EIGH_MAX:  # small: all eigenvectors, exact and cheaper
+            val, vec = np.linalg.eigh(cov)
+            return vec[:, np.argsort(-val)[:kmax]]
         # Randomised subspace iteration for the few leading eigenvectors:
         # LAPACK's subset drivers and ARPACK are slow on the clustered noise
         # eigenvalues of this matrix; the signal/noise gap makes this converge
