@@ -173,24 +173,29 @@ class MCALocalizer:
             ok = np.isfinite(f)
             pt = np.broadcast_to(np.arange(len(f))[:, None], f.shape)[ok]
             order = np.argsort(f[ok], kind="stable")
+            kk = k[ok][order]
+            has = np.isfinite(kk).all(axis=-1)  # no direction: matched by length only
+            kk = np.ascontiguousarray(np.where(has[:, None], kk, 0.0))
             self._pairs[a] = (np.ascontiguousarray(f[ok][order]), pt[order].astype(np.intp),
-                              np.ascontiguousarray(k[ok][order]))
+                              kk, np.sum(kk * kk, axis=1), has)
 
     def _path_scores(self, a: int, length: float, direction: np.ndarray) -> np.ndarray:
         """Exact score ``[P]`` of one measured path (``length`` m, unit
         ``direction`` [3]) at AP ``a`` against every point (unweighted): the
         ``(eps - d)^2`` of the nearest database path, 0 beyond ``eps``."""
-        f, pt, k = self._pairs[a]
+        f, pt, k, k2, has = self._pairs[a]
         lo = np.searchsorted(f, length - self.eps, side="right")
         hi = np.searchsorted(f, length + self.eps, side="left")
         out = np.zeros(len(self.positions))
         if hi <= lo:
             return out
-        chord = np.linalg.norm(direction - k[lo:hi], axis=-1)
-        chord = np.where(np.isfinite(chord), chord, 0.0)
-        d = np.hypot(f[lo:hi] - length, self.angle_weight_m * chord)
-        near = d < self.eps
-        np.maximum.at(out, pt[lo:hi][near], (self.eps - d[near]) ** 2)
+        # |k - k_db|^2 = |k|^2 + |k_db|^2 - 2 k . k_db (a bound: its rounding,
+        # ~1e-16 in the chord^2, is far inside the branch and bound's slack)
+        chord2 = k2[lo:hi] + float(direction @ direction) - 2.0 * (k[lo:hi] @ direction)
+        chord2 = np.where(has[lo:hi], np.maximum(chord2, 0.0), 0.0)
+        d2 = (f[lo:hi] - length) ** 2 + self.angle_weight_m ** 2 * chord2
+        near = np.flatnonzero(d2 < self.eps ** 2)
+        np.maximum.at(out, pt[lo + near], (self.eps - np.sqrt(d2[near])) ** 2)
         return out
 
     def exact_scores(self, measured: np.ndarray, idx: np.ndarray,
