@@ -6,7 +6,8 @@ antennas, 12 paths (3-18 m, 10 dB per 5 m), 20 dB SNR, eq.-4 CSI
 (:func:`engine.phy.channel.cfr_at`). The baseline, in the same run, is the
 delay-only :class:`~engine.phy.estimation.MdpEstimator` configured as
 :func:`engine.localization.measurements.observe_pilots` ran it on the same
-comb before the per-fix work (least squares at every order). Goal: <= 20 ms per joint fix on the lab machine.
+comb before the per-fix work (least squares at every order). Goal: <= 20 ms
+per joint fix on the lab machine.
 
     .venv/bin/python bench/bench_directions.py [--fixes N]
 """

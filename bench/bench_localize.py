@@ -20,7 +20,8 @@ and the baseline; every figure is the mean over the points of the fastest of
 Uses the cached database (``--cache``, default ``out/cache``; built there if
 missing, ~1 min at 5 cm).
 
-    .venv/bin/python bench/bench_localize.py [--points N] [--repeat R] [--spacing 0.05] [--cache DIR]
+    .venv/bin/python bench/bench_localize.py [--points N] [--repeat R] [--spacing 0.05]
+        [--cache DIR]
 """
 
 from __future__ import annotations
