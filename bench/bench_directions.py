@@ -5,8 +5,9 @@ ports on combs of stride 32 (32 subcarriers each, 1024 x 78.125 kHz), 2 robot
 antennas, 12 paths (3-18 m, 10 dB per 5 m), 20 dB SNR, eq.-4 CSI
 (:func:`engine.phy.channel.cfr_at`). The baseline, in the same run, is the
 delay-only :class:`~engine.phy.estimation.MdpEstimator` configured as
-:func:`engine.localization.measurements.observe_pilots` runs it on the same
-comb. Goal: <= 20 ms per joint fix on the lab machine.
+:func:`engine.localization.measurements.observe_pilots` ran it on the same
+comb before the per-fix work (least squares at every order). Goal: <= 20 ms
+per joint fix on the lab machine.
 
     .venv/bin/python bench/bench_directions.py [--fixes N]
 """
@@ -59,7 +60,8 @@ def main() -> None:
     fm = np.arange(m) * STRIDE * DF
     off = np.arange(AP.num_ant) * DF
     joint = DelayDirectionEstimator(AP, STRIDE * DF)
-    # observe_pilots' delay-only configuration on the same comb
+    # observe_pilots' delay-only configuration on the same comb, as it was before the
+    # per-fix work (refinement at every order; observe_pilots now refines the chosen one)
     sub = min(m - 2, max(m // 2, 2 * 9 + 2))
     delay = MdpEstimator(STRIDE * DF, max_paths=9, subband=sub,
                          max_distance_m=SPEED_OF_LIGHT / (STRIDE * DF) * 0.9)

@@ -16,6 +16,12 @@ upper-bound table over length bins (one row of ``P`` scores per AP and bin)
 scores every point with ``A x J`` row additions, then exact scores are
 computed only for candidates in upper-bound order until no remaining
 candidate can beat the current k-th best (branch and bound).
+
+With departure directions the length-only bins are a loose bound (a point
+whose lengths match but whose directions do not scores far below it); the
+measured paths that carry a direction are then scored exactly for every
+point instead, from the database's (point, path) pairs sorted by length:
+only the pairs within ``eps`` in length can score, a contiguous slice.
 """
 
 from __future__ import annotations
@@ -74,13 +80,19 @@ class MCALocalizer:
             upper bound (the combined distance is never shorter).
         angle_weight_m: metres per unit of direction chord (about the
             AP-robot distance turns an angle error into a lateral offset).
+        exact_paths, exact_min_weight: with directions, up to ``exact_paths``
+            measured paths per AP that carry a direction and a score weight
+            of at least ``exact_min_weight`` (the heaviest first) are scored
+            exactly over all points for the bound (module doc); the others
+            keep the length-only table. Only the query's speed depends on them.
 
     Raises:
         ValueError: inconsistent shapes, non-finite positions, eps or k out of range.
     """
 
     def __init__(self, positions, lengths, *, eps: float = 0.5, k: int = 4,
-                 bin_m: float = 0.05, directions=None, angle_weight_m: float = 3.0) -> None:
+                 bin_m: float = 0.05, directions=None, angle_weight_m: float = 3.0,
+                 exact_paths: int = 3, exact_min_weight: float = 0.3) -> None:
         positions = np.asarray(positions, dtype=np.float64)
         raw = np.asarray(lengths, dtype=np.float64)
         lengths = _pad_sorted(raw)
@@ -95,6 +107,10 @@ class MCALocalizer:
         if not angle_weight_m > 0:
             raise ValueError(f"angle_weight_m: expected > 0 m, got {angle_weight_m}")
         self.angle_weight_m = float(angle_weight_m)
+        if not (exact_paths >= 0 and exact_min_weight >= 0):
+            raise ValueError(f"exact_paths, exact_min_weight: expected >= 0, got "
+                             f"{exact_paths}, {exact_min_weight}")
+        self.exact_paths, self.exact_min_weight = int(exact_paths), float(exact_min_weight)
         if positions.ndim != 2 or positions.shape[1] != 3:
             raise ValueError(f"positions: expected shape [P, 3], got {positions.shape}")
         if lengths.ndim != 3 or lengths.shape[0] != positions.shape[0]:
@@ -109,6 +125,7 @@ class MCALocalizer:
         self.positions, self.lengths = positions, lengths
         self.eps, self.k, self.bin_m = float(eps), int(k), float(bin_m)
         self._build_table()
+        self._build_pairs()
 
     @property
     def num_aps(self) -> int:
@@ -140,6 +157,46 @@ class MCALocalizer:
                     s = np.where(d < self.eps, (self.eps - d) ** 2, 0.0).astype(np.float32)
                     np.maximum.at(table[a], (bb, pp), s)
         self._table, self._nbins = table, nb
+
+    def _build_pairs(self) -> None:
+        """Per AP with directions, its (point, path) pairs sorted by length:
+        lengths ``[n]`` m, points ``[n]``, directions ``[n, 3]`` (``None``
+        for APs without any direction)."""
+        self._pairs = [None] * self.num_aps
+        if self.directions is None:
+            return
+        for a in range(self.num_aps):
+            f = self.lengths[:, a]  # [P, L]
+            k = self.directions[:, a]  # [P, L, 3]
+            if not np.isfinite(k).all(axis=-1).any():
+                continue  # a single antenna: length only, the table is exact enough
+            ok = np.isfinite(f)
+            pt = np.broadcast_to(np.arange(len(f))[:, None], f.shape)[ok]
+            order = np.argsort(f[ok], kind="stable")
+            kk = k[ok][order]
+            has = np.isfinite(kk).all(axis=-1)  # no direction: matched by length only
+            kk = np.ascontiguousarray(np.where(has[:, None], kk, 0.0))
+            self._pairs[a] = (np.ascontiguousarray(f[ok][order]), pt[order].astype(np.intp),
+                              kk, np.sum(kk * kk, axis=1), has)
+
+    def _path_scores(self, a: int, length: float, direction: np.ndarray) -> np.ndarray:
+        """Exact score ``[P]`` of one measured path (``length`` m, unit
+        ``direction`` [3]) at AP ``a`` against every point (unweighted): the
+        ``(eps - d)^2`` of the nearest database path, 0 beyond ``eps``."""
+        f, pt, k, k2, has = self._pairs[a]
+        lo = np.searchsorted(f, length - self.eps, side="right")
+        hi = np.searchsorted(f, length + self.eps, side="left")
+        out = np.zeros(len(self.positions))
+        if hi <= lo:
+            return out
+        # |k - k_db|^2 = |k|^2 + |k_db|^2 - 2 k . k_db (a bound: its rounding,
+        # ~1e-16 in the chord^2, is far inside the branch and bound's slack)
+        chord2 = k2[lo:hi] + float(direction @ direction) - 2.0 * (k[lo:hi] @ direction)
+        chord2 = np.where(has[lo:hi], np.maximum(chord2, 0.0), 0.0)
+        d2 = (f[lo:hi] - length) ** 2 + self.angle_weight_m ** 2 * chord2
+        near = np.flatnonzero(d2 < self.eps ** 2)
+        np.maximum.at(out, pt[lo + near], (self.eps - np.sqrt(d2[near])) ** 2)
+        return out
 
     def exact_scores(self, measured: np.ndarray, idx: np.ndarray,
                      measured_directions: np.ndarray | None = None,
@@ -204,13 +261,25 @@ class MCALocalizer:
                 raise ValueError(f"weights: expected shape {list(m.shape)} with values in "
                                  f"[0, 1], got shape {list(wts.shape)}")
         ub = np.zeros(self._table.shape[2], dtype=np.float32)
+        exact = None  # exact scores of the paths with a direction (see the module doc)
         for a in range(self.num_aps):
             ok = np.isfinite(m[a])
+            w_all = np.ones(m.shape[1]) if wts is None else wts[a]
+            if kdir is not None and self._pairs[a] is not None:
+                has = np.flatnonzero(ok & np.isfinite(kdir[a]).all(axis=-1)
+                                     & (w_all >= self.exact_min_weight))
+                has = has[np.argsort(-w_all[has], kind="stable")[:self.exact_paths]]
+                for j in has:
+                    s_j = self._path_scores(a, m[a, j], kdir[a, j])
+                    exact = w_all[j] * s_j if exact is None else exact + w_all[j] * s_j
+                ok[has] = False
             bins = np.floor(m[a][ok] / self.bin_m).astype(np.int64)
-            w = np.ones(bins.size, np.float32) if wts is None else wts[a][ok].astype(np.float32)
+            w = w_all[ok].astype(np.float32)
             inb = (bins >= 0) & (bins < self._nbins)
             if inb.any():
                 ub += w[inb] @ self._table[a, bins[inb]]
+        if exact is not None:
+            ub = ub + exact
         k = self.k
         chunk = max(64, 4 * k)
         n = len(ub)

@@ -244,16 +244,58 @@ class PilotSettings:
 
 
 #: Comb pilot patterns by (transmitter, grid, ports, stride, seed) ->
-#: ``(PilotPattern, symbols [P, K, N], LSChannelEstimator)``: drawing the QPSK
-#: symbols of a 32-port grid costs tens of ms, and a pattern never changes.
+#: ``(PilotPattern, symbols [P, K, N], LSChannelEstimator, CombGather)``: drawing
+#: the QPSK symbols of a 32-port grid costs tens of ms, and a pattern never changes.
 _COMB_PILOTS: dict = {}
+
+
+@dataclass(frozen=True)
+class CombGather:
+    """Where a comb pattern's pilots sit, flattened over its ports (made once
+    per pattern, :func:`comb_pilots`): every pilot RE carries exactly one port
+    (the combs are disjoint in frequency), so the received pilots are a gather
+    of the channel, not a sum over ports.
+
+    Attributes:
+        symbols: ``[Ks]`` pilot symbol indices (shared by the ports of a comb).
+        subcarriers: ``[Np]`` pilot subcarriers, port 0's comb first, then port 1's, ...
+        ports: ``[Np]`` the port of each.
+        bounds: ``[P + 1]`` port ``p``'s pilots are ``bounds[p]:bounds[p + 1]``.
+        values: ``[Ks, Np]`` the pilot symbols there (read-only).
+    """
+
+    symbols: np.ndarray
+    subcarriers: np.ndarray
+    ports: np.ndarray
+    bounds: np.ndarray
+    values: np.ndarray
+
+    @classmethod
+    def of(cls, pattern: PilotPattern, x: np.ndarray) -> CombGather:
+        pos = [pattern.positions(p) for p in range(pattern.num_ports)]
+        sy = pos[0][0]
+        if any(not np.array_equal(s, sy) for s, _ in pos):
+            raise ValueError("CombGather: the ports of a comb pattern share their symbols")
+        sc = np.concatenate([c for _, c in pos])
+        port = np.concatenate([np.full(len(c), p) for p, (_, c) in enumerate(pos)])
+        bounds = np.concatenate([[0], np.cumsum([len(c) for _, c in pos])])
+        vals = x[port[None, :], sy[:, None], sc[None, :]]  # [Ks, Np]
+        vals.setflags(write=False)
+        return cls(sy, sc, port, bounds, vals)
+
+    def received(self, h: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """Received pilots ``h x + noise`` at the pilot REs ``[Ks, Np, Nr]``
+        from the channel ``h [K, N, Nr, P]`` and the noise ``[K, N, Nr]``."""
+        hp = np.moveaxis(h[:, self.subcarriers, :, self.ports], 0, 1)  # [K, Np, Nr]
+        return hp[self.symbols] * self.values[..., None] + noise[np.ix_(self.symbols,
+                                                                       self.subcarriers)]
 
 
 def comb_pilots(grid, name: str, num_ports: int, stride: int, seed: int):
     """The comb :class:`~engine.phy.estimation.PilotPattern` of transmitter ``name``
     (``num_ports`` ports, subcarrier ``stride``, QPSK ``seed``) on ``grid``, its
-    symbols ``[P, K, N]`` (read-only) and its :class:`LSChannelEstimator`, made
-    once and kept (a few patterns per twin)."""
+    symbols ``[P, K, N]`` (read-only), its :class:`LSChannelEstimator` and its
+    :class:`CombGather`, made once and kept (a few patterns per twin)."""
     key = (name, grid.num_subcarriers, grid.subcarrier_spacing_hz, grid.num_symbols,
            grid.cyclic_prefix_samples, int(num_ports), int(stride), int(seed))
     hit = _COMB_PILOTS.get(key)
@@ -265,7 +307,7 @@ def comb_pilots(grid, name: str, num_ports: int, stride: int, seed: int):
         ls = LSChannelEstimator(pat)
         x = pat.symbols
         x.setflags(write=False)
-        hit = _COMB_PILOTS[key] = (pat, x, ls)
+        hit = _COMB_PILOTS[key] = (pat, x, ls, CombGather.of(pat, x))
     return hit
 
 
@@ -305,22 +347,22 @@ def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: Pil
     for i, (lp, h) in enumerate(zip(links, channels)):
         k_, n_, nr, nt = h.shape
         stride = max(settings.min_stride, nt)
-        pat, x, ls_est = comb_pilots(grid, lp.tx, nt, stride, settings.seed)  # x [P, K, N]
-        sig = np.mean(np.abs(h) ** 2)
+        pat, x, ls_est, gather = comb_pilots(grid, lp.tx, nt, stride, settings.seed)
+        sig = np.vdot(h, h).real / h.size  # mean |H|^2 (no square root per entry)
         sigma2 = sig * pat.pilot_power / 10 ** (settings.snr_db / 10) if sig > 0 else 1e-30
-        y = np.einsum("knrp,pkn->knr", h, x)
-        y = y + np.sqrt(sigma2 / 2) * (rng.standard_normal(y.shape)
-                                       + 1j * rng.standard_normal(y.shape))
+        noise = np.sqrt(sigma2 / 2) * (rng.standard_normal((k_, n_, nr))
+                                       + 1j * rng.standard_normal((k_, n_, nr)))
+        yp = gather.received(h, noise)  # [Ks, Np, Nr] at the pilot REs
         # LS at each port's comb, averaged over the 14 symbols (noise / K): [Ns, Nr] per port
         scs = [pat.positions(p)[1] for p in range(nt)]
-        if full:
+        if full:  # the interpolated grid reads the pilot REs only: the rest is noise
+            y = noise
+            y[np.ix_(gather.symbols, gather.subcarriers)] = yp
             hmean = ls_est(y).mean(axis=0)  # [N, Nr, P]
             combs = [hmean[sc, :, p] for p, sc in enumerate(scs)]
         else:
-            combs = []
-            for p, sc in enumerate(scs):
-                sy = pat.positions(p)[0]
-                combs.append((y[np.ix_(sy, sc)] / x[p][np.ix_(sy, sc)][..., None]).mean(axis=0))
+            ls = (yp / gather.values[..., None]).mean(axis=0)  # [Np, Nr]
+            combs = [ls[b0:b1] for b0, b1 in zip(gather.bounds[:-1], gather.bounds[1:])]
         csi.append(db(np.mean(np.abs(hmean[spec.knn_subcarriers]) ** 2, axis=1))
                    if "csi" in features else np.full((len(spec.knn_subcarriers), nt), np.nan))
         pdp.append(db(pdp_from_csi(hmean.reshape(n_, -1), spec.pdp_bins_m, grid))
@@ -337,7 +379,7 @@ def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: Pil
         # ESPRIT needs 2k <= M - 1 (window M): widen the window for short combs.
         sub = min(ncomb - 2, max(ncomb // 2, 2 * settings.max_paths + 2))
         est = MdpEstimator(stride * grid.subcarrier_spacing_hz, max_paths=settings.max_paths,
-                           subband=sub,
+                           subband=sub, refine="final",
                            max_distance_m=SPEED_OF_LIGHT / (stride * grid.subcarrier_spacing_hz)
                            * 0.9)
         mdp = est(snap)

@@ -123,6 +123,10 @@ class DelayDirectionEstimator:
         pos = array.normalized_positions  # [P, 3] wavelengths, local axes
         self._y, self._z = pos[:, 1], pos[:, 2]
         self._rows, self._cols = array.num_rows, array.num_cols
+        k = np.arange(self.fft_size)
+        # zero-padded DFT over the columns (forward) and rows (inverse, unscaled)
+        self._dft_cols = np.exp(-2j * np.pi * np.outer(k, np.arange(self._cols)) / self.fft_size)
+        self._dft_rows = np.exp(2j * np.pi * np.outer(k, np.arange(self._rows)) / self.fft_size)
 
     # ------------------------------------------------------------ geometry
 
@@ -138,44 +142,61 @@ class DelayDirectionEstimator:
         x = np.sqrt(np.maximum(0.0, 1.0 - np.sum(uv ** 2, axis=1)))
         return np.stack([x, uv[:, 0], uv[:, 1]], axis=1) @ self.rot.T
 
-    def _direction(self, x: np.ndarray) -> np.ndarray:
-        """Direction cosines ``(u, v)`` maximising ``sum_r |a(u, v)^H x_r|^2``
-        of a spatial snapshot ``x [P, Nr]``."""
+    def _directions(self, x: np.ndarray) -> np.ndarray:
+        """Direction cosines ``(u, v)`` ``[L, 2]`` maximising
+        ``sum_r |a(u, v)^H x_r|^2`` for each of ``L`` spatial snapshots
+        ``x [L, P, Nr]``: the peak of the beam power on a zero-padded
+        ``fft_size``-point DFT grid per array axis (two small matrix products),
+        then up to 8 Newton steps, all snapshots at once."""
         a = self.array
         n = self.fft_size
-        g = np.zeros((n, n, x.shape[1]), complex)
-        # element i = c * rows + r sits at y = dh c + y0, z = -dv r + z0
-        g[:self._cols, :self._rows] = x.reshape(self._cols, self._rows, -1)
-        # sum_c sum_r x exp(-j 2 pi (dh c u - dv r v)) -> DFT over c, inverse DFT over r
-        spec = np.fft.ifft(np.fft.fft(g, axis=0), axis=1) * n
-        pw = np.sum(np.abs(spec) ** 2, axis=2)
-        ic, ir = np.unravel_index(np.argmax(pw), pw.shape)
-        fc, fr = np.fft.fftfreq(n)[[ic, ir]]
-        u0 = fc / a.horizontal_spacing if self._cols > 1 else 0.0
-        v0 = fr / a.vertical_spacing if self._rows > 1 else 0.0
-        uv = np.array([u0, v0])
+        nl, nr = x.shape[0], x.shape[2]
+        # element i = c * rows + r sits at y = dh c + y0, z = -dv r + z0:
+        # sum_c sum_r x exp(-j 2 pi (c iu - r iv) / n) on the n x n grid (iu, iv)
+        g = x.reshape(nl, self._cols, self._rows * nr)
+        spec = (self._dft_cols @ g).reshape(nl, n, self._rows, nr)  # over columns
+        spec = np.swapaxes(spec, 2, 3) @ self._dft_rows.T  # [L, n, Nr, n]: over rows
+        pw = np.sum(spec.real ** 2 + spec.imag ** 2, axis=2).reshape(nl, -1)
+        ic, ir = np.unravel_index(np.argmax(pw, axis=1), (n, n))
+        freq = np.fft.fftfreq(n)
+        uv = np.zeros((nl, 2))
+        if self._cols > 1:
+            uv[:, 0] = freq[ic] / a.horizontal_spacing
+        if self._rows > 1:
+            uv[:, 1] = freq[ir] / a.vertical_spacing
         free = [i for i, m in enumerate((self._cols, self._rows)) if m > 1]
 
         coords = np.stack([self._y, self._z])  # [2, P] wavelengths
+        cc = (coords[:, None, :] * coords[None, :, :]).reshape(4, -1)  # [4, P]
+        active = np.ones(nl, bool)
         for _ in range(8):  # Newton on the beam power f = sum_r |a(u, v)^H x_r|^2
-            w = np.conj(self._steer(uv[None])[0])[:, None] * x  # [P, Nr]: conj(a_p) x_pr
-            b = w.sum(axis=0)  # [Nr]
-            b1 = -2j * np.pi * (coords @ w)  # [2, Nr]: d b / d(u, v)
-            b2 = -4 * np.pi ** 2 * np.einsum("ip,kp,pr->ikr", coords, coords, w)  # [2, 2, Nr]
-            grad = 2 * np.real(np.conj(b)[None] * b1).sum(axis=1)
-            hess = 2 * np.real(np.einsum("kr,ir->ik", np.conj(b1), b1)
-                               + (np.conj(b)[None, None] * b2).sum(axis=2))
-            idx = np.ix_(free, free)
-            try:
-                step = np.zeros(2)
-                step[free] = -np.linalg.solve(hess[idx], grad[free])
-            except np.linalg.LinAlgError:
+            idx = np.flatnonzero(active)
+            if idx.size == 0:
                 break
-            if not np.all(np.isfinite(step)) or np.max(np.abs(step)) > 0.05:
-                break  # not in the concave basin of the peak: keep what we have
-            uv = uv + step
-            if np.max(np.abs(step)) < 1e-7:
-                break
+            w = np.conj(self._steer(uv[idx]))[:, :, None] * x[idx]  # [l, P, Nr]
+            b = w.sum(axis=1)  # [l, Nr]
+            b1 = -2j * np.pi * (coords @ w)  # [l, 2, Nr]: d b / d(u, v)
+            b2 = (-4 * np.pi ** 2 * (cc @ w)).reshape(-1, 2, 2, nr)  # [l, 2, 2, Nr]
+            cb = np.conj(b)
+            grad = 2 * np.real(cb[:, None, :] * b1).sum(axis=2)  # [l, 2]
+            hess = 2 * np.real(b1 @ np.conj(np.swapaxes(b1, 1, 2))
+                               + (cb[:, None, None, :] * b2).sum(axis=3))  # [l, 2, 2]
+            step = np.zeros((idx.size, 2))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                if len(free) == 2:
+                    det = hess[:, 0, 0] * hess[:, 1, 1] - hess[:, 0, 1] * hess[:, 1, 0]
+                    step[:, 0] = -(hess[:, 1, 1] * grad[:, 0] - hess[:, 0, 1] * grad[:, 1]) / det
+                    step[:, 1] = -(hess[:, 0, 0] * grad[:, 1] - hess[:, 1, 0] * grad[:, 0]) / det
+                elif len(free) == 1:
+                    f = free[0]
+                    step[:, f] = -grad[:, f] / hess[:, f, f]
+            big = np.max(np.abs(step), axis=1)
+            # singular, or not in the concave basin of the peak: keep what we have
+            stop = ~np.isfinite(big) | (big > 0.05)
+            go = idx[~stop]
+            uv[go] += step[~stop]
+            active[idx[stop]] = False
+            active[go[big[~stop] < 1e-7]] = False
         return uv
 
     # ------------------------------------------------------------ estimation
@@ -198,21 +219,22 @@ class DelayDirectionEstimator:
         e = np.exp(-2j * np.pi * np.outer(fm, tau))  # [M, L]
         amp, *_ = np.linalg.lstsq(e, h.reshape(m, nr * p), rcond=None)
         amp = amp.reshape(len(tau), nr, p)
-        comps_tau, comps_uv = [], []
-        for t, x in zip(tau, amp):
-            xs = (x * np.exp(2j * np.pi * off * t)).T  # [P, Nr], comb offset removed
-            uv = self._direction(xs)
-            comps_tau.append(t)
-            comps_uv.append(uv)
-            if self.split_fraction is None:
-                continue
-            s = self._steer(uv[None])[0]
-            res = xs - np.outer(s, np.conj(s) @ xs) / p
-            if np.sum(np.abs(res) ** 2) > self.split_fraction * np.sum(np.abs(xs) ** 2):
-                comps_tau.append(t)
-                comps_uv.append(self._direction(res))
-        tau_c = np.asarray(comps_tau)
-        uv_c = np.asarray(comps_uv)
+        # spatial snapshots [L, P, Nr], comb offsets removed
+        xs = np.transpose(amp * np.exp(2j * np.pi * np.outer(tau, off))[:, None, :], (0, 2, 1))
+        uv = self._directions(xs)
+        split = np.zeros(len(tau), bool)
+        if self.split_fraction is not None:
+            s = self._steer(uv)  # [L, P]
+            res = xs - s[:, :, None] * (np.einsum("lp,lpr->lr", np.conj(s), xs)[:, None, :] / p)
+            e_res = np.sum(res.real ** 2 + res.imag ** 2, axis=(1, 2))
+            e_all = np.sum(xs.real ** 2 + xs.imag ** 2, axis=(1, 2))
+            split = e_res > self.split_fraction * e_all
+        # components in delay order, a split delay's second direction right after it
+        tau_c = np.repeat(tau, 1 + split)
+        uv_c = np.repeat(uv, 1 + split, axis=0)
+        if split.any():
+            second = np.cumsum(1 + split)[split] - 1
+            uv_c[second] = self._directions(res[split])
         # Joint amplitudes over every comb sample: columns delay (x) port offset (x) array.
         col = (np.exp(-2j * np.pi * (fm[:, None, None] + off[None, :, None]) * tau_c)
                * self._steer(uv_c).T[None])  # [M, P, L]
