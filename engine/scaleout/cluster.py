@@ -21,7 +21,10 @@ Nothing is lost:
 What differs from ``trace_grid``: no ``meta["verification"]`` re-trace (it
 records ``{"points": 0, "skipped": ...}``; trace one process with ``verify``
 for it), and ``meta["scaleout"]`` says how the grid was
-built (tiles, tile size, workers, tiles resumed from checkpoints).
+built (tiles, tile size, workers, tiles resumed from checkpoints) and where
+the time went (``seconds``: planning, tracing, assembly in the client;
+``worker_runs``: per worker process its tiles, scene load, tracing and idle
+time at the end).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
@@ -43,6 +47,10 @@ from engine.scaleout.tiles import (DEFAULT_WORKER_THREADS, GridPlan, TileJob, pl
                                    scene_folder, trace_tile)
 
 log = logging.getLogger(__name__)
+
+#: The worker preload module (:mod:`engine.scaleout.preload`): local workers
+#: import the tracer stack when they start, not in their first tile.
+PRELOAD = "engine.scaleout.preload"
 
 
 def check_cluster_args(workers: int | None, scheduler: str | None) -> None:
@@ -82,6 +90,10 @@ def cluster_client(workers: int | None = None, scheduler: str | None = None, *,
         memory_limit: per local worker (Dask's ``memory_limit``; a worker that
             exceeds 95 % of it is restarted and its tile re-run).
 
+    Local workers start with the :data:`PRELOAD` module (Sionna RT imported
+    at start-up) and the scheduler hands a worker its next tile only when it
+    finished one (``distributed.scheduler.worker-saturation`` 1).
+
     Raises:
         ValueError: both or neither given, ``workers < 1``, or a fork start method.
     """
@@ -94,10 +106,16 @@ def cluster_client(workers: int | None = None, scheduler: str | None = None, *,
         with Client(scheduler) as client:
             yield client
         return
+    import dask
+
     _check_spawn()
-    with LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                      dashboard_address=":0", memory_limit=memory_limit,
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    # worker-saturation 1: a worker gets its next tile when it finished one (no
+    # tile waits in a busy worker's queue while another worker is idle at the end)
+    with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}), \
+            LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                         dashboard_address=":0", memory_limit=memory_limit,
+                         silence_logs=logging.ERROR, preload=[PRELOAD]) as cluster, \
+            Client(cluster) as client:
         yield client
 
 
@@ -134,7 +152,8 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
             (logged when > 0).
         out: also write the grid NPZ there.
         on_tile: called in the client with each finished tile's summary
-            (``index``, ``pid``, ``chains``, ``retries``) as it arrives.
+            (``index``, ``pid``, ``chains``, ``setup_s``, ``trace_s``, ``start``,
+            ``end``: see :func:`~engine.scaleout.tiles.trace_tile`) as it arrives.
 
     Returns:
         The :class:`~engine.raytrace.grid.PathGrid`.
@@ -147,6 +166,7 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
     from distributed import as_completed
     from tqdm import tqdm
 
+    t_start = time.perf_counter()
     config = config or scene.config.tracer
     det = bool(deterministic) if deterministic is not None else False
     chunk = CHAIN_CHUNK_SIZE if chunk_size is None else int(chunk_size)
@@ -184,9 +204,11 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
     workers = len(client.scheduler_info().get("workers", {}))
     log.info("tracing %d x %d grid (%d free points) in %d tiles of %d on %d workers",
              *plan.shape, len(plan.todo), len(tiles), plan.tile_size, workers)
+    t_submit = time.perf_counter()
     futures = [client.submit(trace_tile, job, k, plan.points[idx], pure=False,
                              key=f"isac-tile-{key}-{k}")
                for k, idx in enumerate(tiles) if k not in done]
+    runs: list[dict] = []
     try:
         with tqdm(total=len(tiles), initial=resumed, unit="tile", desc="grid tiles",
                   disable=not progress) as bar:
@@ -195,23 +217,24 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
                 fut.release()
                 k = res.pop("index")
                 parts = res.pop("parts")
-                info = {"cap": res["cap"], "retries": res["retries"], "chains": res["chains"]}
+                info = {"chains": res["chains"]}
                 if ckpt:
                     ckpt.save(k, plan.points[tiles[k]], parts, info)
                 done[k], infos[k] = parts, info
+                runs.append(res)
                 bar.update(1)
                 if on_tile is not None:
                     on_tile({"index": k, **res})
     except BaseException:
         client.cancel(futures)
         raise
+    t_traced = time.perf_counter()
     arrays = assemble(plan, [(tiles[k], done[k]) for k in sorted(done)], max(1, config.max_depth))
     meta = grid_metadata(scene, plan, spacing, margin, {
         **dataclasses.asdict(config), "deterministic": det,
-        "max_num_paths_per_src_used": max([int(i["cap"]) for i in infos.values()],
-                                          default=config.max_num_paths_per_src),
-        "chunk_size": chunk,
-        "truncation_retries": sum(int(i["retries"]) for i in infos.values()),
+        # chain reuse: no candidate buffer, nothing to grow (as trace_grid records it)
+        "max_num_paths_per_src_used": config.max_num_paths_per_src,
+        "chunk_size": chunk, "truncation_retries": 0,
         "spec_table_size": GRID_SPEC_TABLE_SIZE, "keep_strongest": job.keep_strongest,
         "method": "chains",
         "chains": {"version": CHAIN_REUSE_VERSION, "rays_per_source": config.samples_per_src,
@@ -220,13 +243,36 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
         {"points": 0, "skipped": "not run on a cluster"})
     meta["scaleout"] = {"tiles": len(tiles), "tile_size": plan.tile_size, "workers": workers,
                         "tiles_resumed": resumed, "tiles_traced": len(tiles) - resumed,
-                        "checkpoint_key": key}
+                        "checkpoint_key": key,
+                        "seconds": {"plan": t_submit - t_start, "trace": t_traced - t_submit,
+                                    "assemble": time.perf_counter() - t_traced},
+                        "worker_runs": worker_runs(runs)}
     grid = PathGrid(meta=meta, arrays=arrays)
     if out is not None:
         save_grid(grid, out)
     if ckpt:
         ckpt.remove()
     return grid
+
+
+def worker_runs(runs: list[dict]) -> list[dict]:
+    """Per worker process, from the tiles it traced (``trace_tile``'s summaries):
+    ``pid``, ``tiles``, ``setup_s`` (scene load, tracer), ``trace_s`` (tracing;
+    its first tile includes enumerating the chains), ``first_trace_s``,
+    ``idle_end_s`` (from its last tile's end to the last tile's end of any
+    worker: the imbalance at the end), all in seconds."""
+    if not runs:
+        return []
+    end = max(r["end"] for r in runs)
+    out = []
+    for pid in sorted({r["pid"] for r in runs}):
+        mine = sorted((r for r in runs if r["pid"] == pid), key=lambda r: r["start"])
+        out.append({"pid": int(pid), "tiles": len(mine),
+                    "setup_s": round(sum(r["setup_s"] for r in mine), 3),
+                    "trace_s": round(sum(r["trace_s"] for r in mine), 3),
+                    "first_trace_s": round(mine[0]["trace_s"], 3),
+                    "idle_end_s": round(end - mine[-1]["end"], 3)})
+    return out
 
 
 def assemble(plan: GridPlan, tiles: list[tuple[np.ndarray, list[dict]]],

@@ -41,7 +41,8 @@ import numpy as np
 
 from engine.config import TracerConfig
 from engine.raytrace.base import device_poses, sionna_orientation, validate_poses
-from engine.raytrace.grid import CHAIN_CHUNK_SIZE, GRID_SPEC_TABLE_SIZE, grid_points, sorted_chunk
+from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_ARRAYS, GRID_SPEC_TABLE_SIZE, grid_points,
+                                  sorted_chunk)
 
 log = logging.getLogger(__name__)
 
@@ -216,18 +217,37 @@ def trace_tile(job: TileJob, index: int, points: np.ndarray) -> dict:
         points: ``[T, 3]`` m receiver positions (free points).
 
     Returns:
-        ``{"index", "parts": [dict of [t, S, P] arrays as sorted_chunk returns],
-        "cap", "retries", "chains", "pid"}``.
+        ``{"index", "parts": [dict of [t, S, P] arrays as sorted_chunk returns,
+        in the grid file's dtypes], "chains", "pid", "setup_s", "trace_s",
+        "start", "end"}``: ``setup_s`` loading the scene and building the
+        tracer (0 once this process has them), ``trace_s`` tracing the tile
+        (the first tile of a process includes enumerating the chains),
+        ``start``/``end`` wall-clock (``time.time()``) of the task.
     """
+    import time
+
+    start, t = time.time(), time.perf_counter()
     scene, ct = worker_state(job)
+    t_setup = time.perf_counter()
     parts = []
-    for start in range(0, len(points), job.chunk_size):
-        raw = ct.trace(scene.sionna, job.src, points[start:start + job.chunk_size],
+    for i in range(0, len(points), job.chunk_size):
+        raw = ct.trace(scene.sionna, job.src, points[i:i + job.chunk_size],
                        source_orientations=job.src_orient)
-        parts.append(sorted_chunk(raw, job.keep_strongest))
-    return {"index": int(index), "parts": parts, "cap": int(job.config.max_num_paths_per_src),
-            "retries": 0,
-            "chains": len(ct.store) if ct.store is not None else 0, "pid": os.getpid()}
+        parts.append(storage_dtypes(sorted_chunk(raw, job.keep_strongest)))
+    t_end = time.perf_counter()
+    return {"index": int(index), "parts": parts,
+            "chains": len(ct.store) if ct.store is not None else 0, "pid": os.getpid(),
+            "setup_s": t_setup - t, "trace_s": t_end - t_setup, "start": start,
+            "end": start + (t_end - t)}
+
+
+def storage_dtypes(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A :func:`~engine.raytrace.grid.sorted_chunk` part cast to the dtypes of
+    the grid file (:data:`~engine.raytrace.grid.GRID_ARRAYS`: ``a`` complex64,
+    angles float32, ``interactions`` uint8), as the assembly casts it anyway:
+    the same values, ~30 % fewer bytes to send and to checkpoint."""
+    return {k: v.astype(GRID_ARRAYS[k][0], copy=False) if k in GRID_ARRAYS else v
+            for k, v in part.items()}
 
 
 def scene_folder(scene) -> Path:

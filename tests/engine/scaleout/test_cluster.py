@@ -55,12 +55,31 @@ def test_tiled_grid_and_database_equal_the_single_process_ones(room_scene, singl
     so = got.meta["scaleout"]
     assert so["tiles"] == len(range(0, int(single_grid.free.sum()), TILE)) > 4
     assert so["workers"] == 2 and so["tiles_traced"] == so["tiles"]
+    runs = so["worker_runs"]  # where the time went, per worker process
+    assert sum(r["tiles"] for r in runs) == so["tiles"]
+    assert all(r["trace_s"] > 0 and r["idle_end_s"] >= 0 for r in runs)
+    assert min(r["idle_end_s"] for r in runs) == 0.0
+    assert set(so["seconds"]) == {"plan", "trace", "assemble"}
     assert_equal_grids(single_grid, got)
     # every worker enumerated the chains the single process enumerated
     assert got.meta["tracer"]["chains"]["chains"] == single_grid.meta["tracer"]["chains"]["chains"]
     da, db = from_grid(single_grid, room_scene), from_grid(got, room_scene)
     for k, v in da.arrays.items():
         np.testing.assert_allclose(db.arrays[k], v, rtol=1e-5, equal_nan=True, err_msg=k)
+
+
+def test_local_workers_import_the_tracer_stack_at_start_up(client):
+    def state(dask_worker):
+        import sys
+
+        import drjit as dr
+
+        return ([p.name for p in dask_worker.preloads], "sionna.rt" in sys.modules,
+                dr.thread_count())
+
+    for preloads, sionna_imported, threads in client.run(state).values():
+        assert preloads == ["engine.scaleout.preload"]
+        assert sionna_imported and threads == 1
 
 
 def test_a_killed_worker_loses_no_tile(room_scene, single_grid, client):
