@@ -142,8 +142,11 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
         client: a ``distributed.Client`` (see :func:`cluster_client`).
         tile_size: free points per tile (a task), a multiple of ``chunk_size``
             (default: one chunk, 1024 points): a point's paths may depend on
-            which points share its image-method calls (float32 near a
-            validity edge), so tiles keep ``trace_grid``'s chunks.
+            which points share its image-method calls (measured in the lab:
+            3-6 of 6,144 links differ by a path when 3,072 points are traced
+            in calls of other points), so tiles keep ``trace_grid``'s chunks,
+            and the last full chunk is split between tiles only at
+            image-method call boundaries (:data:`~engine.scaleout.tiles.TAIL_PARTS`).
         checkpoints: the checkpoint folder (None: no checkpoints); finished
             tiles are kept there until the grid is complete.
         progress: tqdm progress bar over tiles.
@@ -178,7 +181,8 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
         raise ValueError(f"tile_size {tile_size}: a tile must be a whole number of chunks "
                          f"({chunk} points), or its points share image-method calls with other "
                          "points than in one process and the paths can differ")
-    plan = plan_grid(scene, tx_names, spacing, height, margin, config, method, tile_size)
+    plan = plan_grid(scene, tx_names, spacing, height, margin, config, method, tile_size,
+                     chunk_size=chunk)
     job = TileJob(scene_folder=str(scene_folder(scene)), scene_hash=scene.content_hash(),
                   config=config, src=plan.src, src_orient=plan.src_orient, deterministic=det,
                   spec_table_size=GRID_SPEC_TABLE_SIZE,
@@ -189,15 +193,17 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
                  verify)
     key = checkpoint_key({**job.settings(), "spacing": float(spacing), "height": plan.height,
                           "margin": float(margin), "tx_names": plan.tx_names,
-                          "points": len(plan.points), "tile_size": plan.tile_size})
+                          "points": len(plan.points), "tile_size": plan.tile_size,
+                          "tail_parts": plan.tail_parts})
     ckpt = TileCheckpoints(checkpoints, key) if checkpoints is not None else None
     tiles = plan.tiles
-    done: dict[int, list[dict]] = {}
+    done: dict[int, tuple[list[int], list[dict]]] = {}  # tile -> (span, parts)
     infos: dict[int, dict] = {}
-    for k, idx in enumerate(tiles):
-        hit = ckpt.load(k, plan.points[idx]) if ckpt else None
+    for k, tile in enumerate(tiles):
+        hit = ckpt.load(k, plan.points[tile.index]) if ckpt else None
         if hit is not None:
-            done[k], infos[k] = hit
+            parts, infos[k] = hit
+            done[k] = (infos[k].get("span", [0, len(tile.index)]), parts)
     resumed = len(done)
     if resumed:
         log.info("resuming: %d of %d tiles from %s", resumed, len(tiles), ckpt.dir)
@@ -205,9 +211,9 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
     log.info("tracing %d x %d grid (%d free points) in %d tiles of %d on %d workers",
              *plan.shape, len(plan.todo), len(tiles), plan.tile_size, workers)
     t_submit = time.perf_counter()
-    futures = [client.submit(trace_tile, job, k, plan.points[idx], pure=False,
-                             key=f"isac-tile-{key}-{k}")
-               for k, idx in enumerate(tiles) if k not in done]
+    futures = [client.submit(trace_tile, job, k, plan.points[tile.index], tile.part,
+                             tile.parts, pure=False, key=f"isac-tile-{key}-{k}")
+               for k, tile in enumerate(tiles) if k not in done]
     runs: list[dict] = []
     try:
         with tqdm(total=len(tiles), initial=resumed, unit="tile", desc="grid tiles",
@@ -217,10 +223,10 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
                 fut.release()
                 k = res.pop("index")
                 parts = res.pop("parts")
-                info = {"chains": res["chains"]}
+                info = {"chains": res["chains"], "span": res.pop("span")}
                 if ckpt:
-                    ckpt.save(k, plan.points[tiles[k]], parts, info)
-                done[k], infos[k] = parts, info
+                    ckpt.save(k, plan.points[tiles[k].index], parts, info)
+                done[k], infos[k] = (info["span"], parts), info
                 runs.append(res)
                 bar.update(1)
                 if on_tile is not None:
@@ -229,7 +235,11 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
         client.cancel(futures)
         raise
     t_traced = time.perf_counter()
-    arrays = assemble(plan, [(tiles[k], done[k]) for k in sorted(done)], max(1, config.max_depth))
+    pieces = []
+    for k in sorted(done):
+        (a, b), parts = done[k]
+        pieces.append((tiles[k].index[a:b], parts))
+    arrays = assemble(plan, pieces, max(1, config.max_depth))
     meta = grid_metadata(scene, plan, spacing, margin, {
         **dataclasses.asdict(config), "deterministic": det,
         # chain reuse: no candidate buffer, nothing to grow (as trace_grid records it)
