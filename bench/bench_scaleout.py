@@ -55,10 +55,12 @@ def same_paths(a, b) -> bool:
             and np.allclose(a["tau"], b["tau"], rtol=1e-6, atol=0))
 
 
-def breakdown(w: int, t_start: float, so: dict) -> str:
-    """One line per cluster run: start-up (not counted above), the client's
-    planning / tracing / assembly, and per worker its scene load, first tile
-    (with the chain enumeration), mean later tile and idle time at the end."""
+def breakdown(w: int, t_start: float, cpu: float, so: dict) -> str:
+    """Lines per cluster run: start-up (not counted above), the client's
+    planning / tracing / assembly and CPU time (the client process, with the
+    local scheduler in it, shares the cores with the workers), and per worker
+    its scene load, first tile (with the chain enumeration), mean later tile
+    and idle time at the end."""
     sec = so["seconds"]
     per = []
     for r in so["worker_runs"]:
@@ -66,7 +68,8 @@ def breakdown(w: int, t_start: float, so: dict) -> str:
         per.append(f"{r['tiles']} tiles, setup {r['setup_s']:.2f}, first {r['first_trace_s']:.2f}, "
                    f"later {later:.2f}/tile, idle at end {r['idle_end_s']:.2f}")
     return (f"  {w} worker(s): cluster start {t_start:.1f} (not counted); client plan "
-            f"{sec['plan']:.2f}, trace {sec['trace']:.2f}, assemble {sec['assemble']:.2f}\n"
+            f"{sec['plan']:.2f}, trace {sec['trace']:.2f}, assemble {sec['assemble']:.2f}, "
+            f"client CPU {cpu:.2f}\n"
             + "\n".join(f"    worker {i}: {p}" for i, p in enumerate(per)))
 
 
@@ -91,16 +94,16 @@ def run(folder: Path, spacing: float, margin: float, tile_size: int | None,
         with cluster_client(workers=w) as client:
             client.wait_for_workers(w)
             t_start = time.perf_counter() - t
-            t = time.perf_counter()
+            t, cpu = time.perf_counter(), time.process_time()
             g = trace_grid_tiled(scene, spacing=spacing, margin=margin, client=client,
                                  tile_size=tile_size, chunk_size=chunk_size, progress=False)
-            dt = time.perf_counter() - t
+            dt, cpu = time.perf_counter() - t, time.process_time() - cpu
             rss = max(client.run(_rss_mb).values())
         rate[w] = n / dt
         print(f"{f'{w} worker(s)':<26}{dt:8.1f}{rate[w]:10.1f}"
               f"{rate[w] / w:14.1f}{'yes' if same_paths(ref, g) else 'NO':>7}{rss:15.0f}",
               flush=True)
-        notes.append(breakdown(w, t_start, g.meta["scaleout"]))
+        notes.append(breakdown(w, t_start, cpu, g.meta["scaleout"]))
     print("where the time went (s):")
     for line in notes:
         print(line)
