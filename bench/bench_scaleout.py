@@ -66,7 +66,8 @@ def breakdown(w: int, t_start: float, cpu: float, so: dict) -> str:
     for r in so["worker_runs"]:
         later = (r["trace_s"] - r["first_trace_s"]) / max(1, r["tiles"] - 1)
         per.append(f"{r['tiles']} tiles, setup {r['setup_s']:.2f}, first {r['first_trace_s']:.2f}, "
-                   f"later {later:.2f}/tile, idle at end {r['idle_end_s']:.2f}")
+                   f"later {later:.2f}/tile, idle at end {r['idle_end_s']:.2f}, "
+                   f"CPU {r['cpu_s']:.2f}")
     return (f"  {w} worker(s): cluster start {t_start:.1f} (not counted); client plan "
             f"{sec['plan']:.2f}, trace {sec['trace']:.2f}, assemble {sec['assemble']:.2f}, "
             f"client CPU {cpu:.2f}\n"
@@ -88,25 +89,31 @@ def run(folder: Path, spacing: float, margin: float, tile_size: int | None,
           f"{'worker RSS MB':>15}")
     print(f"{'single process (default)':<26}{t_ref:8.1f}{n / t_ref:10.1f}{'':>14}{'ref':>7}",
           flush=True)
-    rate, notes = {}, []
+    rate, notes, cpu = {}, [], {}
     for w in workers:
         t = time.perf_counter()
         with cluster_client(workers=w) as client:
             client.wait_for_workers(w)
             t_start = time.perf_counter() - t
-            t, cpu = time.perf_counter(), time.process_time()
+            t, t_cpu = time.perf_counter(), time.process_time()
             g = trace_grid_tiled(scene, spacing=spacing, margin=margin, client=client,
                                  tile_size=tile_size, chunk_size=chunk_size, progress=False)
-            dt, cpu = time.perf_counter() - t, time.process_time() - cpu
+            dt, t_cpu = time.perf_counter() - t, time.process_time() - t_cpu
             rss = max(client.run(_rss_mb).values())
         rate[w] = n / dt
         print(f"{f'{w} worker(s)':<26}{dt:8.1f}{rate[w]:10.1f}"
               f"{rate[w] / w:14.1f}{'yes' if same_paths(ref, g) else 'NO':>7}{rss:15.0f}",
               flush=True)
-        notes.append(breakdown(w, t_start, cpu, g.meta["scaleout"]))
+        notes.append(breakdown(w, t_start, t_cpu, g.meta["scaleout"]))
+        runs = g.meta["scaleout"]["worker_runs"]
+        cpu[w] = (sum(r["cpu_s"] for r in runs), max(r["cpu_s"] for r in runs))
     print("where the time went (s):")
     for line in notes:
         print(line)
+    if 1 in cpu and 2 in cpu:  # what the ratio would be if each worker had its core to itself
+        print(f"  workers' CPU: 1 worker {cpu[1][0]:.1f} s, 2 workers {cpu[2][0]:.1f} s in all, "
+              f"{cpu[2][1]:.1f} s on the busier one: {cpu[1][0] / cpu[2][1]:.2f}x if CPU-bound "
+              "(less sensitive to other load than the wall-clock ratio)", flush=True)
     if 1 in rate and 2 in rate:
         print(f"  2 workers / 1 worker = {rate[2] / rate[1]:.2f}x (target >= 1.8x); "
               f"1 worker / single process = {rate[1] / (n / t_ref):.2f}x", flush=True)

@@ -268,7 +268,8 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
 def worker_runs(runs: list[dict]) -> list[dict]:
     """Per worker process, from the tiles it traced (``trace_tile``'s summaries):
     ``pid``, ``tiles``, ``setup_s`` (scene load, tracer), ``trace_s`` (tracing;
-    its first tile includes enumerating the chains), ``first_trace_s``,
+    its first tile includes enumerating the chains), ``cpu_s`` (the worker
+    process's CPU time in its tiles), ``first_trace_s``,
     ``idle_end_s`` (from its last tile's end to the last tile's end of any
     worker: the imbalance at the end), all in seconds."""
     if not runs:
@@ -280,6 +281,7 @@ def worker_runs(runs: list[dict]) -> list[dict]:
         out.append({"pid": int(pid), "tiles": len(mine),
                     "setup_s": round(sum(r["setup_s"] for r in mine), 3),
                     "trace_s": round(sum(r["trace_s"] for r in mine), 3),
+                    "cpu_s": round(sum(r["cpu_s"] for r in mine), 3),
                     "first_trace_s": round(mine[0]["trace_s"], 3),
                     "idle_end_s": round(end - mine[-1]["end"], 3)})
     return out

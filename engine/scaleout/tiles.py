@@ -273,15 +273,17 @@ def trace_tile(job: TileJob, index: int, points: np.ndarray, part: int = 0,
     Returns:
         ``{"index", "span": [a, b] (the points traced: points[a:b]), "parts":
         [dict of [t, S, P] arrays as sorted_chunk returns, in the grid file's
-        dtypes], "chains", "pid", "setup_s", "trace_s", "start", "end"}``:
+        dtypes], "chains", "pid", "setup_s", "trace_s", "start", "end",
+        "cpu_s"}``:
         ``setup_s`` loading the scene and building the tracer (0 once this
         process has them), ``trace_s`` tracing the tile (the first tile of a
         process includes enumerating the chains), ``start``/``end``
-        wall-clock (``time.time()``) of the task.
+        wall-clock (``time.time()``) of the task, ``cpu_s`` the process's CPU
+        time in it (less than the wall time when the cores are shared).
     """
     import time
 
-    start, t = time.time(), time.perf_counter()
+    start, t, cpu = time.time(), time.perf_counter(), time.process_time()
     scene, ct = worker_state(job)
     t_setup = time.perf_counter()
     a, b = 0, len(points)
@@ -306,7 +308,7 @@ def trace_tile(job: TileJob, index: int, points: np.ndarray, part: int = 0,
     return {"index": int(index), "span": [int(a), int(b)], "parts": out,
             "chains": len(ct.store) if ct.store is not None else 0, "pid": os.getpid(),
             "setup_s": t_setup - t, "trace_s": t_end - t_setup, "start": start,
-            "end": start + (t_end - t)}
+            "end": start + (t_end - t), "cpu_s": time.process_time() - cpu}
 
 
 def image_method_calls(pairs: Sequence[int], max_pairs: int) -> list[tuple[int, int]]:

@@ -57,7 +57,7 @@ def test_tiled_grid_and_database_equal_the_single_process_ones(room_scene, singl
     assert so["workers"] == 2 and so["tiles_traced"] == so["tiles"]
     runs = so["worker_runs"]  # where the time went, per worker process
     assert sum(r["tiles"] for r in runs) == so["tiles"]
-    assert all(r["trace_s"] > 0 and r["idle_end_s"] >= 0 for r in runs)
+    assert all(r["trace_s"] > 0 and r["cpu_s"] > 0 and r["idle_end_s"] >= 0 for r in runs)
     assert min(r["idle_end_s"] for r in runs) == 0.0
     assert set(so["seconds"]) == {"plan", "trace", "assemble"}
     assert_equal_grids(single_grid, got)
