@@ -91,8 +91,9 @@ def cluster_client(workers: int | None = None, scheduler: str | None = None, *,
             exceeds 95 % of it is restarted and its tile re-run).
 
     Local workers start with the :data:`PRELOAD` module (Sionna RT imported
-    at start-up) and the scheduler hands a worker its next tile only when it
-    finished one (``distributed.scheduler.worker-saturation`` 1).
+    at start-up), without Dask's statistical profiler, and the scheduler hands
+    a worker its next tile only when it finished one
+    (``distributed.scheduler.worker-saturation`` 1).
 
     Raises:
         ValueError: both or neither given, ``workers < 1``, or a fork start method.
@@ -110,8 +111,11 @@ def cluster_client(workers: int | None = None, scheduler: str | None = None, *,
 
     _check_spawn()
     # worker-saturation 1: a worker gets its next tile when it finished one (no
-    # tile waits in a busy worker's queue while another worker is idle at the end)
-    with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}), \
+    # tile waits in a busy worker's queue while another worker is idle at the end);
+    # no statistical profiler sampling the workers' stacks every 10 ms (~1.5 % of a
+    # worker's CPU, measured; with every core tracing it is time taken from a tile)
+    with dask.config.set({"distributed.scheduler.worker-saturation": 1.0,
+                          "distributed.worker.profile.enabled": False}), \
             LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
                          dashboard_address=":0", memory_limit=memory_limit,
                          silence_logs=logging.ERROR, preload=[PRELOAD]) as cluster, \

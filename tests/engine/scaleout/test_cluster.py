@@ -72,14 +72,16 @@ def test_local_workers_import_the_tracer_stack_at_start_up(client):
     def state(dask_worker):
         import sys
 
+        import dask
         import drjit as dr
 
         return ([p.name for p in dask_worker.preloads], "sionna.rt" in sys.modules,
-                dr.thread_count())
+                dr.thread_count(), dask.config.get("distributed.worker.profile.enabled"))
 
-    for preloads, sionna_imported, threads in client.run(state).values():
+    for preloads, sionna_imported, threads, profiler in client.run(state).values():
         assert preloads == ["engine.scaleout.preload"]
         assert sionna_imported and threads == 1
+        assert profiler is False
 
 
 def test_a_killed_worker_loses_no_tile(room_scene, single_grid, client):
