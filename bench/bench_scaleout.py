@@ -7,11 +7,13 @@ In one run, on one scene and grid (default: the bundled lab, 5 cm):
 2. **Local Dask cluster, 1 worker** and **2 workers** (spawned processes,
    one Dask thread and one Dr.Jit thread each): ``trace_grid_tiled`` (each
    worker enumerates the APs' chains once, tiles of whole chunks). The cluster
-   start (seconds) is not counted; the workers' scene loads and chain
-   enumerations are.
+   start (seconds, printed: it includes the workers' import of Sionna RT,
+   :mod:`engine.scaleout.preload`) is not counted; the workers' scene loads
+   and chain enumerations are.
 
-Prints seconds, points/s, points/s per worker, the 2-vs-1 ratio (ideal 2.0)
-and whether each cluster grid equals the single-process one (same path count
+Prints seconds, points/s, points/s per worker, the 2-vs-1 ratio (ideal 2.0),
+where the time went (``meta["scaleout"]``: client and per-worker seconds) and
+whether each cluster grid equals the single-process one (same path count
 per point and AP, delays to 1e-6 relative). ``--building`` adds the same on
 the bundled office floor (``blend_scenes/office_floor``) at
 ``--building-spacing``. No assertions on time.
@@ -53,6 +55,25 @@ def same_paths(a, b) -> bool:
             and np.allclose(a["tau"], b["tau"], rtol=1e-6, atol=0))
 
 
+def breakdown(w: int, t_start: float, cpu: float, so: dict) -> str:
+    """Lines per cluster run: start-up (not counted above), the client's
+    planning / tracing / assembly and CPU time (the client process, with the
+    local scheduler in it, shares the cores with the workers), and per worker
+    its scene load, first tile (with the chain enumeration), mean later tile
+    and idle time at the end."""
+    sec = so["seconds"]
+    per = []
+    for r in so["worker_runs"]:
+        later = (r["trace_s"] - r["first_trace_s"]) / max(1, r["tiles"] - 1)
+        per.append(f"{r['tiles']} tiles, setup {r['setup_s']:.2f}, first {r['first_trace_s']:.2f}, "
+                   f"later {later:.2f}/tile, idle at end {r['idle_end_s']:.2f}, "
+                   f"CPU {r['cpu_s']:.2f}")
+    return (f"  {w} worker(s): cluster start {t_start:.1f} (not counted); client plan "
+            f"{sec['plan']:.2f}, trace {sec['trace']:.2f}, assemble {sec['assemble']:.2f}, "
+            f"client CPU {cpu:.2f}\n"
+            + "\n".join(f"    worker {i}: {p}" for i, p in enumerate(per)))
+
+
 def run(folder: Path, spacing: float, margin: float, tile_size: int | None,
         workers: list[int], chunk_size: int) -> None:
     scene = load_scene(folder)
@@ -68,19 +89,31 @@ def run(folder: Path, spacing: float, margin: float, tile_size: int | None,
           f"{'worker RSS MB':>15}")
     print(f"{'single process (default)':<26}{t_ref:8.1f}{n / t_ref:10.1f}{'':>14}{'ref':>7}",
           flush=True)
-    rate = {}
+    rate, notes, cpu = {}, [], {}
     for w in workers:
+        t = time.perf_counter()
         with cluster_client(workers=w) as client:
             client.wait_for_workers(w)
-            t = time.perf_counter()
+            t_start = time.perf_counter() - t
+            t, t_cpu = time.perf_counter(), time.process_time()
             g = trace_grid_tiled(scene, spacing=spacing, margin=margin, client=client,
                                  tile_size=tile_size, chunk_size=chunk_size, progress=False)
-            dt = time.perf_counter() - t
+            dt, t_cpu = time.perf_counter() - t, time.process_time() - t_cpu
             rss = max(client.run(_rss_mb).values())
         rate[w] = n / dt
         print(f"{f'{w} worker(s)':<26}{dt:8.1f}{rate[w]:10.1f}"
               f"{rate[w] / w:14.1f}{'yes' if same_paths(ref, g) else 'NO':>7}{rss:15.0f}",
               flush=True)
+        notes.append(breakdown(w, t_start, t_cpu, g.meta["scaleout"]))
+        runs = g.meta["scaleout"]["worker_runs"]
+        cpu[w] = (sum(r["cpu_s"] for r in runs), max(r["cpu_s"] for r in runs))
+    print("where the time went (s):")
+    for line in notes:
+        print(line)
+    if 1 in cpu and 2 in cpu:  # what the ratio would be if each worker had its core to itself
+        print(f"  workers' CPU: 1 worker {cpu[1][0]:.1f} s, 2 workers {cpu[2][0]:.1f} s in all, "
+              f"{cpu[2][1]:.1f} s on the busier one: {cpu[1][0] / cpu[2][1]:.2f}x if CPU-bound "
+              "(less sensitive to other load than the wall-clock ratio)", flush=True)
     if 1 in rate and 2 in rate:
         print(f"  2 workers / 1 worker = {rate[2] / rate[1]:.2f}x (target >= 1.8x); "
               f"1 worker / single process = {rate[1] / (n / t_ref):.2f}x", flush=True)

@@ -21,7 +21,10 @@ Nothing is lost:
 What differs from ``trace_grid``: no ``meta["verification"]`` re-trace (it
 records ``{"points": 0, "skipped": ...}``; trace one process with ``verify``
 for it), and ``meta["scaleout"]`` says how the grid was
-built (tiles, tile size, workers, tiles resumed from checkpoints).
+built (tiles, tile size, workers, tiles resumed from checkpoints) and where
+the time went (``seconds``: planning, tracing, assembly in the client;
+``worker_runs``: per worker process its tiles, scene load, tracing and idle
+time at the end).
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import time
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
@@ -43,6 +47,10 @@ from engine.scaleout.tiles import (DEFAULT_WORKER_THREADS, GridPlan, TileJob, pl
                                    scene_folder, trace_tile)
 
 log = logging.getLogger(__name__)
+
+#: The worker preload module (:mod:`engine.scaleout.preload`): local workers
+#: import the tracer stack when they start, not in their first tile.
+PRELOAD = "engine.scaleout.preload"
 
 
 def check_cluster_args(workers: int | None, scheduler: str | None) -> None:
@@ -82,6 +90,11 @@ def cluster_client(workers: int | None = None, scheduler: str | None = None, *,
         memory_limit: per local worker (Dask's ``memory_limit``; a worker that
             exceeds 95 % of it is restarted and its tile re-run).
 
+    Local workers start with the :data:`PRELOAD` module (Sionna RT imported
+    at start-up), without Dask's statistical profiler, and the scheduler hands
+    a worker its next tile only when it finished one
+    (``distributed.scheduler.worker-saturation`` 1).
+
     Raises:
         ValueError: both or neither given, ``workers < 1``, or a fork start method.
     """
@@ -94,10 +107,19 @@ def cluster_client(workers: int | None = None, scheduler: str | None = None, *,
         with Client(scheduler) as client:
             yield client
         return
+    import dask
+
     _check_spawn()
-    with LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                      dashboard_address=":0", memory_limit=memory_limit,
-                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+    # worker-saturation 1: a worker gets its next tile when it finished one (no
+    # tile waits in a busy worker's queue while another worker is idle at the end);
+    # no statistical profiler sampling the workers' stacks every 10 ms (~1.5 % of a
+    # worker's CPU, measured; with every core tracing it is time taken from a tile)
+    with dask.config.set({"distributed.scheduler.worker-saturation": 1.0,
+                          "distributed.worker.profile.enabled": False}), \
+            LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                         dashboard_address=":0", memory_limit=memory_limit,
+                         silence_logs=logging.ERROR, preload=[PRELOAD]) as cluster, \
+            Client(cluster) as client:
         yield client
 
 
@@ -124,8 +146,11 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
         client: a ``distributed.Client`` (see :func:`cluster_client`).
         tile_size: free points per tile (a task), a multiple of ``chunk_size``
             (default: one chunk, 1024 points): a point's paths may depend on
-            which points share its image-method calls (float32 near a
-            validity edge), so tiles keep ``trace_grid``'s chunks.
+            which points share its image-method calls (measured in the lab:
+            3-6 of 6,144 links differ by a path when 3,072 points are traced
+            in calls of other points), so tiles keep ``trace_grid``'s chunks,
+            and the last full chunk is split between tiles only at
+            image-method call boundaries (:data:`~engine.scaleout.tiles.TAIL_PARTS`).
         checkpoints: the checkpoint folder (None: no checkpoints); finished
             tiles are kept there until the grid is complete.
         progress: tqdm progress bar over tiles.
@@ -134,7 +159,8 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
             (logged when > 0).
         out: also write the grid NPZ there.
         on_tile: called in the client with each finished tile's summary
-            (``index``, ``pid``, ``chains``, ``retries``) as it arrives.
+            (``index``, ``pid``, ``chains``, ``setup_s``, ``trace_s``, ``start``,
+            ``end``: see :func:`~engine.scaleout.tiles.trace_tile`) as it arrives.
 
     Returns:
         The :class:`~engine.raytrace.grid.PathGrid`.
@@ -147,6 +173,7 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
     from distributed import as_completed
     from tqdm import tqdm
 
+    t_start = time.perf_counter()
     config = config or scene.config.tracer
     det = bool(deterministic) if deterministic is not None else False
     chunk = CHAIN_CHUNK_SIZE if chunk_size is None else int(chunk_size)
@@ -158,7 +185,8 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
         raise ValueError(f"tile_size {tile_size}: a tile must be a whole number of chunks "
                          f"({chunk} points), or its points share image-method calls with other "
                          "points than in one process and the paths can differ")
-    plan = plan_grid(scene, tx_names, spacing, height, margin, config, method, tile_size)
+    plan = plan_grid(scene, tx_names, spacing, height, margin, config, method, tile_size,
+                     chunk_size=chunk)
     job = TileJob(scene_folder=str(scene_folder(scene)), scene_hash=scene.content_hash(),
                   config=config, src=plan.src, src_orient=plan.src_orient, deterministic=det,
                   spec_table_size=GRID_SPEC_TABLE_SIZE,
@@ -169,24 +197,28 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
                  verify)
     key = checkpoint_key({**job.settings(), "spacing": float(spacing), "height": plan.height,
                           "margin": float(margin), "tx_names": plan.tx_names,
-                          "points": len(plan.points), "tile_size": plan.tile_size})
+                          "points": len(plan.points), "tile_size": plan.tile_size,
+                          "tail_parts": plan.tail_parts})
     ckpt = TileCheckpoints(checkpoints, key) if checkpoints is not None else None
     tiles = plan.tiles
-    done: dict[int, list[dict]] = {}
+    done: dict[int, tuple[list[int], list[dict]]] = {}  # tile -> (span, parts)
     infos: dict[int, dict] = {}
-    for k, idx in enumerate(tiles):
-        hit = ckpt.load(k, plan.points[idx]) if ckpt else None
+    for k, tile in enumerate(tiles):
+        hit = ckpt.load(k, plan.points[tile.index]) if ckpt else None
         if hit is not None:
-            done[k], infos[k] = hit
+            parts, infos[k] = hit
+            done[k] = (infos[k].get("span", [0, len(tile.index)]), parts)
     resumed = len(done)
     if resumed:
         log.info("resuming: %d of %d tiles from %s", resumed, len(tiles), ckpt.dir)
     workers = len(client.scheduler_info().get("workers", {}))
     log.info("tracing %d x %d grid (%d free points) in %d tiles of %d on %d workers",
              *plan.shape, len(plan.todo), len(tiles), plan.tile_size, workers)
-    futures = [client.submit(trace_tile, job, k, plan.points[idx], pure=False,
-                             key=f"isac-tile-{key}-{k}")
-               for k, idx in enumerate(tiles) if k not in done]
+    t_submit = time.perf_counter()
+    futures = [client.submit(trace_tile, job, k, plan.points[tile.index], tile.part,
+                             tile.parts, pure=False, key=f"isac-tile-{key}-{k}")
+               for k, tile in enumerate(tiles) if k not in done]
+    runs: list[dict] = []
     try:
         with tqdm(total=len(tiles), initial=resumed, unit="tile", desc="grid tiles",
                   disable=not progress) as bar:
@@ -195,23 +227,28 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
                 fut.release()
                 k = res.pop("index")
                 parts = res.pop("parts")
-                info = {"cap": res["cap"], "retries": res["retries"], "chains": res["chains"]}
+                info = {"chains": res["chains"], "span": res.pop("span")}
                 if ckpt:
-                    ckpt.save(k, plan.points[tiles[k]], parts, info)
-                done[k], infos[k] = parts, info
+                    ckpt.save(k, plan.points[tiles[k].index], parts, info)
+                done[k], infos[k] = (info["span"], parts), info
+                runs.append(res)
                 bar.update(1)
                 if on_tile is not None:
                     on_tile({"index": k, **res})
     except BaseException:
         client.cancel(futures)
         raise
-    arrays = assemble(plan, [(tiles[k], done[k]) for k in sorted(done)], max(1, config.max_depth))
+    t_traced = time.perf_counter()
+    pieces = []
+    for k in sorted(done):
+        (a, b), parts = done[k]
+        pieces.append((tiles[k].index[a:b], parts))
+    arrays = assemble(plan, pieces, max(1, config.max_depth))
     meta = grid_metadata(scene, plan, spacing, margin, {
         **dataclasses.asdict(config), "deterministic": det,
-        "max_num_paths_per_src_used": max([int(i["cap"]) for i in infos.values()],
-                                          default=config.max_num_paths_per_src),
-        "chunk_size": chunk,
-        "truncation_retries": sum(int(i["retries"]) for i in infos.values()),
+        # chain reuse: no candidate buffer, nothing to grow (as trace_grid records it)
+        "max_num_paths_per_src_used": config.max_num_paths_per_src,
+        "chunk_size": chunk, "truncation_retries": 0,
         "spec_table_size": GRID_SPEC_TABLE_SIZE, "keep_strongest": job.keep_strongest,
         "method": "chains",
         "chains": {"version": CHAIN_REUSE_VERSION, "rays_per_source": config.samples_per_src,
@@ -220,13 +257,38 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
         {"points": 0, "skipped": "not run on a cluster"})
     meta["scaleout"] = {"tiles": len(tiles), "tile_size": plan.tile_size, "workers": workers,
                         "tiles_resumed": resumed, "tiles_traced": len(tiles) - resumed,
-                        "checkpoint_key": key}
+                        "checkpoint_key": key,
+                        "seconds": {"plan": t_submit - t_start, "trace": t_traced - t_submit,
+                                    "assemble": time.perf_counter() - t_traced},
+                        "worker_runs": worker_runs(runs)}
     grid = PathGrid(meta=meta, arrays=arrays)
     if out is not None:
         save_grid(grid, out)
     if ckpt:
         ckpt.remove()
     return grid
+
+
+def worker_runs(runs: list[dict]) -> list[dict]:
+    """Per worker process, from the tiles it traced (``trace_tile``'s summaries):
+    ``pid``, ``tiles``, ``setup_s`` (scene load, tracer), ``trace_s`` (tracing;
+    its first tile includes enumerating the chains), ``cpu_s`` (the worker
+    process's CPU time in its tiles), ``first_trace_s``,
+    ``idle_end_s`` (from its last tile's end to the last tile's end of any
+    worker: the imbalance at the end), all in seconds."""
+    if not runs:
+        return []
+    end = max(r["end"] for r in runs)
+    out = []
+    for pid in sorted({r["pid"] for r in runs}):
+        mine = sorted((r for r in runs if r["pid"] == pid), key=lambda r: r["start"])
+        out.append({"pid": int(pid), "tiles": len(mine),
+                    "setup_s": round(sum(r["setup_s"] for r in mine), 3),
+                    "trace_s": round(sum(r["trace_s"] for r in mine), 3),
+                    "cpu_s": round(sum(r["cpu_s"] for r in mine), 3),
+                    "first_trace_s": round(mine[0]["trace_s"], 3),
+                    "idle_end_s": round(end - mine[-1]["end"], 3)})
+    return out
 
 
 def assemble(plan: GridPlan, tiles: list[tuple[np.ndarray, list[dict]]],

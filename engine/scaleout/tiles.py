@@ -4,6 +4,10 @@ The client lays out the same raster as :func:`engine.raytrace.grid.trace_grid`
 (:func:`plan_grid`: cell-centred points of the room's bounding box, the free
 ones found by Mitsuba's up/down ray test) and splits the free points, in
 index order, into tiles of ``tile_size`` points (:attr:`GridPlan.tiles`).
+With one-chunk tiles (the default) the last full chunk is handed out last, as
+:data:`TAIL_PARTS` tiles that each trace a share of its image-method calls:
+with whole chunks only, the lab's 5 cm grid (16 chunks and one of 764 points)
+keeps one of 2 workers busy for 8.75 chunks while the other is idle after 8.
 
 A worker traces a tile with :func:`trace_tile`: the scene folder is loaded
 once per worker process and kept with its :class:`~engine.raytrace.chains.ChainTracer`
@@ -41,12 +45,19 @@ import numpy as np
 
 from engine.config import TracerConfig
 from engine.raytrace.base import device_poses, sionna_orientation, validate_poses
-from engine.raytrace.grid import CHAIN_CHUNK_SIZE, GRID_SPEC_TABLE_SIZE, grid_points, sorted_chunk
+from engine.raytrace.chains import MAX_PAIRS_PER_CALL
+from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_ARRAYS, GRID_SPEC_TABLE_SIZE, grid_points,
+                                  sorted_chunk)
 
 log = logging.getLogger(__name__)
 
 #: Dr.Jit worker threads per worker process (one core per worker).
 DEFAULT_WORKER_THREADS = 1
+
+#: The grid's last full chunk is traced as this many tiles, each a share of
+#: its image-method calls (:func:`trace_tile`), so that the end of a build,
+#: when some workers are already idle, waits for smaller tiles.
+TAIL_PARTS = 2
 
 
 @dataclass(frozen=True)
@@ -64,6 +75,8 @@ class TileJob:
         keep_strongest: paths kept per point and transmitter (None: all).
         chunk_size: points per ``ChainTracer.trace`` call.
         worker_threads: Dr.Jit threads of a worker process.
+        max_pairs: ``ChainTracer(max_pairs=...)``, candidate-target pairs per
+            image-method call (``trace_grid``'s tracer uses the default).
     """
 
     scene_folder: str
@@ -76,6 +89,7 @@ class TileJob:
     keep_strongest: int | None = None
     chunk_size: int = CHAIN_CHUNK_SIZE
     worker_threads: int = DEFAULT_WORKER_THREADS
+    max_pairs: int = MAX_PAIRS_PER_CALL
 
     def settings(self) -> dict:
         """Everything that decides a tile's arrays, as JSON-able values (the
@@ -85,7 +99,25 @@ class TileJob:
                 "src_orient": np.round(self.src_orient, 9).tolist(),
                 "deterministic": self.deterministic,
                 "spec_table_size": self.spec_table_size,
-                "keep_strongest": self.keep_strongest, "chunk_size": self.chunk_size}
+                "keep_strongest": self.keep_strongest, "chunk_size": self.chunk_size,
+                "max_pairs": self.max_pairs}
+
+
+@dataclass
+class Tile:
+    """One task: consecutive free points and which share of their image-method
+    calls to trace.
+
+    Attributes:
+        index: ``[T]`` point indices (of :attr:`GridPlan.points`).
+        part, parts: trace the ``part``-th of ``parts`` shares of the calls
+            ``ChainTracer.trace`` makes for these points (``0, 1``: all of them;
+            see :func:`trace_tile`).
+    """
+
+    index: np.ndarray
+    part: int = 0
+    parts: int = 1
 
 
 @dataclass
@@ -99,6 +131,9 @@ class GridPlan:
         origin: ``[2]`` m; shape: ``(nx, ny)``; height: z, m.
         points: ``[N, 3]`` m; free: ``[N]`` bool; todo: ``[F]`` free indices.
         tile_size: free points per tile.
+        chunk_size: free points per ``ChainTracer.trace`` call.
+        tail_parts: tiles the last full chunk is split into when tiles are
+            one chunk (1: not split).
     """
 
     tx_names: list[str]
@@ -112,18 +147,29 @@ class GridPlan:
     free: np.ndarray
     todo: np.ndarray
     tile_size: int
+    chunk_size: int = CHAIN_CHUNK_SIZE
+    tail_parts: int = 1
 
     @property
-    def tiles(self) -> list[np.ndarray]:
-        """Point indices of every tile (consecutive free points)."""
+    def tiles(self) -> list[Tile]:
+        """Every tile, in the order they are handed out: consecutive free
+        points, ``tile_size`` of them; when a tile is one chunk, the last full
+        chunk (or the only one) comes last, as :attr:`tail_parts` tiles."""
         t = self.tile_size
-        return [self.todo[i:i + t] for i in range(0, len(self.todo), t)]
+        tiles = [Tile(self.todo[i:i + t]) for i in range(0, len(self.todo), t)]
+        if self.tail_parts > 1 and t == self.chunk_size and tiles:
+            full = [k for k, x in enumerate(tiles) if len(x.index) == t]
+            last = tiles.pop(full[-1] if full else len(tiles) - 1)
+            tiles += [Tile(last.index, j, self.tail_parts) for j in range(self.tail_parts)]
+        return tiles
 
 
 def plan_grid(scene, tx_names: Sequence[str] | None, spacing: float, height: float | None,
               margin: float, config: TracerConfig, method: str | None,
-              tile_size: int) -> GridPlan:
-    """The raster ``trace_grid`` would trace (same points, same free test).
+              tile_size: int, chunk_size: int = CHAIN_CHUNK_SIZE,
+              tail_parts: int = TAIL_PARTS) -> GridPlan:
+    """The raster ``trace_grid`` would trace (same points, same free test),
+    in tiles of ``tile_size`` free points (see :attr:`GridPlan.tiles`).
 
     Raises:
         ValueError: bad spacing or tile size, no transmitters, a bad pose, or a
@@ -162,7 +208,8 @@ def plan_grid(scene, tx_names: Sequence[str] | None, spacing: float, height: flo
                     src_orient_cfg=orient,
                     src_orient=np.array([sionna_orientation(o) for o in orient]),
                     origin=origin, shape=(nx, ny), height=float(height), points=points,
-                    free=free, todo=np.flatnonzero(free), tile_size=int(tile_size))
+                    free=free, todo=np.flatnonzero(free), tile_size=int(tile_size),
+                    chunk_size=int(chunk_size), tail_parts=max(1, int(tail_parts)))
 
 
 # --------------------------------------------------------------------------- worker side
@@ -202,32 +249,94 @@ def worker_state(job: TileJob):
             "needs the same scene folder (see docs/scaleout.md)")
     core = SolverCore(job.config, deterministic=job.deterministic,
                       spec_table_size=job.spec_table_size)
-    _STATE[key] = (scene, ChainTracer(core))
+    _STATE[key] = (scene, ChainTracer(core, max_pairs=job.max_pairs))
     log.info("worker %d: loaded %s (%s)", os.getpid(), job.scene_folder, have[:12])
     return _STATE[key]
 
 
-def trace_tile(job: TileJob, index: int, points: np.ndarray) -> dict:
+def trace_tile(job: TileJob, index: int, points: np.ndarray, part: int = 0,
+               parts: int = 1) -> dict:
     """Trace one tile in this worker process.
 
     Args:
         job: the grid's shared settings.
         index: the tile's number (returned, for the client's bookkeeping).
         points: ``[T, 3]`` m receiver positions (free points).
+        part, parts: with ``parts > 1`` the points are one chunk
+            (``job.chunk_size`` points or fewer) and only the ``part``-th of
+            ``parts`` shares of the image-method calls ``ChainTracer.trace``
+            makes for the chunk (:func:`image_method_calls`) is traced: the
+            same calls with the same (chain, point) pairs as in one process,
+            so the same paths (a point's paths can depend on which points share
+            its call); a share can be empty.
 
     Returns:
-        ``{"index", "parts": [dict of [t, S, P] arrays as sorted_chunk returns],
-        "cap", "retries", "chains", "pid"}``.
+        ``{"index", "span": [a, b] (the points traced: points[a:b]), "parts":
+        [dict of [t, S, P] arrays as sorted_chunk returns, in the grid file's
+        dtypes], "chains", "pid", "setup_s", "trace_s", "start", "end",
+        "cpu_s"}``:
+        ``setup_s`` loading the scene and building the tracer (0 once this
+        process has them), ``trace_s`` tracing the tile (the first tile of a
+        process includes enumerating the chains), ``start``/``end``
+        wall-clock (``time.time()``) of the task, ``cpu_s`` the process's CPU
+        time in it (less than the wall time when the cores are shared).
     """
+    import time
+
+    start, t, cpu = time.time(), time.perf_counter(), time.process_time()
     scene, ct = worker_state(job)
-    parts = []
-    for start in range(0, len(points), job.chunk_size):
-        raw = ct.trace(scene.sionna, job.src, points[start:start + job.chunk_size],
+    t_setup = time.perf_counter()
+    a, b = 0, len(points)
+    if parts > 1:
+        if len(points) > job.chunk_size:
+            raise ValueError(f"tile {index}: {len(points)} points in {parts} parts; a tile "
+                             f"traced in parts is one chunk (at most {job.chunk_size} points)")
+        if ct.store is None:
+            # a fresh tracer's first trace enumerates the chains (and would drop
+            # what a prepare() before it enumerated)
+            ct.trace(scene.sionna, job.src, points[:1], source_orientations=job.src_orient)
+        per = ct.prepare(scene.sionna, job.src, points)
+        calls = image_method_calls([len(p) for p in per], ct.max_pairs)
+        lo, hi = part * len(calls) // parts, (part + 1) * len(calls) // parts
+        a, b = (calls[lo][0], calls[hi - 1][1]) if hi > lo else (0, 0)
+    out = []
+    for i in range(a, b, job.chunk_size):
+        raw = ct.trace(scene.sionna, job.src, points[i:min(b, i + job.chunk_size)],
                        source_orientations=job.src_orient)
-        parts.append(sorted_chunk(raw, job.keep_strongest))
-    return {"index": int(index), "parts": parts, "cap": int(job.config.max_num_paths_per_src),
-            "retries": 0,
-            "chains": len(ct.store) if ct.store is not None else 0, "pid": os.getpid()}
+        out.append(storage_dtypes(sorted_chunk(raw, job.keep_strongest)))
+    t_end = time.perf_counter()
+    return {"index": int(index), "span": [int(a), int(b)], "parts": out,
+            "chains": len(ct.store) if ct.store is not None else 0, "pid": os.getpid(),
+            "setup_s": t_setup - t, "trace_s": t_end - t_setup, "start": start,
+            "end": start + (t_end - t), "cpu_s": time.process_time() - cpu}
+
+
+def image_method_calls(pairs: Sequence[int], max_pairs: int) -> list[tuple[int, int]]:
+    """The target ranges ``[(a, b), ...]`` of the image-method calls that
+    ``ChainTracer.trace`` makes for targets with ``pairs[t]`` candidate chains
+    each: consecutive targets, a new call when the next target would take the
+    call above ``max_pairs`` pairs (a single target may exceed it). Traced from
+    a call's first target on, ``ChainTracer.trace`` makes the same calls again
+    (``tests/engine/scaleout/test_tiles.py`` checks it against the tracer).
+    """
+    calls, a, size = [], 0, 0
+    for t, n in enumerate(pairs):
+        if t > a and size + n > max_pairs:
+            calls.append((a, t))
+            a, size = t, 0
+        size += int(n)
+    if len(pairs):
+        calls.append((a, len(pairs)))
+    return calls
+
+
+def storage_dtypes(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A :func:`~engine.raytrace.grid.sorted_chunk` part cast to the dtypes of
+    the grid file (:data:`~engine.raytrace.grid.GRID_ARRAYS`: ``a`` complex64,
+    angles float32, ``interactions`` uint8), as the assembly casts it anyway:
+    the same values, ~30 % fewer bytes to send and to checkpoint."""
+    return {k: v.astype(GRID_ARRAYS[k][0], copy=False) if k in GRID_ARRAYS else v
+            for k, v in part.items()}
 
 
 def scene_folder(scene) -> Path:

@@ -42,8 +42,8 @@ def assert_equal_grids(ref, got):
         assert ref.meta[k] == got.meta[k], k
 
 
-def tiled(scene, client, **kw):
-    return trace_grid_tiled(scene, spacing=SPACING, client=client, tile_size=TILE,
+def tiled(scene, client, tile_size=TILE, **kw):
+    return trace_grid_tiled(scene, spacing=SPACING, client=client, tile_size=tile_size,
                             chunk_size=CHUNK, progress=False, **kw)
 
 
@@ -55,12 +55,33 @@ def test_tiled_grid_and_database_equal_the_single_process_ones(room_scene, singl
     so = got.meta["scaleout"]
     assert so["tiles"] == len(range(0, int(single_grid.free.sum()), TILE)) > 4
     assert so["workers"] == 2 and so["tiles_traced"] == so["tiles"]
+    runs = so["worker_runs"]  # where the time went, per worker process
+    assert sum(r["tiles"] for r in runs) == so["tiles"]
+    assert all(r["trace_s"] > 0 and r["cpu_s"] > 0 and r["idle_end_s"] >= 0 for r in runs)
+    assert min(r["idle_end_s"] for r in runs) == 0.0
+    assert set(so["seconds"]) == {"plan", "trace", "assemble"}
     assert_equal_grids(single_grid, got)
     # every worker enumerated the chains the single process enumerated
     assert got.meta["tracer"]["chains"]["chains"] == single_grid.meta["tracer"]["chains"]["chains"]
     da, db = from_grid(single_grid, room_scene), from_grid(got, room_scene)
     for k, v in da.arrays.items():
         np.testing.assert_allclose(db.arrays[k], v, rtol=1e-5, equal_nan=True, err_msg=k)
+
+
+def test_local_workers_import_the_tracer_stack_at_start_up(client):
+    def state(dask_worker):
+        import sys
+
+        import dask
+        import drjit as dr
+
+        return ([p.name for p in dask_worker.preloads], "sionna.rt" in sys.modules,
+                dr.thread_count(), dask.config.get("distributed.worker.profile.enabled"))
+
+    for preloads, sionna_imported, threads, profiler in client.run(state).values():
+        assert preloads == ["engine.scaleout.preload"]
+        assert sionna_imported and threads == 1
+        assert profiler is False
 
 
 def test_a_killed_worker_loses_no_tile(room_scene, single_grid, client):
@@ -83,23 +104,27 @@ def test_a_killed_worker_loses_no_tile(room_scene, single_grid, client):
 
 def test_an_interrupted_build_resumes_with_the_missing_tiles(room_scene, single_grid, client,
                                                              tmp_path):
+    # one-chunk tiles: the last full chunk is two tiles (shares of its
+    # image-method calls), whose spans go through the checkpoint files too
     ckpt = checkpoint_dir(tmp_path / "grid.npz")
+    n_tiles = -(-int(single_grid.free.sum()) // CHUNK) + 1
     seen = []
 
     def interrupt(tile):
         seen.append(tile["index"])
-        if len(seen) == 2:
+        if len(seen) == n_tiles - 2:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        tiled(room_scene, client, checkpoints=ckpt, on_tile=interrupt)
+        tiled(room_scene, client, tile_size=CHUNK, checkpoints=ckpt, on_tile=interrupt)
     files = sorted(ckpt.rglob("tile-*.npz"))
-    assert len(files) == 2
+    assert len(files) == n_tiles - 2
     traced = []
-    got = tiled(room_scene, client, checkpoints=ckpt, out=tmp_path / "grid.npz",
-                on_tile=lambda t: traced.append(t["index"]))
+    got = tiled(room_scene, client, tile_size=CHUNK, checkpoints=ckpt,
+                out=tmp_path / "grid.npz", on_tile=lambda t: traced.append(t["index"]))
     so = got.meta["scaleout"]
-    assert so["tiles_resumed"] == 2 and so["tiles_traced"] == so["tiles"] - 2
+    assert so["tiles"] == n_tiles
+    assert so["tiles_resumed"] == n_tiles - 2 and so["tiles_traced"] == 2
     assert sorted(traced) == sorted(set(range(so["tiles"])) - set(seen))
     assert_equal_grids(single_grid, got)
     assert not ckpt.exists()  # removed once the grid file is written
