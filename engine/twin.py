@@ -135,6 +135,11 @@ class Twin:
       estimator that needs pilots: :meth:`engine.bus.Bus.has_subscribers`); the
       PHY keeps one channel per symbol group and
       :attr:`~engine.phy.network.LinkSignal.h` expands it only when read.
+    * Scan consumers -- the ray-cast sensors (``/<robot>/scan``,
+      ``/<robot>/camera/depth``) are rendered only while something subscribes to
+      their topic; a skipped scan advances the sensor's schedule and noise stream
+      as if taken, so a subscriber gets the same scans whenever it arrives
+      (:class:`~engine.robots.agent.RobotAgent` ``render_unheard``).
     """
 
     def __init__(self, scene: TwinScene, *, seed: int = 0, dt: float = 0.05,
@@ -200,7 +205,7 @@ class Twin:
     def _build_agents(self) -> None:
         self.bus = Bus()
         self.agents = build_robots(self.config, self.bus, self.scene, seed=self.seed,
-                                   options=self.sensor_options)
+                                   options=self.sensor_options, render_unheard=False)
         for name, agent in self.agents.items():
             # The robot's radio is a sensor too: the CSI of every link it receives.
             agent.topics["csi"] = f"/{name}/csi"

@@ -77,11 +77,23 @@ class RobotAgent:
         seed: one seed; the robot and each sensor derive their own streams from it.
         options: :class:`SensorOptions`.
         frame_prefix: prefix of its frame ids (``"robot1/"``; see :mod:`engine.frames`).
+        render_unheard: ray cast the scene sensors (LiDAR, depth camera) even when
+            nobody subscribes to their topic. ``False`` (the twin's choice, issue
+            #19): a due scan nobody receives (:meth:`engine.bus.Bus.has_subscribers`)
+            is skipped (:meth:`~engine.robots.sensors.Sensor.skip`: schedule and
+            noise stream advance as if sampled, so a subscriber arriving later gets
+            the very scans an always-rendering agent publishes) and is neither
+            published nor in :attr:`last`.
     """
 
+    #: topic keys of the sensors that ray cast into the scene (see ``render_unheard``)
+    SCENE_SENSORS = ("scan", "camera/depth")
+
     def __init__(self, name: str, model: str, pose, bus: Bus, scene=None, *, seed: int = 0,
-                 options: SensorOptions | None = None, frame_prefix: str = ""):
+                 options: SensorOptions | None = None, frame_prefix: str = "",
+                 render_unheard: bool = True):
         self.name = name
+        self.render_unheard = bool(render_unheard)
         self.frames = RobotFrames(frame_prefix)
         self.spec = robot_spec(model)
         opt = options or SensorOptions()
@@ -204,6 +216,10 @@ class RobotAgent:
         ``out`` and remember it as the last messages; returns ``out``."""
         for key, sensor in sensors:
             if sensor is not None and key in self.topics:
+                if (not self.render_unheard and key in self.SCENE_SENSORS
+                        and not self.bus.has_subscribers(self.topics[key])):
+                    sensor.skip(t, st)
+                    continue
                 m = sensor.poll(t, st)
                 if m is not None:
                     out[key] = m
@@ -253,13 +269,15 @@ def _name_key(name: str) -> int:
 
 
 def build_robots(config, bus: Bus, scene=None, *, seed: int = 0,
-                 options: SensorOptions | None = None) -> dict[str, RobotAgent]:
+                 options: SensorOptions | None = None,
+                 render_unheard: bool = True) -> dict[str, RobotAgent]:
     """A :class:`RobotAgent` for each ``robot`` device of a twin config.
 
     Args:
         config: :class:`~engine.config.TwinConfig`.
         bus: where the agents' nodes register.
         scene: :class:`~engine.scene.TwinScene` for LiDAR/camera, or ``None``.
+        render_unheard: see :class:`RobotAgent`.
     """
     agents = {}
     robots = [d for d in config.devices if d.kind == "robot"]
@@ -267,6 +285,7 @@ def build_robots(config, bus: Bus, scene=None, *, seed: int = 0,
         pose = (*d.position, *d.orientation)
         agents[d.name] = RobotAgent(d.name, d.model or "burger", pose, bus, scene, seed=seed,
                                     options=options,
-                                    frame_prefix=robot_prefix(d.name, len(robots)))
+                                    frame_prefix=robot_prefix(d.name, len(robots)),
+                                    render_unheard=render_unheard)
         log.info("robot %s (%s) at %s", d.name, d.model, d.position)
     return agents

@@ -81,15 +81,40 @@ class Sensor:
         if not self.due(t):
             return None
         msg = self.measure(t, state)
+        self._advance(t)
+        return msg
+
+    def _advance(self, t: float) -> None:
+        """Schedule the next sample after one taken (or skipped) at ``t``."""
         self._next_t = (t if self._next_t is None else self._next_t) + self.period
         if self._next_t <= t:  # fell behind (twin step > period): resynchronise
             self._next_t = t + self.period
         self.last_t = t
-        return msg
+
+    def skip(self, t: float, state: KinematicState) -> bool:
+        """Let a due sample pass unrendered: the schedule and the noise stream
+        advance exactly as :meth:`poll` would advance them (:meth:`discard`), so
+        every later sample equals the one an always-polled sensor gives. For a
+        sample nobody receives (issue #19: a ray-cast scan costs ~2 ms).
+
+        Returns:
+            Whether a sample was due (and passed).
+        """
+        if not self.due(t):
+            return False
+        self.discard(t, state)
+        self._advance(t)
+        return True
 
     def measure(self, t: float, state: KinematicState):
         """Take a sample now, regardless of the rate. Subclasses implement it."""
         raise NotImplementedError
+
+    def discard(self, t: float, state: KinematicState) -> None:
+        """What :meth:`measure` does to the sensor's state (random draws, filters)
+        without forming the message; the default measures and drops it.
+        Subclasses with a costly measurement override it."""
+        self.measure(t, state)
 
 
 # --------------------------------------------------------------------------- wheels
@@ -412,6 +437,14 @@ class Lidar2D(Sensor):
         R = state.rotation()
         return state.pose[:3] + R @ self.mount, self._dirs_local @ R.T
 
+    def discard(self, t: float, state: KinematicState) -> None:
+        """The random draws of :meth:`measure` (dropout, then range noise: a fixed
+        count per scan whatever the hits), without the ray cast."""
+        if self.dropout > 0:
+            self.rng.random(self.num_beams)
+        if self.range_noise_rel > 0 or self.range_noise_abs > 0:
+            self.rng.standard_normal(self.num_beams)
+
     def measure(self, t: float, state: KinematicState) -> LaserScan:
         origin, dirs = self.rays(state)
         d, valid, cos_inc = cast_rays(self.scene, origin, dirs)
@@ -475,6 +508,15 @@ class DepthCamera(Sensor):
         if not self.enabled:
             return None
         return super().poll(t, state)
+
+    def skip(self, t: float, state: KinematicState) -> bool:
+        return self.enabled and super().skip(t, state)
+
+    def discard(self, t: float, state: KinematicState) -> None:
+        """The random draws of :meth:`measure` (depth noise, one per pixel),
+        without the ray cast."""
+        if self.depth_noise_rel > 0:
+            self.rng.standard_normal(self.height * self.width)
 
     def measure(self, t: float, state: KinematicState) -> Image:
         R = state.rotation()

@@ -296,6 +296,7 @@ def test_csi_is_built_only_for_consumers_and_records_the_same(lab, tmp_path):
 
     tw, res = _run(lab, 2)
     assert tw.bus.registry().topic("/robot1/csi").messages == 0
+    assert tw.bus.registry().topic("/robot1/scan").messages == 0  # nor scans (no subscriber)
     sig = res[-1].signals[("AP1", "robot1")]
     assert sig.time_invariant and sig.h_by_group.shape == (2, 1024, 2, 4)
     assert "h" not in vars(sig)  # not expanded: nobody read it

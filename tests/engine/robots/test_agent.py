@@ -83,6 +83,48 @@ def test_agent_without_noise_is_exact(scene):
     assert np.all(np.isfinite(scans[-1]))
 
 
+def test_unheard_scans_are_skipped_and_a_late_subscriber_gets_the_same(scene):
+    """Issue 19: with ``render_unheard=False`` (the twin's agents) a scan nobody
+    subscribes to is not cast nor published; a subscriber arriving mid-run gets
+    exactly the scans of an agent that rendered every one."""
+    def agent(render_unheard):
+        bus = Bus()
+        a = RobotAgent("tb", "burger", (5.5, 3.0, 0.0, 0.0, 0.0, math.pi / 2), bus, scene,
+                       seed=5, options=SensorOptions(camera=True),
+                       render_unheard=render_unheard)
+        a.drive(PurePursuit(CirclePath((4, 3), 1.5), "burger"))
+        return a, bus
+
+    ref, ref_bus = agent(True)
+    lazy, lazy_bus = agent(False)
+    want = ref_bus.node("viewer").subscribe("/tb/scan", "sensor_msgs/msg/LaserScan")
+    cam = ref_bus.node("cam").subscribe("/tb/camera/depth", "sensor_msgs/msg/Image")
+    for k in range(20):
+        ref.step((k + 1) * 0.05, 0.05)
+        lazy.step((k + 1) * 0.05, 0.05)
+    reg = lazy_bus.registry()
+    assert reg.topic("/tb/scan").messages == 0 and reg.topic("/tb/camera/depth").messages == 0
+    assert "scan" not in lazy.last and "camera/depth" not in lazy.last
+    assert reg.topic("/tb/odom").messages == 20  # the other sensors publish as before
+    got = lazy_bus.node("viewer").subscribe("/tb/scan", "sensor_msgs/msg/LaserScan")
+    got_cam = lazy_bus.node("cam").subscribe("/tb/camera/depth", "sensor_msgs/msg/Image")
+    want.drain(), cam.drain()
+    for k in range(20, 60):
+        ref.step((k + 1) * 0.05, 0.05)
+        lazy.step((k + 1) * 0.05, 0.05)
+    a, b = want.drain(), got.drain()
+    assert len(a) == len(b) >= 10
+    for m, g in zip(a, b):
+        assert m.header.stamp == g.header.stamp
+        np.testing.assert_array_equal(m.ranges, g.ranges)
+        np.testing.assert_array_equal(m.intensities, g.intensities)
+    a, b = cam.drain(), got_cam.drain()
+    assert len(a) == len(b) >= 10
+    for m, g in zip(a, b):
+        np.testing.assert_array_equal(m.data, g.data)
+    np.testing.assert_array_equal(ref.state.pose, lazy.state.pose)
+
+
 def test_cmd_vel_from_another_node_drives_the_robot(scene):
     bus = Bus()
     agent = RobotAgent("tb", "waffle", (2.0, 1.0, 0.0), bus, None,
