@@ -47,7 +47,10 @@ from engine.state import Command, Edit, LinkState, RobotState, StepResult
 
 log = logging.getLogger(__name__)
 
-STAGES = ("agents", "trace", "phy", "sense", "estimate", "control")
+#: The timed stages of :meth:`Twin.step`: agents (motion, sensors, their topics,
+#: ``/tf``), trace, phy, publish (the step's result and the CSI for its
+#: subscribers, e.g. a recorder), sense (``[[sensing]]`` radar), estimate, control.
+STAGES = ("agents", "trace", "phy", "publish", "sense", "estimate", "control")
 
 #: Largest mesh an ``add`` edit may name, bytes.
 MAX_EDIT_MESH_BYTES = 32 * 1024 * 1024
@@ -634,6 +637,7 @@ class Twin:
                 agent.node.publish(agent.topics["csi"], Csi(
                     header=Header(stamp=t_next, frame_id=rx), tx=tx, rx=rx, h=sig.h))
         t_sense = clock()
+        timings["publish"] = t_sense - t3
         if self.radar is not None:
             self.radar(self, result)
         timings["sense"] = clock() - t_sense

@@ -286,6 +286,25 @@ def test_paced_run_names_the_stage_of_each_overrun(lab):
         list(tw.run(1, rate_hz=0))
 
 
+def test_a_slow_csi_consumer_is_timed_and_named_as_the_publish_stage(lab):
+    """The step's result and its CSI publication (a recorder's synchronous
+    callback) are a timed stage, ``publish``: an overrun there is named so, not
+    charged to another stage (issue #19; before, that time was in no stage)."""
+    import time
+
+    from engine.twin import STAGES
+
+    tw = Twin.from_scene(lab, seed=1, sensing=False)
+    tw.step()  # compiles the tracer's kernels
+    tw.bus.node("slow_recorder").subscribe(
+        "/robot1/csi", "isac_twin_msgs/msg/Csi",
+        lambda m: time.sleep(0.4) if m.tx == "AP1" else None)
+    res = list(tw.run(2, rate_hz=4.0))  # 250 ms period: the callback overruns it
+    assert "publish" in STAGES and all(r.timings_s["publish"] >= 0.4 for r in res)
+    assert tw.stats.stage_s["publish"] >= 0.8
+    assert tw.stats.overrun_stages == {"publish": 2}
+
+
 def test_csi_is_built_only_for_consumers_and_records_the_same(lab, tmp_path):
     """Issue 19: without a subscriber to ``/<robot>/csi`` the twin publishes no CSI and
     the PHY does not expand the channel over the symbols (one value per symbol
