@@ -219,27 +219,33 @@ def run_robots_variant(counts, steps: int, warmup: int, split: bool = False) -> 
                 for _ in tw.run(warmup):
                     pass
                 tw.stats = type(tw.stats)()
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 for res in tw.run(steps):
                     pass
                 wall = time.perf_counter() - t0
+                # (getattr: the same bench also measures an older engine as baseline)
+                cpu = getattr(tw.stats, "stage_cpu_s", {})
                 row[label] = dict(steps_s=steps / wall, ms=1e3 * wall / steps,
-                                  stage={st: 1e3 * tw.stats.stage_s[st] / steps
-                                         for st in STAGES})
+                                  proc_cpu=1e3 * (time.process_time() - c0) / steps,
+                                  stage={st: 1e3 * tw.stats.stage_s.get(st, 0.0) / steps
+                                         for st in STAGES},
+                                  cpu={st: 1e3 * cpu.get(st, float("nan")) / steps
+                                       for st in STAGES})
                 print(f"== {n} robots ({links} links), {label} PHY, {steps} steps\n"
                       f"{tw.stats.table()}", flush=True)
             paths = {lk: ls.paths for lk, ls in res.links.items()}
-            sig, replay = {}, {}
+            sig, replay, replay_cpu = {}, {}, {}
             for method in ("batched", "fast"):
                 phy = NetworkPHY(tw.config, method=method)
                 sig[method] = phy(paths)
-                ts = []
+                ts, cs = [], []
                 for _ in range(5):
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     phy(paths)
                     ts.append(1e3 * (time.perf_counter() - t0))
-                replay[method] = min(ts)
-            row["replay"] = replay
+                    cs.append(1e3 * (time.process_time() - c0))
+                replay[method], replay_cpu[method] = min(ts), min(cs)
+            row["replay"], row["replay_cpu"] = replay, replay_cpu
             if split:
                 tw.phy = NetworkPHY(tw.config)
                 row["split"] = profile_split(tw, steps)
@@ -260,6 +266,16 @@ def run_robots_variant(counts, steps: int, warmup: int, split: bool = False) -> 
               f"{b['steps_s'] / p['steps_s']:6.2f}x | "
               f"{r['replay']['batched']:6.1f}/{r['replay']['fast']:6.1f} "
               f"{r['replay']['fast'] / r['replay']['batched']:5.2f}x {r['rate_diff']:9.1e}")
+    print("\nthe stepping thread's CPU ms/step (robust to a shared machine's load; "
+          "the trace's Dr.Jit kernel threads not counted), batched PHY | PHY replay "
+          "process CPU ms, batched / per-link:")
+    print(f"{'robots':>6} " + " ".join(f"{st:>8}" for st in STAGES) + f" {'total':>8} | "
+          f"{'replay':>14} | {'process CPU ms/step':>19}")
+    for r in rows:
+        c = r["batched"]["cpu"]
+        print(f"{r['n']:6d} " + " ".join(f"{c[st]:8.2f}" for st in STAGES)
+              + f" {sum(c.values()):8.2f} | {r['replay_cpu']['batched']:6.1f}/"
+              f"{r['replay_cpu']['fast']:6.1f} | {r['batched']['proc_cpu']:19.1f}")
     if split:
         print(f"\nparts of a step under cProfile (batched PHY, {steps} steps; ms/step, "
               "per robot in brackets; parts nest, stages are the twin's own clock):")
