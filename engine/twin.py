@@ -39,7 +39,7 @@ from engine.phy.network import NetworkPHY
 from engine.phy.patterns import AntennaPatterns
 from engine.pose import DevicePose, antenna_pose
 from engine.raytrace import make_tracer
-from engine.robots import SensorOptions, build_robots
+from engine.robots import SensorOptions, build_robots, cast_scans
 from engine.robots.control import PathError, controller_from_spec
 from engine.room import ROBOT_BODY_HEIGHT_M, path_obstruction
 from engine.scene import BOUNDS_TOLERANCE_M, TwinScene, load_scene
@@ -616,9 +616,14 @@ class Twin:
         for name, agent in self.agents.items():
             source = self.state_sources.get(name)
             if source is None:
-                agent.step(t_next, self.dt, control=False)
+                agent.advance(self.dt)
             else:
-                agent.place(source(t_next, self.dt), t_next)
+                agent.set_state(source(t_next, self.dt))
+        # every robot's due LiDAR / depth scans in one ray cast, then each robot
+        # publishes its sensors (robot by robot, as RobotAgent.step would)
+        hits = cast_scans(self.agents.values(), t_next)
+        for name, agent in self.agents.items():
+            agent.sense(t_next, placed=name in self.state_sources, hits=hits.get(name))
         self._publish_frames(t_next)
         clock.mark("agents")
         if self.trace_schedule is None or self.trace_schedule(self.step_index):

@@ -49,7 +49,8 @@ def test_step_produces_paths_rates_and_motion(lab):
     assert last.links[("AP1", "robot1")].rate_bps > last.links[("AP2", "robot1")].rate_bps
     sig = last.signals[("AP1", "robot1")]
     assert sig.h.shape == (14, 1024, 2, 4)
-    assert set(last.timings_s) == {"agents", "trace", "phy", "sense", "estimate", "control"}
+    assert set(last.timings_s) == {"agents", "trace", "phy", "publish", "sense", "estimate",
+                                   "control"}
     # The robot's radio publishes the CSI of each link it receives, as a sensor.
     sub = tw.bus.node("probe").subscribe("/robot1/csi", "isac_twin_msgs/msg/Csi")
     nxt = tw.step()
