@@ -208,7 +208,7 @@ class RobotAgent:
         out = []
         for key, sensor in (("scan", self.lidar), ("camera/depth", self.camera)):
             if (sensor is not None and key in self.topics and self._renders(key)
-                    and sensor.due(t) and not (key == "camera/depth" and not sensor.enabled)):
+                    and getattr(sensor, "enabled", True) and sensor.due(t)):
                 out.append((key, sensor))
         return out
 
