@@ -377,6 +377,47 @@ class NetworkPHY:
             self._cache[key] = (group, masks, counts.astype(float), times, span)
         return self._cache[key]
 
+    def _layout(self, txs: tuple, invariant: bool, batched: bool) -> dict:
+        """What the allocations fix for a step of transmitters ``txs`` (cached:
+        masks and powers come from the config): ``masks {tx: [G, N]}``, ``g`` (G),
+        ``every`` (``arange(G)``), ``rows {tx: [R]}`` (the symbols or groups a
+        transmitter's channels are needed on: its own, when batched), ``overlap
+        {(a, b): bool}`` and per transmitter ``tx {tx: (full, idx, idx_c, wts,
+        total W, count)}``: whether it has the whole grid, its flat REs on the
+        grid and on its rows (None when full), the symbols each RE stands for
+        (time-invariant steps), its power budget and its RE count."""
+        key = ("layout", txs, invariant, batched)
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        k_, n_ = self.grid.shape
+        if invariant:
+            _, masks, weights_g, _, _ = self._groups(txs)
+        else:
+            masks, weights_g = {tx: self.masks[tx] for tx in txs}, None
+        g_ = next(iter(masks.values())).shape[0] if masks else k_
+        every = np.arange(g_)
+        rows = {tx: (np.flatnonzero(masks[tx].any(axis=1)) if batched else every)
+                for tx in txs}
+        per_tx = {}
+        for tx in txs:
+            mask = masks[tx]
+            full = bool(mask.all())
+            idx = None if full else np.flatnonzero(mask)  # REs on the grid [G * N]
+            idx_c = None if full else np.flatnonzero(mask[rows[tx]])  # REs of h's rows
+            wts = None
+            if invariant:
+                wts = np.repeat(weights_g, n_) if full else weights_g[idx // n_]
+            for arr in (idx, idx_c, wts):  # shared by every step: read-only
+                if arr is not None:
+                    arr.flags.writeable = False
+            per_tx[tx] = (full, idx, idx_c, wts, float(dbm_to_watt(self.devices[tx].power_dbm)),
+                          int(self.masks[tx].sum()))
+        lay = dict(masks=masks, g=g_, every=every, rows=rows, tx=per_tx,
+                   overlap={(a, b): bool((masks[a] & masks[b]).any()) for a in txs for b in txs})
+        self._cache[key] = lay
+        return lay
+
     def max_doppler_phase(self, link_paths: dict) -> float:
         """Largest Doppler phase drift within a symbol group,
         ``2 pi max|nu| max_k |t_k - t_mean(group of k)|`` [rad] (with one group,
@@ -406,18 +447,12 @@ class NetworkPHY:
             # first-order Doppler error cancels within the group); every per-RE
             # quantity is computed once per (group, subcarrier), weighted by the
             # number of symbols in the group.
-            group, masks, weights_g, times, _ = self._groups(txs)
+            group, _, _, times, _ = self._groups(txs)
         else:
-            times = None
-            masks = {tx: self.masks[tx] for tx in txs}
-            group = None
-            weights_g = None
-        g_ = next(iter(masks.values())).shape[0] if masks else k_
-        every = np.arange(g_)
-        # The symbols (groups) each transmitter uses: its links' channels are
-        # needed there only (by its own rate and as interference).
-        rows = {tx: (np.flatnonzero(masks[tx].any(axis=1)) if batched else every)
-                for tx in txs}
+            times = group = None
+        lay = self._layout(txs, invariant, batched)
+        masks, g_, every, rows, overlap = (lay["masks"], lay["g"], lay["every"], lay["rows"],
+                                           lay["overlap"])
         if batched:
             h, rest = self._channels(link_paths, times, {lk: rows[lk[0]] for lk in link_paths})
         else:
@@ -432,7 +467,6 @@ class NetworkPHY:
 
         # Precoders are formed where a link interferes at another receiver (its
         # precoder aims at its own); elsewhere only on request.
-        overlap = {(a, b): bool((masks[a] & masks[b]).any()) for a in txs for b in txs}
         need_w = {(tx2, rx2) for (tx, rx) in h for (tx2, rx2) in h
                   if tx2 != tx and rx2 != rx and (tx2, rx) in h and overlap[(tx, tx2)]}
 
@@ -445,19 +479,12 @@ class NetworkPHY:
         side = {}
         for lks in buckets.values():
             tx = lks[0][0]
-            mask = masks[tx]
-            full = bool(mask.all())
-            idx = None if full else np.flatnonzero(mask)  # REs on the grid [G * N]
-            idx_c = None if full else np.flatnonzero(mask[rows[tx]])  # REs of h's rows
+            full, idx, idx_c, wts, total, count = lay["tx"][tx]
             hms = [gather(h[lk], idx_c, full) for lk in lks]
             hm = hms[0] if len(hms) == 1 else np.concatenate(hms)
             r_ = hms[0].shape[0]
-            wts = None
-            if invariant:
-                wts = np.repeat(weights_g, n_) if full else weights_g[idx // n_]
             nr, nt = hm.shape[1], hm.shape[2]
             s = min(nr, nt)
-            total = float(dbm_to_watt(self.devices[tx].power_dbm))
             if self.precoding == "per_re":
                 w, lam, f1 = svd_streams(hm, s, precoders=any(lk in need_w for lk in lks))
                 if w is None:  # the same call with precoders, on request
@@ -469,7 +496,6 @@ class NetworkPHY:
                 w = np.concatenate([np.broadcast_to(w0, (r_, nt, s)) for w0 in w0s])
                 f1 = hd @ w
                 lam = np.sum(np.abs(f1) ** 2, axis=1)
-            count = int(self.masks[tx].sum())
             if self.power_allocation == "waterfilling":
                 # each link its own budget: one row per link, in one sort
                 pw = None if wts is None else np.broadcast_to(wts[:, None], (r_, s)).reshape(-1)
