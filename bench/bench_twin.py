@@ -21,6 +21,7 @@ on time.
 
     .venv/bin/python bench/bench_twin.py [--quick] [--steps 40] [--grid FILE]
     .venv/bin/python bench/bench_twin.py --robots 1,2,4,8,16   # batched vs per-link PHY
+    .venv/bin/python bench/bench_twin.py --robots 1,4,16 --split  # + the parts of a step
     .venv/bin/python bench/bench_twin.py --polarization VH    # VH access points vs V
 
 ``--polarization P``: the lab with both access points' arrays set to ``P``
@@ -146,7 +147,51 @@ radius = {path["radius"]}
     return folder
 
 
-def run_robots_variant(counts, steps: int, warmup: int) -> dict:
+#: ``--split``: the parts of a step timed by profiling (cumulative time of these
+#: functions; parts nest: ``bus publish`` includes the ``/tf`` publication of
+#: ``tf frames`` and any synchronous subscriber, e.g. a recorder).
+def split_parts() -> dict:
+    from engine.bus import Node
+    from engine.robots.agent import RobotAgent
+    from engine.robots.kinematics import DiffDriveRobot
+    from engine.robots.sensors import (DepthCamera, ImuSensor, Lidar2D, WheelEncoders,
+                                       WheelOdometry)
+
+    return {"kinematics": [DiffDriveRobot.step],
+            "controllers": [RobotAgent.control],
+            "lidar": [Lidar2D.measure, Lidar2D.discard],
+            "camera": [DepthCamera.measure, DepthCamera.discard],
+            "imu": [ImuSensor.measure],
+            "odometry": [WheelEncoders.measure, WheelOdometry.update],
+            "bus publish": [Node.publish],
+            "tf frames": [Twin._publish_frames],
+            "device poses": [Twin.device_poses]}
+
+
+def profile_split(tw: Twin, steps: int) -> dict:
+    """Run ``steps`` more steps under cProfile -> ``{part: ms per step}`` for
+    :func:`split_parts` plus the twin's stages (from its own clock, inflated by
+    the profiler like the parts)."""
+    import cProfile
+    import pstats
+
+    tw.stats = type(tw.stats)()
+    prof = cProfile.Profile()
+    prof.enable()
+    for _ in tw.run(steps):
+        pass
+    prof.disable()
+    table = pstats.Stats(prof).stats  # (file, line, name) -> (cc, nc, tt, ct, callers)
+    out = {}
+    for part, fns in split_parts().items():
+        keys = [(f.__code__.co_filename, f.__code__.co_firstlineno, f.__code__.co_name)
+                for f in fns]
+        out[part] = 1e3 * sum(table[k][3] for k in keys if k in table) / steps
+    out.update({f"stage {st}": 1e3 * tw.stats.stage_s[st] / steps for st in STAGES})
+    return out
+
+
+def run_robots_variant(counts, steps: int, warmup: int, split: bool = False) -> dict:
     """The lab with n robots (2n downlinks) for each n of ``counts``, sensing off.
 
     Per n, one twin runs ``steps`` steps with the default (batched) PHY, then the
@@ -154,7 +199,9 @@ def run_robots_variant(counts, steps: int, warmup: int) -> dict:
     the loop before issue #19): steps/s and per-stage ms of both, the PHY alone
     replayed on the last step's paths (batched vs per-link, min of 5) and the
     largest rate difference between them on those paths. Then the marginal cost
-    per added link (least-squares slope of ms/step over the link count)."""
+    per added link (least-squares slope of ms/step over the link count). With
+    ``split``, ``steps`` more batched steps under cProfile give the parts of a
+    step (:func:`profile_split`), printed as ms per step and per robot."""
     import tempfile
 
     rows = []
@@ -172,27 +219,36 @@ def run_robots_variant(counts, steps: int, warmup: int) -> dict:
                 for _ in tw.run(warmup):
                     pass
                 tw.stats = type(tw.stats)()
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 for res in tw.run(steps):
                     pass
                 wall = time.perf_counter() - t0
+                # (getattr: the same bench also measures an older engine as baseline)
+                cpu = getattr(tw.stats, "stage_cpu_s", {})
                 row[label] = dict(steps_s=steps / wall, ms=1e3 * wall / steps,
-                                  stage={st: 1e3 * tw.stats.stage_s[st] / steps
-                                         for st in STAGES})
+                                  proc_cpu=1e3 * (time.process_time() - c0) / steps,
+                                  stage={st: 1e3 * tw.stats.stage_s.get(st, 0.0) / steps
+                                         for st in STAGES},
+                                  cpu={st: 1e3 * cpu.get(st, float("nan")) / steps
+                                       for st in STAGES})
                 print(f"== {n} robots ({links} links), {label} PHY, {steps} steps\n"
                       f"{tw.stats.table()}", flush=True)
             paths = {lk: ls.paths for lk, ls in res.links.items()}
-            sig, replay = {}, {}
+            sig, replay, replay_cpu = {}, {}, {}
             for method in ("batched", "fast"):
                 phy = NetworkPHY(tw.config, method=method)
                 sig[method] = phy(paths)
-                ts = []
+                ts, cs = [], []
                 for _ in range(5):
-                    t0 = time.perf_counter()
+                    t0, c0 = time.perf_counter(), time.process_time()
                     phy(paths)
                     ts.append(1e3 * (time.perf_counter() - t0))
-                replay[method] = min(ts)
-            row["replay"] = replay
+                    cs.append(1e3 * (time.process_time() - c0))
+                replay[method], replay_cpu[method] = min(ts), min(cs)
+            row["replay"], row["replay_cpu"] = replay, replay_cpu
+            if split:
+                tw.phy = NetworkPHY(tw.config)
+                row["split"] = profile_split(tw, steps)
             row["rate_diff"] = max((abs(sig["batched"][lk].rate_bps / s_.rate_bps - 1)
                                     for lk, s_ in sig["fast"].items() if s_.rate_bps > 0),
                                    default=0.0)
@@ -210,6 +266,23 @@ def run_robots_variant(counts, steps: int, warmup: int) -> dict:
               f"{b['steps_s'] / p['steps_s']:6.2f}x | "
               f"{r['replay']['batched']:6.1f}/{r['replay']['fast']:6.1f} "
               f"{r['replay']['fast'] / r['replay']['batched']:5.2f}x {r['rate_diff']:9.1e}")
+    print("\nthe stepping thread's CPU ms/step (robust to a shared machine's load; "
+          "the trace's Dr.Jit kernel threads not counted), batched PHY | PHY replay "
+          "process CPU ms, batched / per-link:")
+    print(f"{'robots':>6} " + " ".join(f"{st:>8}" for st in STAGES) + f" {'total':>8} | "
+          f"{'replay':>14} | {'process CPU ms/step':>19}")
+    for r in rows:
+        c = r["batched"]["cpu"]
+        print(f"{r['n']:6d} " + " ".join(f"{c[st]:8.2f}" for st in STAGES)
+              + f" {sum(c.values()):8.2f} | {r['replay_cpu']['batched']:6.1f}/"
+              f"{r['replay_cpu']['fast']:6.1f} | {r['batched']['proc_cpu']:19.1f}")
+    if split:
+        print(f"\nparts of a step under cProfile (batched PHY, {steps} steps; ms/step, "
+              "per robot in brackets; parts nest, stages are the twin's own clock):")
+        print(f"{'part':<16}" + "".join(f"{str(r['n']) + ' robots':>20}" for r in rows))
+        for part in rows[0]["split"]:
+            print(f"{part:<16}" + "".join(
+                f"{r['split'][part]:11.2f} ({r['split'][part] / r['n']:5.2f})" for r in rows))
     if len(rows) > 1:
         x = np.array([r["links"] for r in rows], float)
         for label in ("batched", "per-link"):
@@ -295,6 +368,9 @@ def main(argv: list[str] | None = None) -> None:
                     help="only the many-robot variant: comma-separated robot counts, e.g. "
                          "1,2,4,8,16 (the lab with n robots, 2n downlinks; batched vs "
                          f"per-link PHY; at most {1 + len(EXTRA_ROBOTS)} robots)")
+    ap.add_argument("--split", action="store_true",
+                    help="with --robots: also the parts of a step (kinematics, sensors, "
+                         "controllers, bus, ...) from a cProfile run")
     ap.add_argument("--polarization", default="",
                     help="only the polarization variant: the lab's access points with this "
                          "polarization (H, VH, cross) against V")
@@ -315,7 +391,7 @@ def main(argv: list[str] | None = None) -> None:
             ap.error(f"--robots {args.robots!r}: each count must be in "
                      f"1..{1 + len(EXTRA_ROBOTS)}")
         run_robots_variant(counts, 10 if args.quick else args.steps,
-                           1 if args.quick else args.warmup)
+                           1 if args.quick else args.warmup, split=args.split)
         return
     if args.sensing:
         run_sensing_variant(10 if args.quick else args.steps, 1 if args.quick else args.warmup)

@@ -39,7 +39,7 @@ from engine.phy.network import NetworkPHY
 from engine.phy.patterns import AntennaPatterns
 from engine.pose import DevicePose, antenna_pose
 from engine.raytrace import make_tracer
-from engine.robots import SensorOptions, build_robots
+from engine.robots import SensorOptions, build_robots, cast_scans
 from engine.robots.control import PathError, controller_from_spec
 from engine.room import ROBOT_BODY_HEIGHT_M, path_obstruction
 from engine.scene import BOUNDS_TOLERANCE_M, TwinScene, load_scene
@@ -47,7 +47,10 @@ from engine.state import Command, Edit, LinkState, RobotState, StepResult
 
 log = logging.getLogger(__name__)
 
-STAGES = ("agents", "trace", "phy", "sense", "estimate", "control")
+#: The timed stages of :meth:`Twin.step`: agents (motion, sensors, their topics,
+#: ``/tf``), trace, phy, publish (the step's result and the CSI for its
+#: subscribers, e.g. a recorder), sense (``[[sensing]]`` radar), estimate, control.
+STAGES = ("agents", "trace", "phy", "publish", "sense", "estimate", "control")
 
 #: Largest mesh an ``add`` edit may name, bytes.
 MAX_EDIT_MESH_BYTES = 32 * 1024 * 1024
@@ -71,6 +74,10 @@ class RunStats:
             :data:`STAGES`), or ``"caller"`` when the code that consumed the step
             between two steps (e.g. printing, recording) took longer than any stage.
         overrun_ms: total time by which paced steps missed their deadline, ms.
+        stage_cpu_s: total CPU time of the stepping thread per stage, s (next to
+            ``stage_s``: on a shared machine a stage whose wall time far exceeds
+            its CPU time waited for a core; Dr.Jit's kernel threads and BLAS
+            threads are not counted, so for ``trace`` it is the Python side).
     """
 
     steps: int = 0
@@ -79,6 +86,7 @@ class RunStats:
     stage_s: dict[str, float] = field(default_factory=lambda: {s: 0.0 for s in STAGES})
     overrun_stages: dict[str, int] = field(default_factory=dict)
     overrun_ms: float = 0.0
+    stage_cpu_s: dict[str, float] = field(default_factory=lambda: {s: 0.0 for s in STAGES})
 
     def overrun_summary(self) -> str:
         """``"N overruns"`` with their causes, e.g. ``"2 overruns (trace 2; 3.1 ms late)"``."""
@@ -89,16 +97,35 @@ class RunStats:
         return f"{self.overruns} overruns ({causes}; {self.overrun_ms:.1f} ms late in total)"
 
     def table(self) -> str:
-        """A per-stage timing breakdown (mean ms per step and share)."""
+        """A per-stage timing breakdown (mean wall ms per step, share, and the
+        stepping thread's CPU ms per step)."""
         n = max(self.steps, 1)
         total = sum(self.stage_s.values()) or 1e-12
         lines = [f"{self.steps} steps in {self.wall_s:.2f} s "
                  f"({self.steps / max(self.wall_s, 1e-12):.1f} steps/s), {self.overrun_summary()}",
-                 f"  {'stage':<10} {'ms/step':>9} {'share':>6}"]
+                 f"  {'stage':<10} {'ms/step':>9} {'share':>6} {'cpu ms':>8}"]
         for s in STAGES:
             lines.append(f"  {s:<10} {1e3 * self.stage_s[s] / n:9.2f} "
-                         f"{100 * self.stage_s[s] / total:5.1f}%")
+                         f"{100 * self.stage_s[s] / total:5.1f}% "
+                         f"{1e3 * self.stage_cpu_s.get(s, 0.0) / n:8.2f}")
         return "\n".join(lines)
+
+
+class _StageClock:
+    """Wall time and the calling thread's CPU time of consecutive stages, s:
+    :meth:`mark` closes the stage that began at the previous mark (or at creation)."""
+
+    __slots__ = ("wall", "cpu", "_t", "_c")
+
+    def __init__(self) -> None:
+        self.wall: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
+        self._t, self._c = time.perf_counter(), time.thread_time()
+
+    def mark(self, stage: str) -> None:
+        t, c = time.perf_counter(), time.thread_time()
+        self.wall[stage], self.cpu[stage] = t - self._t, c - self._c
+        self._t, self._c = t, c
 
 
 class Twin:
@@ -135,6 +162,11 @@ class Twin:
       estimator that needs pilots: :meth:`engine.bus.Bus.has_subscribers`); the
       PHY keeps one channel per symbol group and
       :attr:`~engine.phy.network.LinkSignal.h` expands it only when read.
+    * Scan consumers -- the ray-cast sensors (``/<robot>/scan``,
+      ``/<robot>/camera/depth``) are rendered only while something subscribes to
+      their topic; a skipped scan advances the sensor's schedule and noise stream
+      as if taken, so a subscriber gets the same scans whenever it arrives
+      (:class:`~engine.robots.agent.RobotAgent` ``render_unheard``).
     """
 
     def __init__(self, scene: TwinScene, *, seed: int = 0, dt: float = 0.05,
@@ -200,7 +232,7 @@ class Twin:
     def _build_agents(self) -> None:
         self.bus = Bus()
         self.agents = build_robots(self.config, self.bus, self.scene, seed=self.seed,
-                                   options=self.sensor_options)
+                                   options=self.sensor_options, render_unheard=False)
         for name, agent in self.agents.items():
             # The robot's radio is a sensor too: the CSI of every link it receives.
             agent.topics["csi"] = f"/{name}/csi"
@@ -579,28 +611,28 @@ class Twin:
         :attr:`pending_steps`, if any)."""
         self.pending_steps = max(0, self.pending_steps - 1)
         self._apply_pending()
-        clock = time.perf_counter
-        timings = {}
-        t0 = clock()
+        clock = _StageClock()
         t_next = self.time_s + self.dt
         for name, agent in self.agents.items():
             source = self.state_sources.get(name)
             if source is None:
-                agent.step(t_next, self.dt, control=False)
+                agent.advance(self.dt)
             else:
-                agent.place(source(t_next, self.dt), t_next)
+                agent.set_state(source(t_next, self.dt))
+        # every robot's due LiDAR / depth scans in one ray cast, then each robot
+        # publishes its sensors (robot by robot, as RobotAgent.step would)
+        hits = cast_scans(self.agents.values(), t_next)
+        for name, agent in self.agents.items():
+            agent.sense(t_next, placed=name in self.state_sources, hits=hits.get(name))
         self._publish_frames(t_next)
-        t1 = clock()
-        timings["agents"] = t1 - t0
+        clock.mark("agents")
         if self.trace_schedule is None or self.trace_schedule(self.step_index):
             paths = self.patterns(self.tracer(self.scene, self.device_poses()))
         else:
             paths = {}
-        t2 = clock()
-        timings["trace"] = t2 - t1
+        clock.mark("trace")
         signals = self.phy(paths) if self.phy is not None else {}
-        t3 = clock()
-        timings["phy"] = t3 - t2
+        clock.mark("phy")
 
         result = StepResult(step=self.step_index, time_s=t_next,
                             scene_hash=self.scene.content_hash())
@@ -628,22 +660,22 @@ class Twin:
             if agent is not None and self.bus.has_subscribers(agent.topics["csi"]):
                 agent.node.publish(agent.topics["csi"], Csi(
                     header=Header(stamp=t_next, frame_id=rx), tx=tx, rx=rx, h=sig.h))
-        t_sense = clock()
+        clock.mark("publish")
         if self.radar is not None:
             self.radar(self, result)
-        timings["sense"] = clock() - t_sense
-        t3 = clock()
+        clock.mark("sense")
         for est in self.estimators:
             est(self, result)
-        t4 = clock()
-        timings["estimate"] = t4 - t3
+        clock.mark("estimate")
         for name, agent in self.agents.items():
             if name not in self.state_sources:
                 agent.control()
-        timings["control"] = clock() - t4
-        result.timings_s = timings
-        for k, v in timings.items():
+        clock.mark("control")
+        result.timings_s = clock.wall
+        for k, v in clock.wall.items():
             self.stats.stage_s[k] = self.stats.stage_s.get(k, 0.0) + v
+        for k, v in clock.cpu.items():
+            self.stats.stage_cpu_s[k] = self.stats.stage_cpu_s.get(k, 0.0) + v
         self.stats.steps += 1
         self.step_index += 1
         self.time_s = t_next

@@ -46,7 +46,7 @@ __all__ = [
     "MRTPrecoder", "SVDPrecoder", "EqualPower", "WaterFilling", "water_filling",
     "transmit", "receive", "transmit_power", "Interferer", "LinkRate",
     "AchievableRate", "channel_gains", "svd_streams", "rate_per_re",
-    "wideband_streams", "water_level",
+    "wideband_streams", "water_level", "water_levels",
 ]
 
 
@@ -712,22 +712,54 @@ def rate_per_re(f, interference, noise_power: float):
 
 def water_level(g, total_power: float, noise_power: float, weights=None) -> np.ndarray:
     """Water-filling powers for gains ``g [M] > 0`` whose entries count ``weights``
-    times in the budget (``sum w_i p_i = P``); ``weights=None`` = all ones."""
-    inv = noise_power / g
+    times in the budget (``sum w_i p_i = P``); ``weights=None`` = all ones
+    (one row of :func:`water_levels`)."""
+    return water_levels(np.asarray(g, dtype=float)[None], total_power, noise_power,
+                        weights)[0]
+
+
+def water_levels(g, total_power, noise_power: float, weights=None) -> np.ndarray:
+    """Water-filling of several independent budgets at once (issue #19: all links
+    of one transmitter in one sort).
+
+    Args:
+        g: gains ``[B, M]`` >= 0; an entry <= 0 gets no power (so rows of
+            different lengths can be padded with zeros).
+        total_power: budget per row, W (scalar or ``[B]``).
+        noise_power: sigma^2, W.
+        weights: ``[M]`` times each entry counts in the budget
+            (``sum_i w_i p_i = P``; None: all ones).
+
+    Returns:
+        Powers ``[B, M]``, W; a row without a positive gain (or budget) gets none.
+    """
+    g = np.asarray(g, dtype=float)
+    b_, m_ = g.shape
+    total = np.broadcast_to(np.asarray(total_power, dtype=float), (b_,))
     if weights is not None:
         weights = np.asarray(weights, dtype=float)
         if weights.size and np.all(weights == weights.flat[0]):
             # Uniform weights: plain water-filling with the budget per copy.
-            return water_level(g, total_power / weights.flat[0], noise_power)
+            return water_levels(g, total / weights.flat[0], noise_power)
+    on = g > 0
+    inv = np.full(g.shape, np.inf)
+    np.divide(noise_power, g, out=inv, where=on)  # floor levels 1/SNR_i; off: inf
     if weights is None:
-        inv_s = np.sort(inv)
-        levels = (total_power + np.cumsum(inv_s)) / np.arange(1, inv.size + 1)
+        inv_s = np.sort(inv, axis=1)
+        levels = (total[:, None] + np.cumsum(inv_s, axis=1)) / np.arange(1, m_ + 1)
     else:
-        order = np.argsort(inv)
-        inv_s = inv[order]
+        order = np.argsort(inv, axis=1)
+        inv_s = np.take_along_axis(inv, order, axis=1)
         w_s = weights[order]
-        levels = (total_power + np.cumsum(w_s * inv_s)) / np.cumsum(w_s)
-    n_on = int(np.max(np.nonzero(levels > inv_s)[0])) + 1
-    p = np.maximum(levels[n_on - 1] - inv, 0.0)
-    spent = p.sum() if weights is None else float(np.dot(weights, p))
-    return p * min(1.0, total_power / spent)
+        levels = (total[:, None] + np.cumsum(w_s * inv_s, axis=1)) / np.cumsum(w_s, axis=1)
+    # The water level if the m best entries are on: the last m where it is
+    # above the m-th floor (off entries sort last with an infinite floor).
+    above = levels > inv_s
+    has = above.any(axis=1) & (total > 0)
+    n_on = m_ - np.argmax(above[:, ::-1], axis=1)
+    level = np.where(has, levels[np.arange(b_), n_on - 1], 0.0)
+    p = np.maximum(level[:, None] - inv, 0.0)  # inv = inf (off): 0
+    spent = p.sum(axis=1) if weights is None else p @ weights
+    # The rounding residue is removed so the budget is never exceeded.
+    scale = np.minimum(1.0, total / np.where(spent > 0, spent, 1.0))
+    return p * scale[:, None]

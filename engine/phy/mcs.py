@@ -116,17 +116,30 @@ class McsRate:
             ``(bits, mcs [S])``: bits carried per step (all streams), and the
             table index per stream (-1: the stream carries nothing).
         """
+        bits, idx = self.many(np.asarray(sinr, float)[None], np.asarray(power)[None], weights)
+        return float(bits[0]), idx[0]
+
+    def many(self, sinr: np.ndarray, power: np.ndarray,
+             weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`__call__` for ``B`` links with the same shapes at once (issue #19).
+
+        Args:
+            sinr, power: ``[B, R, S]``. weights: ``[R]`` (shared) or None.
+
+        Returns:
+            ``(bits [B], mcs [B, S])``.
+        """
         sinr = np.asarray(sinr, float)
-        r_, s_ = sinr.shape
+        b_, r_, s_ = sinr.shape
         w = np.ones(r_) if weights is None else np.asarray(weights, float)
         on = (np.asarray(power) > 0) & np.isfinite(sinr) & (sinr > 0)
         eff = np.where(on, 1.0 / (1.0 / np.where(on, sinr, 1.0) + self.evm), 0.0)
-        ww = w[:, None] * on
-        n_re = ww.sum(axis=0)  # [S]
-        mi = np.einsum("rs,rs->s", ww, np.log2(1.0 + eff))
+        ww = w[None, :, None] * on
+        n_re = ww.sum(axis=1)  # [B, S]
+        mi = np.einsum("brs,brs->bs", ww, np.log2(1.0 + eff))
         with np.errstate(divide="ignore", invalid="ignore"):
             sinr_s = np.where(n_re > 0, 2.0 ** (mi / np.maximum(n_re, 1e-300)) - 1.0, 0.0)
             idx = np.where(n_re > 0, self.table.select(10 * np.log10(sinr_s)), -1)
-        bits = float(np.sum(np.where(idx >= 0, self.table.efficiency[np.maximum(idx, 0)], 0.0)
-                            * n_re))
+        bits = np.sum(np.where(idx >= 0, self.table.efficiency[np.maximum(idx, 0)], 0.0)
+                      * n_re, axis=1)
         return bits, idx

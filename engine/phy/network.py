@@ -12,12 +12,15 @@ tests/engine/phy/test_network_batched.py):
 * ``method="batched"`` (default): the ``fast`` closed forms with all links of
   a step together (issue #19): one channel-synthesis pass over every link's
   paths (:meth:`NetworkPHY.channels`: one delay-phase table, one Doppler
-  Taylor order), the rotated element positions of a device kept while its
+  Taylor order, one steering-vector evaluation per device over all its links'
+  paths), the rotated element positions of a device kept while its
   orientation does not change (static access points: once), and the per-RE
   precoding and rates of all links of one transmitter with the same array
-  shapes stacked along the RE axis into one call each (water-filling and MCS
-  stay per link: own budget, own allocation). Rates equal the per-link
-  ``fast`` ones (bit-identical on the lab; tested to 1e-6 relative).
+  shapes stacked along the RE axis into one call each; water-filling (one
+  row per link: own budget, :func:`~engine.phy.link.water_levels`) and MCS
+  (:meth:`~engine.phy.mcs.McsRate.many`) take the stack in one call too.
+  Rates equal the per-link ``fast`` ones (equal to ~1e-15 on the lab; tested
+  to 1e-6 relative).
 * ``method="fast"``: per link (the per-link reference of ``batched``), the channel is synthesised once, the
   per-RE SVD precoder comes from the closed-form 2 x 2 Gram eigen-decomposition
   (:func:`~engine.phy.link.svd_streams`, exact; LAPACK when ``min(Nr, Nt) > 2``),
@@ -64,7 +67,7 @@ from engine.phy.mcs import McsRate
 from engine.phy.patterns import MODELLED_POLARIZATIONS, AntennaPatterns
 from engine.phy.link import (AchievableRate, EqualPower, Interferer, SVDPrecoder,
                              WaterFilling, channel_gains, rate_per_re, svd_streams,
-                             water_level, wideband_streams)
+                             water_levels, wideband_streams)
 from engine.phy.ofdm import ResourceGrid, ResourceSet
 from engine.phy.units import dbm_to_watt, thermal_noise_power
 
@@ -283,17 +286,47 @@ class NetworkPHY:
         k = r_hat(np.asarray(theta, np.float64), np.asarray(phi, np.float64))
         return np.exp(1j * (2.0 * np.pi * (k @ hit[1].T)))
 
-    def _pair_gains(self, lp) -> tuple[np.ndarray, int, int]:
-        """``(gains [L, Nr * Nt] complex128, Nr, Nt)``: a link's path gains times
-        both steering vectors (eq. 4 without the time-frequency kernel)."""
+    def _all_pair_gains(self, link_paths: dict) -> dict:
+        """Every link's path gains times both steering vectors (eq. 4 without the
+        time-frequency kernel) -> ``{(tx, rx): (gains [L, Nr * Nt] complex128, Nr,
+        Nt)}``; one steering-vector evaluation per (device, orientation) over all
+        its links' paths and one baseband conversion over all links (issue #19:
+        per link, the calls cost more in Python than in arithmetic)."""
         from engine.pose import sionna_orientation
 
-        b = _gains(self.patterns.apply(lp))
-        a_rx = self._steering(lp.rx, lp.theta_r, lp.phi_r, sionna_orientation(lp.rx_orientation))
-        a_tx = self._steering(lp.tx, lp.theta_t, lp.phi_t, sionna_orientation(lp.tx_orientation))
-        g = port_pair_gains(b, a_rx, a_tx)
-        nr, nt = g.shape[1:]
-        return g.reshape(b.shape[0], nr * nt), nr, nt
+        lps = {lk: self.patterns.apply(lp) for lk, lp in link_paths.items()}
+        ends: dict = {}  # (device, orientation) -> [(link, side, theta, phi)]
+        for lk, lp in lps.items():
+            for side, dev, th, ph, ori in (("r", lp.rx, lp.theta_r, lp.phi_r, lp.rx_orientation),
+                                           ("t", lp.tx, lp.theta_t, lp.phi_t, lp.tx_orientation)):
+                ends.setdefault((dev, sionna_orientation(ori)), []).append((lk, side, th, ph))
+        steer = {}
+        for (dev, ori), items in ends.items():
+            a = self._steering(dev, np.concatenate([np.asarray(it[2], np.float64) for it in items]),
+                               np.concatenate([np.asarray(it[3], np.float64) for it in items]), ori)
+            start = 0
+            for lk, side, th, _ in items:
+                steer[(lk, side)] = a[start:start + len(th)]
+                start += len(th)
+        same = {}  # (carrier, gain shape) -> links: their baseband gains in one call
+        for lk, lp in lps.items():
+            a = lp.extra.get("a_ports", lp.a)
+            same.setdefault((lp.frequency_hz, np.shape(a)[1:]), []).append(lk)
+        bs = {}
+        for (fc, _), lks in same.items():
+            a = [np.asarray(lps[lk].extra.get("a_ports", lps[lk].a)) for lk in lks]
+            b = baseband_gains(np.concatenate(a), np.concatenate(
+                [np.asarray(lps[lk].tau, np.float64) for lk in lks]), fc)
+            start = 0
+            for lk, al in zip(lks, a):
+                bs[lk] = b[start:start + al.shape[0]]
+                start += al.shape[0]
+        out = {}
+        for lk in lps:
+            g = port_pair_gains(bs[lk], steer[(lk, "r")], steer[(lk, "t")])
+            nr, nt = g.shape[1:]
+            out[lk] = (g.reshape(g.shape[0], nr * nt), nr, nt)
+        return out
 
     def channels(self, link_paths: dict, times=None, rows: dict | None = None) -> dict:
         """Eq. 4 for every link in one pass (:func:`~engine.phy.channel.synthesize_many`):
@@ -306,7 +339,7 @@ class NetworkPHY:
         """:meth:`channels` and, per link, ``rest(rows) -> [R, N, Nr, Nt]`` that
         computes other rows later exactly as this pass would have (same gains,
         same Taylor bound; a row's value does not depend on the others)."""
-        gs = {lk: self._pair_gains(lp) for lk, lp in link_paths.items()}
+        gs = self._all_pair_gains(link_paths)
         lps = list(link_paths.values())
         nu = max((float(np.max(np.abs(lp.doppler))) for lp in lps if len(lp.doppler)),
                  default=0.0)
@@ -344,6 +377,47 @@ class NetworkPHY:
             self._cache[key] = (group, masks, counts.astype(float), times, span)
         return self._cache[key]
 
+    def _layout(self, txs: tuple, invariant: bool, batched: bool) -> dict:
+        """What the allocations fix for a step of transmitters ``txs`` (cached:
+        masks and powers come from the config): ``masks {tx: [G, N]}``, ``g`` (G),
+        ``every`` (``arange(G)``), ``rows {tx: [R]}`` (the symbols or groups a
+        transmitter's channels are needed on: its own, when batched), ``overlap
+        {(a, b): bool}`` and per transmitter ``tx {tx: (full, idx, idx_c, wts,
+        total W, count)}``: whether it has the whole grid, its flat REs on the
+        grid and on its rows (None when full), the symbols each RE stands for
+        (time-invariant steps), its power budget and its RE count."""
+        key = ("layout", txs, invariant, batched)
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        k_, n_ = self.grid.shape
+        if invariant:
+            _, masks, weights_g, _, _ = self._groups(txs)
+        else:
+            masks, weights_g = {tx: self.masks[tx] for tx in txs}, None
+        g_ = next(iter(masks.values())).shape[0] if masks else k_
+        every = np.arange(g_)
+        rows = {tx: (np.flatnonzero(masks[tx].any(axis=1)) if batched else every)
+                for tx in txs}
+        per_tx = {}
+        for tx in txs:
+            mask = masks[tx]
+            full = bool(mask.all())
+            idx = None if full else np.flatnonzero(mask)  # REs on the grid [G * N]
+            idx_c = None if full else np.flatnonzero(mask[rows[tx]])  # REs of h's rows
+            wts = None
+            if invariant:
+                wts = np.repeat(weights_g, n_) if full else weights_g[idx // n_]
+            for arr in (idx, idx_c, wts):  # shared by every step: read-only
+                if arr is not None:
+                    arr.flags.writeable = False
+            per_tx[tx] = (full, idx, idx_c, wts, float(dbm_to_watt(self.devices[tx].power_dbm)),
+                          int(self.masks[tx].sum()))
+        lay = dict(masks=masks, g=g_, every=every, rows=rows, tx=per_tx,
+                   overlap={(a, b): bool((masks[a] & masks[b]).any()) for a in txs for b in txs})
+        self._cache[key] = lay
+        return lay
+
     def max_doppler_phase(self, link_paths: dict) -> float:
         """Largest Doppler phase drift within a symbol group,
         ``2 pi max|nu| max_k |t_k - t_mean(group of k)|`` [rad] (with one group,
@@ -358,8 +432,8 @@ class NetworkPHY:
         (:meth:`channels`) on only the symbols (groups) each transmitter uses,
         and the per-RE precoding / rate of all links of one transmitter with the
         same array shapes (and, for the rate, the same interferers' stream
-        counts) stacked along the RE axis into one call each; water-filling and
-        MCS stay per link (each has its own budget and allocation). Otherwise one
+        counts) stacked along the RE axis into one call each, water-filling
+        (a row per link: each has its own budget) and MCS included. Otherwise one
         link at a time on every symbol (the per-link reference). Either way the
         precoders are formed only where they interfere at another receiver, and
         what the rates do not need (the channel on other symbols, the precoders,
@@ -373,18 +447,12 @@ class NetworkPHY:
             # first-order Doppler error cancels within the group); every per-RE
             # quantity is computed once per (group, subcarrier), weighted by the
             # number of symbols in the group.
-            group, masks, weights_g, times, _ = self._groups(txs)
+            group, _, _, times, _ = self._groups(txs)
         else:
-            times = None
-            masks = {tx: self.masks[tx] for tx in txs}
-            group = None
-            weights_g = None
-        g_ = next(iter(masks.values())).shape[0] if masks else k_
-        every = np.arange(g_)
-        # The symbols (groups) each transmitter uses: its links' channels are
-        # needed there only (by its own rate and as interference).
-        rows = {tx: (np.flatnonzero(masks[tx].any(axis=1)) if batched else every)
-                for tx in txs}
+            times = group = None
+        lay = self._layout(txs, invariant, batched)
+        masks, g_, every, rows, overlap = (lay["masks"], lay["g"], lay["every"], lay["rows"],
+                                           lay["overlap"])
         if batched:
             h, rest = self._channels(link_paths, times, {lk: rows[lk[0]] for lk in link_paths})
         else:
@@ -399,7 +467,6 @@ class NetworkPHY:
 
         # Precoders are formed where a link interferes at another receiver (its
         # precoder aims at its own); elsewhere only on request.
-        overlap = {(a, b): bool((masks[a] & masks[b]).any()) for a in txs for b in txs}
         need_w = {(tx2, rx2) for (tx, rx) in h for (tx2, rx2) in h
                   if tx2 != tx and rx2 != rx and (tx2, rx) in h and overlap[(tx, tx2)]}
 
@@ -412,19 +479,12 @@ class NetworkPHY:
         side = {}
         for lks in buckets.values():
             tx = lks[0][0]
-            mask = masks[tx]
-            full = bool(mask.all())
-            idx = None if full else np.flatnonzero(mask)  # REs on the grid [G * N]
-            idx_c = None if full else np.flatnonzero(mask[rows[tx]])  # REs of h's rows
+            full, idx, idx_c, wts, total, count = lay["tx"][tx]
             hms = [gather(h[lk], idx_c, full) for lk in lks]
             hm = hms[0] if len(hms) == 1 else np.concatenate(hms)
             r_ = hms[0].shape[0]
-            wts = None
-            if invariant:
-                wts = np.repeat(weights_g, n_) if full else weights_g[idx // n_]
             nr, nt = hm.shape[1], hm.shape[2]
             s = min(nr, nt)
-            total = float(dbm_to_watt(self.devices[tx].power_dbm))
             if self.precoding == "per_re":
                 w, lam, f1 = svd_streams(hm, s, precoders=any(lk in need_w for lk in lks))
                 if w is None:  # the same call with precoders, on request
@@ -436,18 +496,11 @@ class NetworkPHY:
                 w = np.concatenate([np.broadcast_to(w0, (r_, nt, s)) for w0 in w0s])
                 f1 = hd @ w
                 lam = np.sum(np.abs(f1) ** 2, axis=1)
-            count = int(self.masks[tx].sum())
             if self.power_allocation == "waterfilling":
-                p = np.zeros(lam.shape)
-                for b in range(len(lks)):  # each link has its own budget
-                    seg = slice(b * r_, (b + 1) * r_)
-                    lb = lam[seg]
-                    on = lb > 0
-                    if total > 0 and on.any():
-                        pw = None if wts is None else np.broadcast_to(wts[:, None], lb.shape)[on]
-                        pb = np.zeros(lb.shape)
-                        pb[on] = water_level(lb[on], total, self.noise_power, pw)
-                        p[seg] = pb
+                # each link its own budget: one row per link, in one sort
+                pw = None if wts is None else np.broadcast_to(wts[:, None], (r_, s)).reshape(-1)
+                p = water_levels(lam.reshape(len(lks), r_ * s), total, self.noise_power,
+                                 pw).reshape(lam.shape)
             else:
                 p = np.full(lam.shape, total / (count * s))
             f = f1 * np.sqrt(p)[:, None, :]
@@ -494,20 +547,32 @@ class NetworkPHY:
             key = ((lk[0], f.shape[1:], tuple(fi.shape[1:] for fi in interf[lk]))
                    if batched else lk)
             rate_buckets.setdefault(key, []).append(lk)
-        per_re = {}
+        # Per rate bucket (one link unless batched): rates, MCS, SNR and mean SINR
+        # of all its links in one pass each.
+        scalars = {}
         for lks in rate_buckets.values():
-            if len(lks) == 1:
-                per_re[lks[0]] = rate_per_re(side[lks[0]]["f"], interf[lks[0]],
-                                             self.noise_power)
-                continue
-            r_ = side[lks[0]]["f"].shape[0]
-            fs = np.concatenate([side[lk]["f"] for lk in lks])
-            its = [np.concatenate([interf[lk][i] for lk in lks])
-                   for i in range(len(interf[lks[0]]))]
-            se_all, sinr_all = rate_per_re(fs, its, self.noise_power)
-            for b, lk in enumerate(lks):
-                seg = slice(b * r_, (b + 1) * r_)
-                per_re[lk] = (se_all[seg], sinr_all[seg])
+            d0 = side[lks[0]]
+            r_, nr = d0["f"].shape[:2]
+            cat = (lambda xs: xs[0]) if len(lks) == 1 else np.concatenate
+            its = [cat([interf[lk][i] for lk in lks]) for i in range(len(interf[lks[0]]))]
+            se, sinr = rate_per_re(cat([side[lk]["f"] for lk in lks]), its, self.noise_power)
+            b_ = len(lks)
+            se, sinr = se.reshape(b_, r_), sinr.reshape(b_, r_, -1)
+            gain = np.stack([side[lk]["gain"] for lk in lks])  # [B, R]
+            wts = d0["wts"]
+            mcs_bits, mcs = self.mcs.many(sinr, np.stack([side[lk]["p"] for lk in lks]), wts)
+            ok = np.isfinite(sinr) & (sinr > 0)
+            wok = ok if wts is None else wts[None, :, None] * ok
+            if wts is None:
+                bits, gain = se.sum(axis=1), gain.mean(axis=1) / nr
+            else:
+                bits, gain = se @ wts, (gain @ wts) / wts.sum() / nr
+            n_ok = wok.sum(axis=(1, 2))
+            sinr_mean = np.where(n_ok > 0, np.sum(wok * np.where(ok, sinr, 0.0), axis=(1, 2))
+                                 / np.where(n_ok > 0, n_ok, 1.0), 0.0)
+            for i, lk in enumerate(lks):
+                scalars[lk] = (float(bits[i]), float(mcs_bits[i]), mcs[i], float(gain[i]),
+                               float(sinr_mean[i]))
 
         def grid_of(arr, d):
             """Per-RE values of a link -> [G, N, ...] (zeros off its REs)."""
@@ -527,19 +592,8 @@ class NetworkPHY:
         out = {}
         for (tx, rx), hl in h.items():
             d = side[(tx, rx)]
-            se, sinr = per_re[(tx, rx)]
-            wts = d["wts"]
-            mcs_bits, mcs = self.mcs(sinr, d["p"], wts)
-            bits = float(se.sum() if wts is None else np.dot(wts, se))
-            nr = hl.shape[2]
-            gain = (d["gain"].mean() if wts is None else np.dot(wts, d["gain"]) / wts.sum()) / nr
+            bits, mcs_bits, mcs, gain, sinr_mean = scalars[(tx, rx)]
             snr = d["total"] / d["count"] * gain / self.noise_power
-            ok = np.isfinite(sinr) & (sinr > 0)
-            if wts is None:
-                sinr_mean = sinr[ok].mean() if ok.any() else 0.0
-            else:
-                ww = np.broadcast_to(wts[:, None], sinr.shape)[ok]
-                sinr_mean = float(np.dot(ww, sinr[ok]) / ww.sum()) if ok.any() else 0.0
 
             arrays = _PerRE(
                 h=lambda hl=hl, r=rows[tx], lk=(tx, rx): channel_on_every_row(

@@ -9,7 +9,8 @@ Per twin step (paper, Algorithm 1)::
 or all of it on the bus with :class:`~engine.robots.agent.RobotAgent`.
 """
 
-from engine.robots.agent import OpenCRStep, RobotAgent, SensorOptions, build_robots
+from engine.robots.agent import (OpenCRStep, RobotAgent, SensorOptions, build_robots,
+                                 cast_scans)
 from engine.robots.control import (CirclePath, FigureEightPath, GoalReacher, PathError,
                                    PlanarPath, PolylinePath, PurePursuit,
                                    controller_from_spec)
@@ -18,7 +19,8 @@ from engine.robots.kinematics import (ROBOT_SPECS, DiffDriveRobot, ProcessNoise,
 from engine.robots.sensors import (DepthCamera, ImuNoise, ImuSensor, Lidar2D, WheelEncoders,
                                    WheelOdometry)
 
-__all__ = ["OpenCRStep", "RobotAgent", "SensorOptions", "build_robots", "CirclePath",
+__all__ = ["OpenCRStep", "RobotAgent", "SensorOptions", "build_robots", "cast_scans",
+           "CirclePath",
            "FigureEightPath",
            "GoalReacher", "controller_from_spec", "PlanarPath", "PathError", "PolylinePath",
            "PurePursuit", "ROBOT_SPECS",

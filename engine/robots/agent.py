@@ -40,7 +40,7 @@ from engine.frames import RobotFrames, robot_prefix
 from engine.msgs import Header, Pose, PoseStamped, Twist
 from engine.robots.kinematics import DiffDriveRobot, ProcessNoise, robot_spec
 from engine.robots.sensors import (DepthCamera, ImuNoise, ImuSensor, Lidar2D, WheelEncoders,
-                                   WheelOdometry)
+                                   WheelOdometry, cast_rays)
 
 log = logging.getLogger(__name__)
 
@@ -77,11 +77,23 @@ class RobotAgent:
         seed: one seed; the robot and each sensor derive their own streams from it.
         options: :class:`SensorOptions`.
         frame_prefix: prefix of its frame ids (``"robot1/"``; see :mod:`engine.frames`).
+        render_unheard: ray cast the scene sensors (LiDAR, depth camera) even when
+            nobody subscribes to their topic. ``False`` (the twin's choice, issue
+            #19): a due scan nobody receives (:meth:`engine.bus.Bus.has_subscribers`)
+            is skipped (:meth:`~engine.robots.sensors.Sensor.skip`: schedule and
+            noise stream advance as if sampled, so a subscriber arriving later gets
+            the very scans an always-rendering agent publishes) and is neither
+            published nor in :attr:`last`.
     """
 
+    #: topic keys of the sensors that ray cast into the scene (see ``render_unheard``)
+    SCENE_SENSORS = ("scan", "camera/depth")
+
     def __init__(self, name: str, model: str, pose, bus: Bus, scene=None, *, seed: int = 0,
-                 options: SensorOptions | None = None, frame_prefix: str = ""):
+                 options: SensorOptions | None = None, frame_prefix: str = "",
+                 render_unheard: bool = True):
         self.name = name
+        self.render_unheard = bool(render_unheard)
         self.frames = RobotFrames(frame_prefix)
         self.spec = robot_spec(model)
         opt = options or SensorOptions()
@@ -152,7 +164,8 @@ class RobotAgent:
 
         Order: take the newest ``cmd_vel`` (``u_{t-1}``), apply ``f``, sample the
         due sensors and publish them, then let the controller (if any) publish
-        the next command from the new state.
+        the next command from the new state (:meth:`advance`, :meth:`sense`,
+        :meth:`control`).
 
         Args:
             control: run the controller at the end; the twin passes False and
@@ -161,24 +174,17 @@ class RobotAgent:
         Returns:
             ``topic key -> message`` of what was published this step.
         """
-        for msg in self._cmd.drain():
-            self.command = msg
-        self.robot.step(self.command, dt)
-        st = self.robot.state
-        out: dict[str, object] = {}
-        out["ground_truth"] = PoseStamped(header=Header(stamp=t, frame_id="map"),
-                                          pose=Pose(position=st.position,
-                                                    orientation=st.quaternion()))
-        js = self.encoders.poll(t, st)
-        if js is not None:
-            out["joint_states"] = js
-            if "odom" in self.topics:
-                out["odom"] = self.odometry.update(js)
-        self._sample_and_publish(out, (("imu", self.imu), ("scan", self.lidar),
-                                       ("camera/depth", self.camera)), t, st)
+        self.advance(dt)
+        out = self.sense(t)
         if control:
             self.control()
         return out
+
+    def advance(self, dt: float) -> None:
+        """Take the newest ``cmd_vel`` (``u_{t-1}``) and apply ``f`` over ``dt`` s."""
+        for msg in self._cmd.drain():
+            self.command = msg
+        self.robot.step(self.command, dt)
 
     def place(self, state, t: float) -> dict[str, object]:
         """Put the robot at ``state`` (a :class:`~engine.robots.kinematics.KinematicState`
@@ -189,22 +195,62 @@ class RobotAgent:
         Returns:
             ``topic key -> message`` of what was published.
         """
+        self.set_state(state)
+        return self.sense(t, placed=True)
+
+    def set_state(self, state) -> None:
+        """Put the robot at ``state`` without publishing (see :meth:`place`)."""
         self.robot.state = state
+
+    def scans_due(self, t: float) -> list[tuple[str, object]]:
+        """``(topic key, sensor)`` of the scene sensors :meth:`sense` will ray cast
+        at ``t`` s: due, and subscribed to unless ``render_unheard``."""
+        out = []
+        for key, sensor in (("scan", self.lidar), ("camera/depth", self.camera)):
+            if (sensor is not None and key in self.topics and self._renders(key)
+                    and getattr(sensor, "enabled", True) and sensor.due(t)):
+                out.append((key, sensor))
+        return out
+
+    def _renders(self, key: str) -> bool:
+        return (self.render_unheard or key not in self.SCENE_SENSORS
+                or self.bus.has_subscribers(self.topics[key]))
+
+    def sense(self, t: float, *, placed: bool = False,
+              hits: dict | None = None) -> dict[str, object]:
+        """Sample and publish what is due at ``t`` s from the current state:
+        ``ground_truth``, the wheel encoders / odometry and the IMU (not when
+        ``placed``), and the scene sensors.
+
+        Args:
+            placed: the state came from outside (:meth:`place`).
+            hits: ``{topic key: cast_rays result}`` of scene sensors already cast
+                (:func:`cast_scans`, several robots in one call); the others are
+                cast here.
+
+        Returns:
+            ``topic key -> message`` of what was published.
+        """
         st = self.robot.state
         out: dict[str, object] = {
             "ground_truth": PoseStamped(header=Header(stamp=t, frame_id="map"),
                                         pose=Pose(position=st.position,
                                                   orientation=st.quaternion()))}
-        return self._sample_and_publish(
-            out, (("scan", self.lidar), ("camera/depth", self.camera)), t, st)
-
-    def _sample_and_publish(self, out: dict[str, object], sensors, t: float,
-                            st) -> dict[str, object]:
-        """Poll the due ``(topic key, sensor)`` pairs into ``out``, publish all of
-        ``out`` and remember it as the last messages; returns ``out``."""
+        sensors = (("scan", self.lidar), ("camera/depth", self.camera))
+        if not placed:
+            js = self.encoders.poll(t, st)
+            if js is not None:
+                out["joint_states"] = js
+                if "odom" in self.topics:
+                    out["odom"] = self.odometry.update(js)
+            sensors = (("imu", self.imu),) + sensors
+        hits = hits or {}
         for key, sensor in sensors:
             if sensor is not None and key in self.topics:
-                m = sensor.poll(t, st)
+                if not self._renders(key):
+                    sensor.skip(t, st)
+                    continue
+                m = sensor.poll(t, st) if key not in hits else sensor.poll(t, st, hits=hits[key])
                 if m is not None:
                     out[key] = m
         for key, msg in out.items():
@@ -252,14 +298,49 @@ def _name_key(name: str) -> int:
     return int.from_bytes(name.encode()[:8].ljust(8, b"\0"), "little")
 
 
+def cast_scans(agents, t: float) -> dict[str, dict[str, tuple]]:
+    """The scene-sensor scans of several robots due at ``t`` s, cast in one
+    Mitsuba call (issue #19: a call costs ~2 ms whatever its 360 beams; every
+    ray's hit is computed alone, so each robot gets what its own call gives).
+
+    Args:
+        agents: the :class:`RobotAgent` s, after their motion update.
+
+    Returns:
+        ``{robot: {topic key: (t [M], valid [M], cos_inc [M])}}`` for
+        :meth:`RobotAgent.sense` ``hits``; empty when fewer than two scans are
+        due (each is then cast on its own, as before).
+    """
+    jobs = []
+    for a in agents:
+        for key, sensor in a.scans_due(t):
+            origin, dirs = sensor.rays(a.state)
+            jobs.append((a.name, key, sensor.scene, origin, dirs))
+    scenes = {id(j[2]) for j in jobs}
+    if len(jobs) < 2 or len(scenes) != 1:
+        return {}
+    origins = np.concatenate([np.broadcast_to(np.asarray(o, float), d.shape)
+                              for *_, o, d in jobs])
+    d_all, valid, cos_inc = cast_rays(jobs[0][2], origins, np.concatenate([j[4] for j in jobs]))
+    out: dict[str, dict[str, tuple]] = {}
+    start = 0
+    for name, key, _, _, dirs in jobs:
+        seg = slice(start, start + dirs.shape[0])
+        out.setdefault(name, {})[key] = (d_all[seg], valid[seg], cos_inc[seg])
+        start = seg.stop
+    return out
+
+
 def build_robots(config, bus: Bus, scene=None, *, seed: int = 0,
-                 options: SensorOptions | None = None) -> dict[str, RobotAgent]:
+                 options: SensorOptions | None = None,
+                 render_unheard: bool = True) -> dict[str, RobotAgent]:
     """A :class:`RobotAgent` for each ``robot`` device of a twin config.
 
     Args:
         config: :class:`~engine.config.TwinConfig`.
         bus: where the agents' nodes register.
         scene: :class:`~engine.scene.TwinScene` for LiDAR/camera, or ``None``.
+        render_unheard: see :class:`RobotAgent`.
     """
     agents = {}
     robots = [d for d in config.devices if d.kind == "robot"]
@@ -267,6 +348,7 @@ def build_robots(config, bus: Bus, scene=None, *, seed: int = 0,
         pose = (*d.position, *d.orientation)
         agents[d.name] = RobotAgent(d.name, d.model or "burger", pose, bus, scene, seed=seed,
                                     options=options,
-                                    frame_prefix=robot_prefix(d.name, len(robots)))
+                                    frame_prefix=robot_prefix(d.name, len(robots)),
+                                    render_unheard=render_unheard)
         log.info("robot %s (%s) at %s", d.name, d.model, d.position)
     return agents

@@ -76,20 +76,46 @@ class Sensor:
         """Whether a sample is due at time ``t`` (s)."""
         return self._next_t is None or t >= self._next_t - 1e-9
 
-    def poll(self, t: float, state: KinematicState):
-        """The sensor's message at time ``t`` (s) if it is due, else ``None``."""
+    def poll(self, t: float, state: KinematicState, **measure_kw):
+        """The sensor's message at time ``t`` (s) if it is due, else ``None``
+        (``measure_kw``: passed to :meth:`measure`, e.g. a scan's ``hits``)."""
         if not self.due(t):
             return None
-        msg = self.measure(t, state)
+        msg = self.measure(t, state, **measure_kw)
+        self._advance(t)
+        return msg
+
+    def _advance(self, t: float) -> None:
+        """Schedule the next sample after one taken (or skipped) at ``t``."""
         self._next_t = (t if self._next_t is None else self._next_t) + self.period
         if self._next_t <= t:  # fell behind (twin step > period): resynchronise
             self._next_t = t + self.period
         self.last_t = t
-        return msg
+
+    def skip(self, t: float, state: KinematicState) -> bool:
+        """Let a due sample pass unrendered: the schedule and the noise stream
+        advance exactly as :meth:`poll` would advance them (:meth:`discard`), so
+        every later sample equals the one an always-polled sensor gives. For a
+        sample nobody receives (issue #19: a ray-cast scan costs ~2 ms).
+
+        Returns:
+            Whether a sample was due (and passed).
+        """
+        if not self.due(t):
+            return False
+        self.discard(t, state)
+        self._advance(t)
+        return True
 
     def measure(self, t: float, state: KinematicState):
         """Take a sample now, regardless of the rate. Subclasses implement it."""
         raise NotImplementedError
+
+    def discard(self, t: float, state: KinematicState) -> None:
+        """What :meth:`measure` does to the sensor's state (random draws, filters)
+        without forming the message; the default measures and drops it.
+        Subclasses with a costly measurement override it."""
+        self.measure(t, state)
 
 
 # --------------------------------------------------------------------------- wheels
@@ -412,9 +438,18 @@ class Lidar2D(Sensor):
         R = state.rotation()
         return state.pose[:3] + R @ self.mount, self._dirs_local @ R.T
 
-    def measure(self, t: float, state: KinematicState) -> LaserScan:
-        origin, dirs = self.rays(state)
-        d, valid, cos_inc = cast_rays(self.scene, origin, dirs)
+    def discard(self, t: float, state: KinematicState) -> None:
+        """The random draws of :meth:`measure` (dropout, then range noise: a fixed
+        count per scan whatever the hits), without the ray cast."""
+        if self.dropout > 0:
+            self.rng.random(self.num_beams)
+        if self.range_noise_rel > 0 or self.range_noise_abs > 0:
+            self.rng.standard_normal(self.num_beams)
+
+    def measure(self, t: float, state: KinematicState, hits=None) -> LaserScan:
+        """The scan at ``state``; ``hits``: its beams' :func:`cast_rays` result when
+        already cast (e.g. with other robots' beams in one call), else cast here."""
+        d, valid, cos_inc = hits if hits is not None else cast_rays(self.scene, *self.rays(state))
         ok = valid & (d >= self.range_min) & (d <= self.range_max) \
             & (cos_inc >= self.min_cos_incidence)
         if self.dropout > 0:
@@ -471,15 +506,29 @@ class DepthCamera(Sensor):
         self._z_body = 1.0 / np.linalg.norm(d, axis=1)  # cos of the angle to the optical axis
         self._dirs_local = d * self._z_body[:, None]
 
-    def poll(self, t: float, state: KinematicState):
+    def poll(self, t: float, state: KinematicState, **measure_kw):
         if not self.enabled:
             return None
-        return super().poll(t, state)
+        return super().poll(t, state, **measure_kw)
 
-    def measure(self, t: float, state: KinematicState) -> Image:
+    def skip(self, t: float, state: KinematicState) -> bool:
+        return self.enabled and super().skip(t, state)
+
+    def discard(self, t: float, state: KinematicState) -> None:
+        """The random draws of :meth:`measure` (depth noise, one per pixel),
+        without the ray cast."""
+        if self.depth_noise_rel > 0:
+            self.rng.standard_normal(self.height * self.width)
+
+    def rays(self, state: KinematicState) -> tuple[np.ndarray, np.ndarray]:
+        """World origin ``[3]`` and pixel ray directions ``[H * W, 3]`` for ``state``."""
         R = state.rotation()
-        origin = state.pose[:3] + R @ self.mount
-        dist, valid, _ = cast_rays(self.scene, origin, self._dirs_local @ R.T)
+        return state.pose[:3] + R @ self.mount, self._dirs_local @ R.T
+
+    def measure(self, t: float, state: KinematicState, hits=None) -> Image:
+        """The depth image at ``state``; ``hits``: its rays' :func:`cast_rays`
+        result when already cast, else cast here."""
+        dist, valid, _ = hits if hits is not None else cast_rays(self.scene, *self.rays(state))
         depth = dist * self._z_body
         if self.depth_noise_rel > 0:
             depth = depth * (1 + self.depth_noise_rel * self.rng.standard_normal(depth.shape))

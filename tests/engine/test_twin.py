@@ -49,7 +49,8 @@ def test_step_produces_paths_rates_and_motion(lab):
     assert last.links[("AP1", "robot1")].rate_bps > last.links[("AP2", "robot1")].rate_bps
     sig = last.signals[("AP1", "robot1")]
     assert sig.h.shape == (14, 1024, 2, 4)
-    assert set(last.timings_s) == {"agents", "trace", "phy", "sense", "estimate", "control"}
+    assert set(last.timings_s) == {"agents", "trace", "phy", "publish", "sense", "estimate",
+                                   "control"}
     # The robot's radio publishes the CSI of each link it receives, as a sensor.
     sub = tw.bus.node("probe").subscribe("/robot1/csi", "isac_twin_msgs/msg/Csi")
     nxt = tw.step()
@@ -286,6 +287,25 @@ def test_paced_run_names_the_stage_of_each_overrun(lab):
         list(tw.run(1, rate_hz=0))
 
 
+def test_a_slow_csi_consumer_is_timed_and_named_as_the_publish_stage(lab):
+    """The step's result and its CSI publication (a recorder's synchronous
+    callback) are a timed stage, ``publish``: an overrun there is named so, not
+    charged to another stage (issue #19; before, that time was in no stage)."""
+    import time
+
+    from engine.twin import STAGES
+
+    tw = Twin.from_scene(lab, seed=1, sensing=False)
+    tw.step()  # compiles the tracer's kernels
+    tw.bus.node("slow_recorder").subscribe(
+        "/robot1/csi", "isac_twin_msgs/msg/Csi",
+        lambda m: time.sleep(0.4) if m.tx == "AP1" else None)
+    res = list(tw.run(2, rate_hz=4.0))  # 250 ms period: the callback overruns it
+    assert "publish" in STAGES and all(r.timings_s["publish"] >= 0.4 for r in res)
+    assert tw.stats.stage_s["publish"] >= 0.8
+    assert tw.stats.overrun_stages == {"publish": 2}
+
+
 def test_csi_is_built_only_for_consumers_and_records_the_same(lab, tmp_path):
     """Issue 19: without a subscriber to ``/<robot>/csi`` the twin publishes no CSI and
     the PHY does not expand the channel over the symbols (one value per symbol
@@ -296,6 +316,7 @@ def test_csi_is_built_only_for_consumers_and_records_the_same(lab, tmp_path):
 
     tw, res = _run(lab, 2)
     assert tw.bus.registry().topic("/robot1/csi").messages == 0
+    assert tw.bus.registry().topic("/robot1/scan").messages == 0  # nor scans (no subscriber)
     sig = res[-1].signals[("AP1", "robot1")]
     assert sig.time_invariant and sig.h_by_group.shape == (2, 1024, 2, 4)
     assert "h" not in vars(sig)  # not expanded: nobody read it

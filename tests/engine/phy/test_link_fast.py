@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from engine.phy.link import (AchievableRate, Interferer, MRTPrecoder, SVDPrecoder,
-                             WaterFilling, water_level, channel_gains, rate_per_re,
+                             WaterFilling, water_level, water_levels, channel_gains, rate_per_re,
                              svd_streams, water_filling)
 from engine.phy.ofdm import ResourceGrid
 
@@ -155,6 +155,33 @@ def test_weightedwater_level_equals_expanded_water_filling():
     ref = water_filling(np.repeat(g, wts.astype(int)), 3.0, 0.7)
     np.testing.assert_allclose(np.repeat(p, wts.astype(int)), ref, rtol=1e-12, atol=1e-15)
     assert np.dot(wts, p) <= 3.0 * (1 + 1e-12)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_water_levels_rows_are_independent_budgets(weighted):
+    """Issue 19: one call for several budgets, rows padded with zero gains, equals
+    water-filling each row's positive gains alone (and the expanded form)."""
+    rng = np.random.default_rng(4)
+    g = rng.exponential(size=(4, 60))
+    g[0, 40:] = 0  # a shorter row
+    g[1, ::3] = 0
+    g[2] = 0  # nothing to fill
+    g[3, :59] = 0  # one entry
+    totals = np.array([3.0, 0.5, 1.0, 2.0])
+    wts = rng.integers(1, 6, size=60).astype(float) if weighted else None
+    p = water_levels(g, totals, 0.7, wts)
+    assert p.shape == g.shape and np.all(p[g <= 0] == 0) and np.all(p[2] == 0)
+    for b in (0, 1, 3):
+        on = g[b] > 0
+        want = water_level(g[b, on], totals[b], 0.7, None if wts is None else wts[on])
+        np.testing.assert_allclose(p[b, on], want, rtol=1e-12, atol=1e-15)
+        spent = p[b].sum() if wts is None else np.dot(wts, p[b])
+        assert spent == pytest.approx(totals[b], rel=1e-12) and spent <= totals[b]
+        ref = water_filling(np.repeat(g[b], 1 if wts is None else wts.astype(int)),
+                            totals[b], 0.7)
+        np.testing.assert_allclose(np.repeat(p[b], 1 if wts is None else wts.astype(int)),
+                                   ref, rtol=1e-12, atol=1e-15)
+    assert p[3, 59] == pytest.approx(2.0 / (1.0 if wts is None else wts[59]))
 
 
 @pytest.mark.parametrize("dtype", [np.complex64, np.complex128])

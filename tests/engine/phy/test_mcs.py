@@ -55,6 +55,25 @@ def test_effective_sinr_is_the_capacity_average_and_skips_silent_streams():
     assert McsRate("he")(np.full((4, 1), 0.5), np.ones((4, 1)))[0] == 0.0  # below MCS 0
 
 
+@pytest.mark.parametrize("weighted", [False, True])
+def test_many_links_at_once_equal_one_at_a_time(weighted):
+    """Issue 19: ``McsRate.many`` (the batched PHY's MCS over a stack of links)
+    gives each link what it gets alone, silent REs and streams included."""
+    rng = np.random.default_rng(3)
+    sinr = 10 ** rng.uniform(-1, 4, size=(5, 64, 2))
+    p = rng.uniform(0, 1, size=(5, 64, 2)) * (rng.uniform(size=(5, 64, 2)) > 0.2)
+    p[2, :, 1] = 0  # a silent stream
+    sinr[4] = 0.01  # nothing fits
+    wts = rng.integers(1, 4, size=64).astype(float) if weighted else None
+    rate = McsRate("he", -35)
+    bits, idx = rate.many(sinr, p, wts)
+    assert bits.shape == (5,) and idx.shape == (5, 2)
+    for b in range(5):
+        one_bits, one_idx = rate(sinr[b], p[b], wts)
+        assert bits[b] == pytest.approx(one_bits, rel=1e-12) and list(idx[b]) == list(one_idx)
+    assert idx[2, 1] == -1 and bits[4] == 0.0 and len(set(bits[:4])) == 4
+
+
 def test_bad_link_adaptation_is_refused_at_load():
     cfg = load_config(engine.bundled_scene_dir())
     assert cfg.link_adaptation == LinkAdaptationConfig("he", -35.0)

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from engine.bus import Bus
-from engine.robots import CirclePath, PurePursuit, RobotAgent, SensorOptions, build_robots
+from engine.robots import (CirclePath, PurePursuit, RobotAgent, SensorOptions, build_robots,
+                           cast_scans)
 from engine.synthetic import SyntheticDevice, box_room
 
 
@@ -81,6 +82,91 @@ def test_agent_without_noise_is_exact(scene):
     a, scans, odom = run(scene, seed=0, noise=False)
     assert np.hypot(*(odom[-1][:2] - a.state.pose[:2])) < 0.002  # tick quantisation only
     assert np.all(np.isfinite(scans[-1]))
+
+
+def test_unheard_scans_are_skipped_and_a_late_subscriber_gets_the_same(scene):
+    """Issue 19: with ``render_unheard=False`` (the twin's agents) a scan nobody
+    subscribes to is not cast nor published; a subscriber arriving mid-run gets
+    exactly the scans of an agent that rendered every one."""
+    def agent(render_unheard):
+        bus = Bus()
+        a = RobotAgent("tb", "burger", (5.5, 3.0, 0.0, 0.0, 0.0, math.pi / 2), bus, scene,
+                       seed=5, options=SensorOptions(camera=True),
+                       render_unheard=render_unheard)
+        a.drive(PurePursuit(CirclePath((4, 3), 1.5), "burger"))
+        return a, bus
+
+    ref, ref_bus = agent(True)
+    lazy, lazy_bus = agent(False)
+    want = ref_bus.node("viewer").subscribe("/tb/scan", "sensor_msgs/msg/LaserScan")
+    cam = ref_bus.node("cam").subscribe("/tb/camera/depth", "sensor_msgs/msg/Image")
+    for k in range(20):
+        ref.step((k + 1) * 0.05, 0.05)
+        lazy.step((k + 1) * 0.05, 0.05)
+    reg = lazy_bus.registry()
+    assert reg.topic("/tb/scan").messages == 0 and reg.topic("/tb/camera/depth").messages == 0
+    assert "scan" not in lazy.last and "camera/depth" not in lazy.last
+    assert reg.topic("/tb/odom").messages == 20  # the other sensors publish as before
+    got = lazy_bus.node("viewer").subscribe("/tb/scan", "sensor_msgs/msg/LaserScan")
+    got_cam = lazy_bus.node("cam").subscribe("/tb/camera/depth", "sensor_msgs/msg/Image")
+    want.drain(), cam.drain()
+    for k in range(20, 60):
+        ref.step((k + 1) * 0.05, 0.05)
+        lazy.step((k + 1) * 0.05, 0.05)
+    a, b = want.drain(), got.drain()
+    assert len(a) == len(b) >= 10
+    for m, g in zip(a, b):
+        assert m.header.stamp == g.header.stamp
+        np.testing.assert_array_equal(m.ranges, g.ranges)
+        np.testing.assert_array_equal(m.intensities, g.intensities)
+    a, b = cam.drain(), got_cam.drain()
+    assert len(a) == len(b) >= 10
+    for m, g in zip(a, b):
+        np.testing.assert_array_equal(m.data, g.data)
+    np.testing.assert_array_equal(ref.state.pose, lazy.state.pose)
+
+
+def test_scans_of_several_robots_cast_together_equal_their_own_casts(scene):
+    """Issue 19: the twin casts every robot's due LiDAR and depth scans in one call
+    (advance all, ``cast_scans``, then ``sense`` each); every scan equals the one
+    the robot's own ``step`` casts, bit for bit."""
+    def robots():
+        bus = Bus()
+        agents = build_robots(scene.config, bus, scene, seed=2,
+                              options=SensorOptions(camera=True))
+        for (name, a), centre in zip(agents.items(), ((4.0, 3.0), (2.5, 2.0))):
+            a.drive(PurePursuit(CirclePath(centre, 1.0), a.spec))
+        subs = {(n, k): bus.node(f"v_{n}_{k}").subscribe(f"/{n}/{k}", t)
+                for n in agents for k, t in (("scan", "sensor_msgs/msg/LaserScan"),
+                                             ("camera/depth", "sensor_msgs/msg/Image"))}
+        return agents, subs
+
+    alone, want = robots()
+    together, got = robots()
+    batched = 0
+    for k in range(30):
+        t = (k + 1) * 0.05
+        for a in alone.values():
+            a.step(t, 0.05)
+        for a in together.values():
+            a.advance(0.05)
+        hits = cast_scans(together.values(), t)
+        batched += sum(len(h) for h in hits.values())
+        for a in together.values():
+            a.sense(t, hits=hits.get(a.name))
+            a.control()
+    assert batched >= 8  # both robots' scans and images were due together
+    for key, sub in want.items():
+        a, b = sub.drain(), got[key].drain()
+        assert len(a) == len(b) >= 5
+        for m, g in zip(a, b):
+            if key[1] == "scan":
+                np.testing.assert_array_equal(m.ranges, g.ranges)
+                np.testing.assert_array_equal(m.intensities, g.intensities)
+            else:
+                np.testing.assert_array_equal(m.data, g.data)
+    for n in alone:
+        np.testing.assert_array_equal(alone[n].state.pose, together[n].state.pose)
 
 
 def test_cmd_vel_from_another_node_drives_the_robot(scene):

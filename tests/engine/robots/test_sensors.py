@@ -96,6 +96,36 @@ def test_lidar_rate(room):
     assert n == 11  # 5.5 Hz over 2 s
 
 
+@pytest.mark.parametrize("kind", ["lidar", "camera"])
+def test_skipped_scans_leave_later_scans_unchanged(room, kind):
+    """Issue 19: ``skip`` advances the schedule and the noise stream as a poll
+    does, so the scans polled after some were skipped equal those of a sensor
+    that rendered every one (dropout and range noise on)."""
+    def make():
+        if kind == "lidar":
+            return Lidar2D(room, "burger", dropout=0.2, range_noise_rel=0.01, seed=7)
+        return DepthCamera(room, "burger", enabled=True, depth_noise_rel=0.02, seed=7)
+
+    every, skipping = make(), make()
+    poses = [(4.0 + 0.1 * k, 3.0, 0, 0, 0, 0.05 * k) for k in range(30)]
+    got, want, skipped = [], [], 0
+    for k, pose in enumerate(poses):
+        t, st = 0.05 * k, state_at(pose)
+        m = every.poll(t, st)
+        if k < 15:
+            skipped += skipping.skip(t, st)
+            continue
+        g = skipping.poll(t, st)
+        assert (g is None) == (m is None)
+        if m is not None:
+            got.append(g.ranges if kind == "lidar" else g.data)
+            want.append(m.ranges if kind == "lidar" else m.data)
+    assert skipped == 4 and len(got) >= 3  # 5.5 / 5 Hz: due on 4 of the first 15 steps
+    for g, m in zip(got, want):
+        np.testing.assert_array_equal(g, m)
+    assert not DepthCamera(room, "burger").skip(0.0, state_at(poses[0]))  # off: nothing due
+
+
 def test_cast_rays_misses_are_inf(room):
     t, valid, _ = cast_rays(room, np.array([50.0, 50.0, 50.0]), np.array([[0.0, 0.0, 1.0]]))
     assert not valid[0] and np.isinf(t[0])
