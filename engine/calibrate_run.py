@@ -30,6 +30,7 @@ import logging
 import math
 import re
 import shutil
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -209,6 +210,59 @@ def local_minima(f: np.ndarray) -> np.ndarray:
     return np.array(sorted(idx, key=lambda i: f[i]), int)
 
 
+#: A fitted permittivity is reported as not determined to this fraction when changing it
+#: by this much changes the mismatch by less than the fit's own residual mismatch.
+SENSITIVITY_STEP = 0.10
+
+
+def observability(cal: Calibrator, result) -> dict:
+    """What the measurements say about each fitted material, at the fit (``result``).
+
+    Per material named by a parameter: how many traced paths touch it and their share
+    of each snapshot's path power (:meth:`Calibrator.visibility`), and the mismatch
+    when its permittivity is changed by -+:data:`SENSITIVITY_STEP` (two traces, no
+    gradients). ``could_not_see``: a sentence per parameter the start gradient did
+    not see (:attr:`CalibrationResult.unobserved`) and per permittivity whose
+    +-10 % change moves the mismatch by less than the fit's residual mismatch (then
+    other residuals, e.g. an object's pose off by a few cm, are larger than the
+    material's whole signal: the value is not determined to 10 %).
+
+    Returns:
+        ``{"materials": {target: {...}}, "could_not_see": [str]}``.
+    """
+    final = np.asarray(result.final, float)
+    vis = cal.visibility(final)
+    out, notes = {}, [f"{n}: no traced path changes with it at the start (gradient "
+                      f"{abs(g):.3g})" for n, g in zip(result.names, result.gradient_initial)
+                      if n in result.unobserved]
+    for i, p in enumerate(cal.params):
+        if p.kind != "permittivity":
+            continue
+        v = vis[p.target]
+        changes = []
+        for sgn in (-1.0, 1.0):
+            x = final.copy()
+            x[i] = float(np.clip(x[i] * (1 + sgn * SENSITIVITY_STEP), *p.limits))
+            changes.append(cal.evaluate(x, grad=False)[0] - result.mismatch_final)
+        cal.evaluate(final, grad=False)  # leave the scene at the fit
+        share = np.asarray(v["power_share"], float)
+        out[p.target] = {"paths_per_snapshot": [int(c) for c in v["paths"]],
+                         "power_share_per_snapshot": [float(c) for c in share],
+                         "strongest_path_db_per_snapshot": [float(c) for c in v["strongest_db"]],
+                         "mismatch_change_db2_at_minus_plus_10_percent": changes,
+                         "mismatch_final_db2": float(result.mismatch_final)}
+        signal = max(changes)
+        if signal < result.mismatch_final:
+            notes.append(
+                f"{p.name}: not determined to {SENSITIVITY_STEP:.0%} by these measurements: "
+                f"-+{SENSITIVITY_STEP:.0%} changes the mismatch by {changes[0]:+.3g} / "
+                f"{changes[1]:+.3g} dB^2, less than the residual mismatch "
+                f"{result.mismatch_final:.3g} dB^2 of the fit; its paths carry at most "
+                f"{100 * share.max():.2g} % of a snapshot's path power "
+                f"({int(np.sum(v['paths']))} paths over {len(share)} snapshots)")
+    return {"materials": out, "could_not_see": notes}
+
+
 @dataclass
 class RunOutput:
     scene_dir: Path
@@ -354,7 +408,17 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                                            max_subcarriers=max_subcarriers)
     params = default_parameters(scene, tuple(what), list(objects or []), materials)
     cal = Calibrator(scene, meas, params, solver or SolverSettings.from_tracer(scene.config.tracer))
+    t_start = time.perf_counter()
     starts, scans = [cal.initial.copy()], {}
+    poses = [i for i, p in enumerate(params) if p.kind in ("x", "y", "yaw")]
+    first_fit = None
+    if scan and poses and any(p.kind == "permittivity" for p in params):
+        # Objects off by centimetres hide a material: on the lab the pose mismatch
+        # (7.6 dB^2) is ~700 x what +-10 % of the tables' permittivity changes, and a
+        # scan there ran to the end of its range (49.5 % off). Fit everything from the
+        # scene's values first, then scan each permittivity with the poses held there.
+        first_fit = cal.fit(max_steps=max_steps)
+        starts = [first_fit.final.copy()]
     if scan:
         for i, p in enumerate(params):
             if p.kind == "permittivity":
@@ -362,7 +426,8 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                 f = cal.scan(i, grid, starts[0])
                 best = local_minima(f)[:multistart]
                 scans[p.name] = {"values": grid.tolist(), "mismatch_db2": f.tolist(),
-                                 "starts": grid[best].tolist()}
+                                 "starts": grid[best].tolist(),
+                                 "at": "fitted poses" if first_fit is not None else "start"}
                 new = []
                 for x in starts:
                     for j in best:
@@ -384,7 +449,12 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                         {"values": grid.tolist(), "mismatch_db2": f.tolist(),
                          "start": float(x[i])})
     fits = [cal.fit(max_steps=max_steps, start=x) for x in starts]
+    if first_fit is not None:
+        fits.append(first_fit)
+        starts = starts + [cal.initial.copy()]
     result = min(fits, key=lambda r: r.mismatch_final)
+    seen = observability(cal, result)
+    seconds = time.perf_counter() - t_start
     out.mkdir(parents=True, exist_ok=True)
     scene_out = write_calibrated_scene(scene, result, out / "scene")
     materials, assign = calibrated_materials(scene, result)
@@ -397,7 +467,11 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                                    for x, r in zip(starts, fits)],
               "materials_written": materials,
               "material_of_objects": assign,
-              **result.to_json()}
+              **result.to_json(),
+              "evaluations": cal.evaluations, "seconds": seconds,
+              "candidate_buffer": {"size": cal.buffer_size, "regrows": cal.buffer_regrows},
+              "observability": seen["materials"],
+              "could_not_see": seen["could_not_see"]}
     report_path = out / "calibration.json"
     report_path.write_text(json.dumps(report, indent=2))
     plot_report(report, out / "calibration.png")

@@ -210,7 +210,7 @@ class CalibrationResult:
         residual_db_initial: ``[N]`` the same at the scene's values (before), dB.
         converged, message: the optimiser's verdict and reason.
         evaluations: mismatch+gradient evaluations (traces).
-        seconds_per_step: mean wall time of one evaluation (trace, CFR, backward), s.
+        seconds_per_step: mean wall time of one gradient evaluation (trace, CFR, backward), s.
     """
 
     names: list[str]
@@ -317,7 +317,9 @@ class Calibrator:
         self.settings = solver or SolverSettings()
         self.sc = sc = scene.sionna
         self.evaluations = 0
+        #: Wall time of each gradient evaluation / of each evaluation without, s.
         self.step_seconds: list[float] = []
+        self.forward_seconds: list[float] = []
 
         # materials: every Sionna radio material whose ITU type or name matches
         self._materials: dict[str, list] = {}
@@ -376,6 +378,7 @@ class Calibrator:
         self._n_meas = len(m.rx_positions)
         self._n_tx_ant = int(m.tx_array[0]) * int(m.tx_array[1])
         self._n_rx_ant = int(m.rx_array[0]) * int(m.rx_array[1])
+        self._at_initial = None  # (mismatch, gradient, model) at the scene's values
         #: Candidate buffer entries of every evaluation (0: sized by the first).
         self.buffer_size = 0
         #: Evaluations that found more candidates than the buffer held (it grew:
@@ -608,7 +611,7 @@ class Calibrator:
         out = float(loss[0]), g, model.transpose(0, 3, 1, 2)
         self._apply(values, False)  # leave the scene at values, detached from the graph
         self.evaluations += 1
-        self.step_seconds.append(time.perf_counter() - t0)
+        (self.step_seconds if grad else self.forward_seconds).append(time.perf_counter() - t0)
         return out
 
     def scan(self, index: int, values, start=None) -> np.ndarray:
@@ -631,13 +634,15 @@ class Calibrator:
         return np.array(out)
 
     def fit(self, *, max_steps: int = 30, ftol: float = 1e-7, gtol: float = 1e-6,
-            start=None) -> CalibrationResult:
+            start=None, free=None) -> CalibrationResult:
         """Fit by L-BFGS-B inside the bounds.
 
         Args:
             start: ``[P]`` values to start from (physical units; e.g. the best of a
                 :meth:`scan`); default the scene's values. ``initial`` in the result
                 stays the scene's values.
+            free: indices of the parameters to fit (default all); the others stay at
+                ``start`` (e.g. materials held while poses are fitted).
             max_steps: most optimiser iterations.
             ftol: stop when the relative mismatch change per step is below this.
             gtol: stop when the projected gradient (per ``scale``) is below this, dB^2.
@@ -652,27 +657,36 @@ class Calibrator:
             raise CalibrationError(f"fit: start must have {len(self.initial)} values, "
                                    f"got {x0.shape}")
         x0 = np.clip(x0, [p.limits[0] for p in self.params], [p.limits[1] for p in self.params])
-        sc = self.scales
+        idx = np.arange(len(x0)) if free is None else np.unique(np.asarray(free, int))
+        if len(idx) == 0 or idx.min() < 0 or idx.max() >= len(x0):
+            raise CalibrationError(f"fit: free must name parameters 0..{len(x0) - 1}, "
+                                   f"got {free!r}")
+        sc = self.scales[idx]
         history: list[float] = []
-        first: dict = {}
+
+        def values(u):
+            x = x0.copy()
+            x[idx] += u * sc
+            return x
 
         def fun(u):
-            f, g, model = self.evaluate(x0 + u * sc)
+            x = values(u)
+            f, g, model = self.evaluate(x)
             history.append(f)
-            if not first:
-                first.update(f=f, g=g, model=model)
+            if self._at_initial is None and np.array_equal(x, self.initial):
+                self._at_initial = (f, g, model)
             log.info("calibrate: step %d mismatch %.5g dB^2 at %s", len(history), f,
-                     np.round(x0 + u * sc, 6).tolist())
-            return f, g * sc
+                     np.round(x, 6).tolist())
+            return f, g[idx] * sc
 
-        bounds = [((p.limits[0] - v) / s, (p.limits[1] - v) / s)
-                  for p, v, s in zip(self.params, x0, sc)]
-        res = minimize(fun, np.zeros(len(x0)), jac=True, method="L-BFGS-B", bounds=bounds,
+        bounds = [((self.params[i].limits[0] - x0[i]) / s, (self.params[i].limits[1] - x0[i]) / s)
+                  for i, s in zip(idx, sc)]
+        res = minimize(fun, np.zeros(len(idx)), jac=True, method="L-BFGS-B", bounds=bounds,
                        options={"maxiter": max_steps, "ftol": ftol, "gtol": gtol})
-        final = x0 + res.x * sc
-        if start is not None:  # report against the scene's values
-            f0, g0, m0 = self.evaluate(self.initial)
-            first.update(f=f0, g=g0, model=m0)
+        final = values(res.x)
+        if self._at_initial is None:  # report against the scene's values
+            self._at_initial = self.evaluate(self.initial)
+        first = dict(zip(("f", "g", "model"), self._at_initial))
         f_final, _, model = self.evaluate(final, grad=False)  # leaves the scene there
         meas_db = power_db(self.meas.csi)
         residual = np.sqrt(np.mean((model - meas_db) ** 2, axis=(1, 2, 3)))
@@ -680,8 +694,9 @@ class Calibrator:
         names = [p.name for p in self.params]
         return CalibrationResult(
             names=names, initial=self.initial.copy(), final=final, gradient_initial=first["g"],
-            unobserved=unobserved(first["g"] * sc, names),
+            unobserved=unobserved(first["g"] * self.scales, names),
             mismatch_initial=first["f"], mismatch_final=f_final, residual_db=residual,
             converged=bool(res.success), message=str(res.message), evaluations=self.evaluations,
-            seconds_per_step=float(np.mean(self.step_seconds)), history=history,
+            seconds_per_step=float(np.mean(self.step_seconds)) if self.step_seconds else 0.0,
+            history=history,
             residual_db_initial=residual0)
