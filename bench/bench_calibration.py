@@ -122,7 +122,8 @@ def lab(a) -> int:
         print(f"{target}: paths per snapshot {o['paths_per_snapshot']}, power share max "
               f"{share.max():.2f} % (median {np.median(share):.2f} %), -+10 % permittivity "
               f"changes the mismatch by {o['mismatch_change_db2_at_minus_plus_10_percent'][0]:+.4f}"
-              f" / {o['mismatch_change_db2_at_minus_plus_10_percent'][1]:+.4f} dB^2")
+              f" / {o['mismatch_change_db2_at_minus_plus_10_percent'][1]:+.4f} dB^2 (residual "
+              f"{o['mismatch_final_db2']:.4f} dB^2): 1-sigma {o['uncertainty_percent']:.1f} %")
     for note in r["could_not_see"]:
         print(f"  could not see: {note}")
     if a.localize:

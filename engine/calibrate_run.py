@@ -212,6 +212,10 @@ def local_minima(f: np.ndarray) -> np.ndarray:
     return np.array(sorted(idx, key=lambda i: f[i]), int)
 
 
+#: After a first joint fit, the fits from the permittivity scans' minima run only when a
+#: scan point beats the first fit's mismatch by more than this fraction (a better basin).
+REFIT_GAIN = 0.01
+
 #: A fitted permittivity is reported as not determined to this fraction when changing it
 #: by this much changes the mismatch by less than the fit's own residual mismatch.
 SENSITIVITY_STEP = 0.10
@@ -223,11 +227,13 @@ def observability(cal: Calibrator, result) -> dict:
     Per material named by a parameter: how many traced paths touch it and their share
     of each snapshot's path power (:meth:`Calibrator.visibility`), and the mismatch
     when its permittivity is changed by -+:data:`SENSITIVITY_STEP` (two traces, no
-    gradients). ``could_not_see``: a sentence per parameter the start gradient did
-    not see (:attr:`CalibrationResult.unobserved`) and per permittivity whose
-    +-10 % change moves the mismatch by less than the fit's residual mismatch (then
-    other residuals, e.g. an object's pose off by a few cm, are larger than the
-    material's whole signal: the value is not determined to 10 %).
+    gradients), and from that curvature its 1-sigma ``uncertainty_percent``
+    ``= 100 step sqrt(residual / (N K mean change))``: the fit's residual mismatch
+    taken as independent noise per snapshot and subcarrier (the antennas of one
+    snapshot and subcarrier as one sample: their residuals are correlated).
+    ``could_not_see``: a sentence per parameter the start gradient did not see
+    (:attr:`CalibrationResult.unobserved`) and per permittivity whose 1-sigma
+    exceeds the step (not determined to 10 %).
 
     Returns:
         ``{"materials": {target: {...}}, "could_not_see": [str]}``.
@@ -253,14 +259,18 @@ def observability(cal: Calibrator, result) -> dict:
                          "strongest_path_db_per_snapshot": [float(c) for c in v["strongest_db"]],
                          "mismatch_change_db2_at_minus_plus_10_percent": changes,
                          "mismatch_final_db2": float(result.mismatch_final)}
-        signal = max(changes)
-        if signal < result.mismatch_final:
+        curv = float(np.mean(changes))
+        n_k = cal.meas.csi.shape[0] * cal.meas.csi.shape[1]
+        sigma = (100.0 * SENSITIVITY_STEP * math.sqrt(result.mismatch_final / (n_k * curv))
+                 if curv > 0 else math.inf)
+        out[p.target]["uncertainty_percent"] = sigma
+        if not sigma <= 100.0 * SENSITIVITY_STEP:
             notes.append(
                 f"{p.name}: not determined to {SENSITIVITY_STEP:.0%} by these measurements: "
                 f"-+{SENSITIVITY_STEP:.0%} changes the mismatch by {changes[0]:+.3g} / "
-                f"{changes[1]:+.3g} dB^2, less than the residual mismatch "
-                f"{result.mismatch_final:.3g} dB^2 of the fit; its paths carry at most "
-                f"{100 * share.max():.2g} % of a snapshot's path power "
+                f"{changes[1]:+.3g} dB^2 against a residual mismatch of "
+                f"{result.mismatch_final:.3g} dB^2 (1-sigma {sigma:.3g} %); its paths carry "
+                f"at most {100 * share.max():.2g} % of a snapshot's path power "
                 f"({int(np.sum(v['paths']))} paths over {len(share)} snapshots)")
     return {"materials": out, "could_not_see": notes}
 
@@ -450,10 +460,16 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                     pose_scans.setdefault(p.name, []).append(
                         {"values": grid.tolist(), "mismatch_db2": f.tolist(),
                          "start": float(x[i])})
-    fits = [cal.fit(max_steps=max_steps, start=x) for x in starts]
-    if first_fit is not None:
-        fits.append(first_fit)
-        starts = starts + [cal.initial.copy()]
+    better = min((min(v["mismatch_db2"]) for v in scans.values()), default=np.inf)
+    if (first_fit is not None and first_fit.converged and not pose_scans
+            and better > (1.0 - REFIT_GAIN) * first_fit.mismatch_final):
+        # the scans at the fitted poses found no better basin: no further fits
+        fits, starts = [first_fit], [cal.initial.copy()]
+    else:
+        fits = [cal.fit(max_steps=max_steps, start=x) for x in starts]
+        if first_fit is not None:
+            fits.append(first_fit)
+            starts = starts + [cal.initial.copy()]
     result = min(fits, key=lambda r: r.mismatch_final)
     seen = observability(cal, result)
     seconds = time.perf_counter() - t_start
