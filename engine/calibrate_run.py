@@ -400,7 +400,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                         max_subcarriers: int = 16, max_steps: int = 30,
                         solver: SolverSettings | None = None, scan: bool = True,
                         multistart: int = 3, materials: list[str] | None = None,
-                        pose_scan: bool = False) -> RunOutput:
+                        pose_scan: bool = False, trust: float | None = 1.5) -> RunOutput:
     """Fit the scene at ``scene_dir`` to ``recording``; write ``out/scene`` and
     ``out/calibration.json`` (see the module doc). ``solver``: default the scene's
     ``[tracer]`` settings (:meth:`SolverSettings.from_tracer`). ``scan``: start each
@@ -410,7 +410,10 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     ``materials``: the materials fitted with ``"materials"`` (default all but metal; see
     :func:`default_parameters`). ``pose_scan``: before fitting, set each pose offset in
     turn to the best of :func:`pose_grid` (the magnitude mismatch has a local minimum
-    about every half wavelength of an object's shift); costs one trace per grid point."""
+    about every half wavelength of an object's shift); costs one trace per grid point.
+    ``trust``: with poses fitted, each fit runs in rounds inside a box of +-``trust``
+    typical changes (1 cm, 1 deg, 10 % of a material value) about the round's start
+    (:meth:`~engine.calibration.Calibrator.fit`); None: one unbounded L-BFGS-B."""
     from engine.scene import load_scene
 
     out = Path(out)
@@ -429,7 +432,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
         # (7.6 dB^2) is ~700 x what +-10 % of the tables' permittivity changes, and a
         # scan there ran to the end of its range (49.5 % off). Fit everything from the
         # scene's values first, then scan each permittivity with the poses held there.
-        first_fit = cal.fit(max_steps=max_steps)
+        first_fit = cal.fit(max_steps=max_steps, trust=trust)
         starts = [first_fit.final.copy()]
     if scan:
         for i, p in enumerate(params):
@@ -466,7 +469,8 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
         # the scans at the fitted poses found no better basin: no further fits
         fits, starts = [first_fit], [cal.initial.copy()]
     else:
-        fits = [cal.fit(max_steps=max_steps, start=x) for x in starts]
+        fits = [cal.fit(max_steps=max_steps, start=x, trust=trust if poses else None)
+                for x in starts]
         if first_fit is not None:
             fits.append(first_fit)
             starts = starts + [cal.initial.copy()]
@@ -481,7 +485,8 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
               "subcarriers": int(len(meas.subcarrier_offsets_hz)),
               "permittivity_scans": scans, "pose_scans": pose_scans,
               "fits_from_starts": [{"start": [float(v) for v in x], "final": r.final.tolist(),
-                                    "mismatch_db2": r.mismatch_final, "converged": r.converged}
+                                    "mismatch_db2": r.mismatch_final, "converged": r.converged,
+                                    "history_db2": [float(h) for h in r.history]}
                                    for x, r in zip(starts, fits)],
               "materials_written": materials,
               "material_of_objects": assign,
