@@ -137,8 +137,8 @@ def lab(a) -> int:
             e = loc[label]
             print(f"  {label:10s} twin: RMSE {e['rmse'] * 100:.1f} cm, median "
                   f"{e['median'] * 100:.1f} cm, P90 {e['p90'] * 100:.1f} cm, max "
-                  f"{e['max'] * 100:.1f} cm over {e['steps']} steps (database {e['database_s']:.0f} s,"
-                  f" run {e['run_s']:.0f} s)")
+                  f"{e['max'] * 100:.1f} cm over {e['steps']} steps (database "
+                  f"{e['database_s']:.0f} s, run {e['run_s']:.0f} s)")
         print(f"  calibrated / original RMSE: "
               f"{loc['calibrated']['rmse'] / loc['original']['rmse']:.2f}x")
     (a.out / "lab.json").write_text(json.dumps(r, indent=1))
