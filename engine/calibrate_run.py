@@ -407,7 +407,9 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     permittivity from the best of :func:`permittivity_grid` (the mismatch has a local
     minimum per slab resonance, see :meth:`Calibrator.scan`) and fit from the
     ``multistart`` best local minima of the scans; the fit with the lowest mismatch wins.
-    ``materials``: the materials fitted with ``"materials"`` (default all but metal; see
+    With poses fitted too, a first joint fit from the scene's values comes first, the
+    scans run at its poses, and the fits from their minima only when a scan point
+    beats it by more than :data:`REFIT_GAIN`. ``materials``: the materials fitted with ``"materials"`` (default all but metal; see
     :func:`default_parameters`). ``pose_scan``: before fitting, set each pose offset in
     turn to the best of :func:`pose_grid` (the magnitude mismatch has a local minimum
     about every half wavelength of an object's shift); costs one trace per grid point.
