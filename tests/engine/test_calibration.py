@@ -148,6 +148,7 @@ def _arrays_case(folder):
                        Parameter("yaw", "Cabinet")], SETTINGS)
 
 
+@pytest.mark.slow
 def test_model_channel_is_sionnas_paths_cfr(tmp_path):
     """The calibrator sums the channel itself (fixed-size buffers): it must equal
     Sionna's own PathSolver + Paths.cfr (synthetic arrays, orientations) at moved poses."""
@@ -170,6 +171,7 @@ def test_model_channel_is_sionnas_paths_cfr(tmp_path):
         assert np.abs(model - ref).max() < 1e-3  # dB
 
 
+@pytest.mark.slow
 def test_new_poses_do_not_recompile_the_evaluation(tmp_path):
     """A trace at new object poses finds another number of candidates; Sionna's kernels
     bake that number in, so the evaluation pads them to a fixed buffer: after the first
@@ -195,6 +197,7 @@ def test_new_poses_do_not_recompile_the_evaluation(tmp_path):
     assert cal.buffer_size == size and cal.buffer_regrows == 0
 
 
+@pytest.mark.slow
 def test_frozen_candidates_are_traced_at_the_current_geometry(tmp_path):
     """A trust-box round keeps the candidate chains of its first trace; the image method
     still runs on the moved mesh: 1 cm and 1 deg later the channel is close to Sionna's
