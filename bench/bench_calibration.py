@@ -114,13 +114,31 @@ def lab(a) -> int:
     print(f"mismatch {mm['initial']:.4g} -> {mm['final']:.4g} dB^2 (baseline: the original "
           f"twin), {r['evaluations']} evaluations at {r['seconds_per_step']:.1f} s, "
           f"{'converged' if r['converged'] else 'NOT converged'} ({r['message']})")
-    print(f"recording {r['record_s']:.0f} s, calibration {r['calibration_s']:.0f} s")
+    print(f"recording {r['record_s']:.0f} s, calibration {r['calibration_s']:.0f} s "
+          f"(candidate buffer {r['candidate_buffer']['size']}, grown "
+          f"{r['candidate_buffer']['regrows']} times)")
+    for target, o in r["observability"].items():
+        share = np.asarray(o["power_share_per_snapshot"]) * 100
+        print(f"{target}: paths per snapshot {o['paths_per_snapshot']}, power share max "
+              f"{share.max():.2f} % (median {np.median(share):.2f} %), -+10 % permittivity "
+              f"changes the mismatch by {o['mismatch_change_db2_at_minus_plus_10_percent'][0]:+.4f}"
+              f" / {o['mismatch_change_db2_at_minus_plus_10_percent'][1]:+.4f} dB^2 (residual "
+              f"{o['mismatch_final_db2']:.4f} dB^2): 1-sigma {o['uncertainty_percent']:.1f} %")
+    for note in r["could_not_see"]:
+        print(f"  could not see: {note}")
     if a.localize:
         loc = localization_errors(folder, r["calibrated_scene"], cache_dir=a.out / "cache")
         r["localization"] = loc
-        for label, e in loc.items():
-            print(f"localization, realistic mode, {label:10s} twin: RMSE {e['rmse']:.3f} m, "
-                  f"median {e['median']:.3f} m, P90 {e['p90']:.3f} m over {e['steps']} steps")
+        st = loc["settings"]
+        print(f"localization against the truth, realistic mode: {st['method']} + "
+              f"{st['fusion']} {'closed loop' if st['closed_loop'] else 'open loop'}, pilots "
+              f"{st['snr_db']:g} dB, {st['spacing_m'] * 100:g} cm database, dt {st['dt_s']} s")
+        for label in ("original", "calibrated"):
+            e = loc[label]
+            print(f"  {label:10s} twin: RMSE {e['rmse'] * 100:.1f} cm, median "
+                  f"{e['median'] * 100:.1f} cm, P90 {e['p90'] * 100:.1f} cm, max "
+                  f"{e['max'] * 100:.1f} cm over {e['steps']} steps (database "
+                  f"{e['database_s']:.0f} s, run {e['run_s']:.0f} s)")
         print(f"  calibrated / original RMSE: "
               f"{loc['calibrated']['rmse'] / loc['original']['rmse']:.2f}x")
     (a.out / "lab.json").write_text(json.dumps(r, indent=1))

@@ -141,26 +141,33 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
             "mismatch_db2": rep["mismatch_db2"], "converged": rep["converged"],
             "message": rep["message"], "evaluations": rep["evaluations"],
             "seconds_per_step": rep["seconds_per_step"], "record_s": t_rec,
+            "observability": rep["observability"], "could_not_see": rep["could_not_see"],
+            "candidate_buffer": rep["candidate_buffer"],
             "calibration_s": t_cal, "calibrated_scene": str(run.scene_dir),
             "report": str(run.report_path)}
 
 
 def localization_errors(folder, calibrated_folder, *, seed: int = 1,
                         changed_material: str = "wood-0.03", permittivity_factor: float = 1.3,
-                        spacing: float = 0.1, dt: float = 0.5, steps: int | None = None,
-                        snr_db: float = 20.0, method: str = "MCA",
-                        cache_dir: str | Path = "out/cache") -> dict:
+                        spacing: float = 0.05, dt: float = 0.25, steps: int | None = None,
+                        snr_db: float = 20.0, method: str = "MCA-angles", fusion: str = "ekf",
+                        closed_loop: bool = True, cache_dir: str | Path = "out/cache") -> dict:
     """Localization errors against the truth in the real room (:func:`real_room`), in the
-    realistic mode (MDP from pilots received there at ``snr_db``, the localizer on the
-    twin's fingerprint database), once with the original twin's database and once with
-    the calibrated twin's. Returns ``{"original": summary, "calibrated": summary}``
+    realistic mode the twin runs by default (the case study's closed loop: MCA-angles on
+    pilots received there at ``snr_db``, the controller steering on an EKF over odometry
+    with the gated fixes, on the twin's ``spacing`` fingerprint database; the README's
+    closed-loop figures), once with the original twin's database and once with the
+    calibrated twin's. Returns ``{"original": summary, "calibrated": summary}``
     (:func:`engine.localization.deployment.summarize` of the per-step
-    ``estimate_vs_truth`` errors, m) plus the database build times."""
+    ``estimate_vs_truth`` errors, m) plus the database build times and the settings."""
     from engine.localization.deployment import (Deployment, DeploymentSettings, errors,
                                                 summarize)
     from engine.localization.fingerprints import cached_database
 
-    out: dict = {}
+    mca = {"eps": 0.5, "k": 4, "num_paths": 9}  # the case study's (engine.casestudy)
+    out: dict = {"settings": {"method": method, "fusion": fusion, "closed_loop": closed_loop,
+                              "mode": "pilots", "snr_db": snr_db, "spacing_m": spacing,
+                              "dt_s": dt, "seed": seed}}
     for label, f in (("original", folder), ("calibrated", calibrated_folder)):
         t0 = time.perf_counter()
         db = cached_database(load_scene(f), spacing=spacing, cache_dir=cache_dir)
@@ -168,7 +175,8 @@ def localization_errors(folder, calibrated_folder, *, seed: int = 1,
         real, _ = real_room(folder, seed=seed, changed_material=changed_material,
                             permittivity_factor=permittivity_factor)
         settings = DeploymentSettings(source="real", mode="pilots", snr_db=snr_db,
-                                      method=method)
+                                      closed_loop=closed_loop, method=method, fusion=fusion,
+                                      mca=mca, num_paths=mca["num_paths"])
         t0 = time.perf_counter()
         dep = Deployment(f, db, settings, seed=seed, dt=dt, rate_every=10 ** 9,
                          real_scene=real)

@@ -30,6 +30,7 @@ import logging
 import math
 import re
 import shutil
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -179,15 +180,17 @@ def default_parameters(scene, what: tuple[str, ...], objects: list[str],
 
 
 def permittivity_grid(scene, material: str, eps0: float, factor: float = 2.0,
-                      per_period: int = 6) -> np.ndarray:
+                      per_period: int = 6, min_points: int = 12) -> np.ndarray:
     """Start values for a permittivity scan, ``[S]``: ``eps0 / factor .. eps0 * factor``
     (at least 1), uniform in ``sqrt(eps)`` with ``per_period`` points per period
-    ``wavelength / (2 d)`` of the thickest slab ``d`` (m) of ``material``."""
+    ``wavelength / (2 d)`` of the thickest slab ``d`` (m) of ``material``, and at least
+    ``min_points`` (a thin slab's period is wider than the range: 3 cm of wood at
+    2.4 GHz gave 4 points, 30-55 % apart)."""
     lam = 299_792_458.0 / scene.config.scene.frequency_hz
     d = max((o.thickness for o in material_users(scene, material)), default=0.1)
     lo, hi = math.sqrt(max(1.0, eps0 / factor)), math.sqrt(eps0 * factor)
     n = int(math.ceil((hi - lo) / (lam / (2 * d) / per_period))) + 1
-    return np.linspace(lo, hi, max(n, 2)) ** 2
+    return np.linspace(lo, hi, max(n, min_points, 2)) ** 2
 
 
 def pose_grid(p: Parameter, wavelength: float, per_wavelength: int = 8) -> np.ndarray:
@@ -207,6 +210,69 @@ def local_minima(f: np.ndarray) -> np.ndarray:
     idx = [i for i in range(len(f)) if (i == 0 or f[i] <= f[i - 1])
            and (i == len(f) - 1 or f[i] <= f[i + 1])]
     return np.array(sorted(idx, key=lambda i: f[i]), int)
+
+
+#: After a first joint fit, the fits from the permittivity scans' minima run only when a
+#: scan point beats the first fit's mismatch by more than this fraction (a better basin).
+REFIT_GAIN = 0.01
+
+#: A fitted permittivity is reported as not determined to this fraction when changing it
+#: by this much changes the mismatch by less than the fit's own residual mismatch.
+SENSITIVITY_STEP = 0.10
+
+
+def observability(cal: Calibrator, result) -> dict:
+    """What the measurements say about each fitted material, at the fit (``result``).
+
+    Per material named by a parameter: how many traced paths touch it and their share
+    of each snapshot's path power (:meth:`Calibrator.visibility`), and the mismatch
+    when its permittivity is changed by -+:data:`SENSITIVITY_STEP` (two traces, no
+    gradients), and from that curvature its 1-sigma ``uncertainty_percent``
+    ``= 100 step sqrt(residual / (N K mean change))``: the fit's residual mismatch
+    taken as independent noise per snapshot and subcarrier (the antennas of one
+    snapshot and subcarrier as one sample: their residuals are correlated).
+    ``could_not_see``: a sentence per parameter the start gradient did not see
+    (:attr:`CalibrationResult.unobserved`) and per permittivity whose 1-sigma
+    exceeds the step (not determined to 10 %).
+
+    Returns:
+        ``{"materials": {target: {...}}, "could_not_see": [str]}``.
+    """
+    final = np.asarray(result.final, float)
+    vis = cal.visibility(final)
+    out, notes = {}, [f"{n}: no traced path changes with it at the start (gradient "
+                      f"{abs(g):.3g})" for n, g in zip(result.names, result.gradient_initial)
+                      if n in result.unobserved]
+    for i, p in enumerate(cal.params):
+        if p.kind != "permittivity":
+            continue
+        v = vis[p.target]
+        changes = []
+        for sgn in (-1.0, 1.0):
+            x = final.copy()
+            x[i] = float(np.clip(x[i] * (1 + sgn * SENSITIVITY_STEP), *p.limits))
+            changes.append(cal.evaluate(x, grad=False)[0] - result.mismatch_final)
+        cal.evaluate(final, grad=False)  # leave the scene at the fit
+        share = np.asarray(v["power_share"], float)
+        out[p.target] = {"paths_per_snapshot": [int(c) for c in v["paths"]],
+                         "power_share_per_snapshot": [float(c) for c in share],
+                         "strongest_path_db_per_snapshot": [float(c) for c in v["strongest_db"]],
+                         "mismatch_change_db2_at_minus_plus_10_percent": changes,
+                         "mismatch_final_db2": float(result.mismatch_final)}
+        curv = float(np.mean(changes))
+        n_k = cal.meas.csi.shape[0] * cal.meas.csi.shape[1]
+        sigma = (100.0 * SENSITIVITY_STEP * math.sqrt(result.mismatch_final / (n_k * curv))
+                 if curv > 0 else math.inf)
+        out[p.target]["uncertainty_percent"] = sigma
+        if not sigma <= 100.0 * SENSITIVITY_STEP:
+            notes.append(
+                f"{p.name}: not determined to {SENSITIVITY_STEP:.0%} by these measurements: "
+                f"-+{SENSITIVITY_STEP:.0%} changes the mismatch by {changes[0]:+.3g} / "
+                f"{changes[1]:+.3g} dB^2 against a residual mismatch of "
+                f"{result.mismatch_final:.3g} dB^2 (1-sigma {sigma:.3g} %); its paths carry "
+                f"at most {100 * share.max():.2g} % of a snapshot's path power "
+                f"({int(np.sum(v['paths']))} paths over {len(share)} snapshots)")
+    return {"materials": out, "could_not_see": notes}
 
 
 @dataclass
@@ -334,17 +400,22 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                         max_subcarriers: int = 16, max_steps: int = 30,
                         solver: SolverSettings | None = None, scan: bool = True,
                         multistart: int = 3, materials: list[str] | None = None,
-                        pose_scan: bool = False) -> RunOutput:
+                        pose_scan: bool = False, trust: float | None = 1.5) -> RunOutput:
     """Fit the scene at ``scene_dir`` to ``recording``; write ``out/scene`` and
     ``out/calibration.json`` (see the module doc). ``solver``: default the scene's
     ``[tracer]`` settings (:meth:`SolverSettings.from_tracer`). ``scan``: start each
     permittivity from the best of :func:`permittivity_grid` (the mismatch has a local
     minimum per slab resonance, see :meth:`Calibrator.scan`) and fit from the
     ``multistart`` best local minima of the scans; the fit with the lowest mismatch wins.
-    ``materials``: the materials fitted with ``"materials"`` (default all but metal; see
+    With poses fitted too, a first joint fit from the scene's values comes first, the
+    scans run at its poses, and the fits from their minima only when a scan point
+    beats it by more than :data:`REFIT_GAIN`. ``materials``: the materials fitted with ``"materials"`` (default all but metal; see
     :func:`default_parameters`). ``pose_scan``: before fitting, set each pose offset in
     turn to the best of :func:`pose_grid` (the magnitude mismatch has a local minimum
-    about every half wavelength of an object's shift); costs one trace per grid point."""
+    about every half wavelength of an object's shift); costs one trace per grid point.
+    ``trust``: with poses fitted, each fit runs in rounds inside a box of +-``trust``
+    typical changes (1 cm, 1 deg, 10 % of a material value) about the round's start
+    (:meth:`~engine.calibration.Calibrator.fit`); None: one unbounded L-BFGS-B."""
     from engine.scene import load_scene
 
     out = Path(out)
@@ -354,7 +425,17 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                                            max_subcarriers=max_subcarriers)
     params = default_parameters(scene, tuple(what), list(objects or []), materials)
     cal = Calibrator(scene, meas, params, solver or SolverSettings.from_tracer(scene.config.tracer))
+    t_start = time.perf_counter()
     starts, scans = [cal.initial.copy()], {}
+    poses = [i for i, p in enumerate(params) if p.kind in ("x", "y", "yaw")]
+    first_fit = None
+    if scan and poses and any(p.kind == "permittivity" for p in params):
+        # Objects off by centimetres hide a material: on the lab the pose mismatch
+        # (7.6 dB^2) is ~700 x what +-10 % of the tables' permittivity changes, and a
+        # scan there ran to the end of its range (49.5 % off). Fit everything from the
+        # scene's values first, then scan each permittivity with the poses held there.
+        first_fit = cal.fit(max_steps=max_steps, trust=trust)
+        starts = [first_fit.final.copy()]
     if scan:
         for i, p in enumerate(params):
             if p.kind == "permittivity":
@@ -362,7 +443,8 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                 f = cal.scan(i, grid, starts[0])
                 best = local_minima(f)[:multistart]
                 scans[p.name] = {"values": grid.tolist(), "mismatch_db2": f.tolist(),
-                                 "starts": grid[best].tolist()}
+                                 "starts": grid[best].tolist(),
+                                 "at": "fitted poses" if first_fit is not None else "start"}
                 new = []
                 for x in starts:
                     for j in best:
@@ -383,8 +465,20 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                     pose_scans.setdefault(p.name, []).append(
                         {"values": grid.tolist(), "mismatch_db2": f.tolist(),
                          "start": float(x[i])})
-    fits = [cal.fit(max_steps=max_steps, start=x) for x in starts]
+    better = min((min(v["mismatch_db2"]) for v in scans.values()), default=np.inf)
+    if (first_fit is not None and first_fit.converged and not pose_scans
+            and better > (1.0 - REFIT_GAIN) * first_fit.mismatch_final):
+        # the scans at the fitted poses found no better basin: no further fits
+        fits, starts = [first_fit], [cal.initial.copy()]
+    else:
+        fits = [cal.fit(max_steps=max_steps, start=x, trust=trust if poses else None)
+                for x in starts]
+        if first_fit is not None:
+            fits.append(first_fit)
+            starts = starts + [cal.initial.copy()]
     result = min(fits, key=lambda r: r.mismatch_final)
+    seen = observability(cal, result)
+    seconds = time.perf_counter() - t_start
     out.mkdir(parents=True, exist_ok=True)
     scene_out = write_calibrated_scene(scene, result, out / "scene")
     materials, assign = calibrated_materials(scene, result)
@@ -393,11 +487,16 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
               "subcarriers": int(len(meas.subcarrier_offsets_hz)),
               "permittivity_scans": scans, "pose_scans": pose_scans,
               "fits_from_starts": [{"start": [float(v) for v in x], "final": r.final.tolist(),
-                                    "mismatch_db2": r.mismatch_final, "converged": r.converged}
+                                    "mismatch_db2": r.mismatch_final, "converged": r.converged,
+                                    "history_db2": [float(h) for h in r.history]}
                                    for x, r in zip(starts, fits)],
               "materials_written": materials,
               "material_of_objects": assign,
-              **result.to_json()}
+              **result.to_json(),
+              "evaluations": cal.evaluations, "seconds": seconds,
+              "candidate_buffer": {"size": cal.buffer_size, "regrows": cal.buffer_regrows},
+              "observability": seen["materials"],
+              "could_not_see": seen["could_not_see"]}
     report_path = out / "calibration.json"
     report_path.write_text(json.dumps(report, indent=2))
     plot_report(report, out / "calibration.png")

@@ -63,5 +63,9 @@ def test_closing_the_loop_shortened(tmp_path):
     assert r["objects"]["Cabinet"]["unobserved"] == ["x", "y", "yaw"]
     for o in r["objects"].values():
         assert np.isfinite(o["fitted_cm_deg"]).all()
+    seen = r["observability"]["wood-0.03"]  # what the report says about the material
+    assert len(seen["paths_per_snapshot"]) == 4 and sum(seen["paths_per_snapshot"]) > 0
+    assert 0 < max(seen["power_share_per_snapshot"]) <= 1
+    assert 0 < seen["uncertainty_percent"] < 100
     back = load_scene(r["calibrated_scene"], load_sionna=False)
     assert back.objects["Screen"].material == "wood-0.03-calibrated"

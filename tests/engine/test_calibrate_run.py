@@ -3,6 +3,7 @@ room whose walls are brick (the recorder's real MCAP, the twin's own tracer and 
 recovers brick's ITU parameters (Sionna's own table, read independently)."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -249,3 +250,15 @@ def test_calibrated_folder_gives_the_calibrators_channel_at_the_fitted_values(re
     # and away from the fitted values it differs (the check can fail)
     _, _, model0 = cal.evaluate(cal.initial, grad=False)
     assert np.abs(model0 - model).max() > 0.1
+
+
+def test_permittivity_grid_is_fine_for_a_thin_slab(tmp_path):
+    """3 cm of wood at 2.4 GHz: one resonance period (sqrt(eps) 2.08) is wider than the
+    range eps/2 .. 2 eps, so 6 points per period gave 4 points 30-55 % apart."""
+    from engine.calibrate_run import permittivity_grid
+
+    scene = load_scene(Path(__file__).resolve().parents[2] / "blend_scenes" / "aces_lab"
+                       / "scene", load_sionna=False)
+    g = permittivity_grid(scene, "wood-0.03", 1.99)
+    assert len(g) >= 12 and g[0] == pytest.approx(1.0) and g[-1] == pytest.approx(3.98)
+    assert np.max(g[1:] / g[:-1]) < 1.2

@@ -134,3 +134,91 @@ def test_bad_input_is_refused(tmp_path):
         Calibrator(scene, meas, [Parameter("permittivity", "glass")], SETTINGS)
     with pytest.raises(CalibrationError, match="no object 'Sofa'"):
         Calibrator(scene, meas, [Parameter("x", "Sofa")], SETTINGS)
+
+
+def _arrays_case(folder):
+    """4 positions, a 2x2 AP turned (0.4, 0.1, 0) rad, 1x2 receivers turned differently."""
+    n = len(RX)
+    ori = np.column_stack([np.linspace(0.3, 2.0, n), np.zeros(n), np.zeros(n)])
+    meas = Measurements(TX, RX, OFFSETS, np.ones((n, len(OFFSETS), 2, 4)),
+                        tx_array=(2, 2, 0.5, 0.5), rx_array=(1, 2, 0.5, 0.5),
+                        tx_orientation=(0.4, 0.1, 0.0), rx_orientations=ori)
+    return Calibrator(load_scene(room(folder)), meas,
+                      [Parameter("permittivity", "concrete"), Parameter("x", "Cabinet"),
+                       Parameter("yaw", "Cabinet")], SETTINGS)
+
+
+@pytest.mark.slow
+def test_model_channel_is_sionnas_paths_cfr(tmp_path):
+    """The calibrator sums the channel itself (fixed-size buffers): it must equal
+    Sionna's own PathSolver + Paths.cfr (synthetic arrays, orientations) at moved poses."""
+    import sionna.rt as rt
+
+    from engine.calibration import power_db
+
+    cal = _arrays_case(tmp_path / "twin")
+    n, k = len(RX), len(OFFSETS)
+    for x in ([0.0, 0.0, 0.0], [0.3, 0.02, np.radians(2.0)]):
+        _, _, model = cal.evaluate(cal.initial + np.array(x) * [cal.initial[0], 1, 1],
+                                   grad=False)  # leaves the scene at x
+        paths = rt.PathSolver()(cal.sc, max_depth=SETTINGS.max_depth,
+                                samples_per_src=SETTINGS.samples_per_src, synthetic_array=True,
+                                los=True, specular_reflection=True, diffuse_reflection=False,
+                                refraction=True, diffraction=False, seed=SETTINGS.seed)
+        h = np.asarray(paths.cfr(frequencies=OFFSETS, normalize_delays=False,
+                                 out_type="numpy"))  # [N, Nr, 1, Nt, 1, K]
+        ref = power_db(h.reshape(n, 2, 4, k).transpose(0, 3, 1, 2))
+        assert np.abs(model - ref).max() < 1e-3  # dB
+
+
+@pytest.mark.slow
+def test_new_poses_do_not_recompile_the_evaluation(tmp_path):
+    """A trace at new object poses finds another number of candidates; Sionna's kernels
+    bake that number in, so the evaluation pads them to a fixed buffer: after the first
+    gradient step no kernel as wide as the buffer is compiled again (before: ~12 per
+    step, 13-16 s of LLVM on the lab)."""
+    import drjit as dr
+
+    cal = _arrays_case(tmp_path / "twin")
+    cal.evaluate(cal.initial)  # warm-up: every kernel once
+    cal.evaluate(cal.initial + np.array([0.0, 0.004, 0.0]))
+    size = cal.buffer_size
+    assert size > 0
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for dx in (0.011, -0.027):
+            dr.kernel_history()
+            cal.evaluate(cal.initial + np.array([0.1 * cal.initial[0], dx, np.radians(dx * 50)]))
+            wide = [h for h in dr.kernel_history() if h.get("type") == dr.KernelType.JIT
+                    and not h.get("cache_hit") and h.get("size", 0) >= size]
+            assert wide == [], [(h["size"], h.get("operation_count")) for h in wide]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert cal.buffer_size == size and cal.buffer_regrows == 0
+
+
+@pytest.mark.slow
+def test_frozen_candidates_are_traced_at_the_current_geometry(tmp_path):
+    """A trust-box round keeps the candidate chains of its first trace; the image method
+    still runs on the moved mesh: 1 cm and 1 deg later the channel is close to Sionna's
+    own PathSolver + Paths.cfr there, not the start's (the kept chains' reflection
+    points stay where the first trace found them: an approximation of second order in
+    the move, up to a few tenths of a dB in a fade)."""
+    import sionna.rt as rt
+
+    from engine.calibration import power_db
+
+    cal = _arrays_case(tmp_path / "twin")
+    cal.freeze_candidates = True
+    _, _, at_start = cal.evaluate(cal.initial, grad=False)
+    x = cal.initial + np.array([0.0, 0.01, np.radians(1.0)])
+    _, _, moved = cal.evaluate(x, grad=False)
+    paths = rt.PathSolver()(cal.sc, max_depth=SETTINGS.max_depth,
+                            samples_per_src=SETTINGS.samples_per_src, synthetic_array=True,
+                            los=True, specular_reflection=True, diffuse_reflection=False,
+                            refraction=True, diffraction=False, seed=SETTINGS.seed)
+    h = np.asarray(paths.cfr(frequencies=OFFSETS, normalize_delays=False, out_type="numpy"))
+    ref = power_db(h.reshape(len(RX), 2, 4, len(OFFSETS)).transpose(0, 3, 1, 2))
+    err = np.abs(moved - ref)
+    assert np.abs(moved - at_start).max() > 1.0  # the move changes the channel (dB)
+    assert np.median(err) < 0.02 and err.max() < 0.5, (np.median(err), err.max())
