@@ -616,8 +616,13 @@ class SolverCore:
             (target_idx if npairs else dr.zeros(mi.UInt, m))
         b._valid = dr.full(mi.Bool, False, n)
         b._paths_counter = mi.UInt(n)
+        # Sizes as evaluated values, not literals: a kernel that bakes a size
+        # compiles again for every other size (grids call with varying counts;
+        # a stage scattering into these must not be split across kernels).
+        dr.make_opaque(b._valid, b._paths_counter, b._tgt_indices)
         unused = dr.full(mi.Bool, False, n)
         if m:
+            off = dr.opaque(mi.UInt, npairs)
             # sb_deterministic._los (Sionna 2.2) without its compaction: lane
             # (s, t) -> entry npairs + s T + t.
             sd = SampleData(ns, nt, 0, diffraction=False)
@@ -626,13 +631,13 @@ class SolverCore:
             rays = spawn_ray_to(o, t)
             visible &= ~mi_scene.ray_test(rays, active=visible)
             lane = dr.arange(mi.UInt, m)
-            b.add_paths(mi.UInt(0), npairs + lane, sd, visible,
+            b.add_paths(mi.UInt(0), off + lane, sd, visible,
                         dr.tile(dr.arange(mi.UInt, nt), ns), rays.d, -rays.d, visible)
             # Hidden LoS slots are no candidates: marked valid, the image
             # method skips them, and ``keep`` drops them.
             i = dr.arange(mi.UInt, n)
-            in_los = i >= npairs
-            seen = dr.gather(mi.Bool, visible, dr.select(in_los, i - npairs, 0), in_los)
+            in_los = i >= off
+            seen = dr.gather(mi.Bool, visible, dr.select(in_los, i - off, 0), in_los)
             unused = in_los & ~seen
             b._valid = b._valid | unused
         kw = self.solver_kwargs(self.config.max_num_paths_per_src)
