@@ -35,6 +35,8 @@ enabled, use the direct solver (``tracer.method = "sbr"``).
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from engine.raytrace.base import INTERACTION_REFRACTION, INTERACTION_SPECULAR
@@ -240,6 +242,9 @@ class ChainTracer:
         #: calculator in Python, most of a step's cost. Same paths, bit for bit
         #: (tested). Recordings are dropped with the chains.
         self.freeze = bool(freeze)
+        #: Why Dr.Jit refused to record the evaluation (None: it did not);
+        #: the tracer then evaluates unfrozen.
+        self.freeze_error: str | None = None
         self.rays = int(core.config.samples_per_src)
         self._context = None
         self.reset()
@@ -368,16 +373,29 @@ class ChainTracer:
                 continue
             tgt_idx = np.repeat(np.arange(len(g)), [len(per_target[t]) for t in g])
             # (a frozen call with empty inputs aborts in Dr.Jit: no pairs, no freezing)
-            frozen = self.freeze and len(chain_idx) > 0
-            inputs = self._inputs if frozen else _fresh
-            evaluate = self._evaluate if frozen else core.evaluate_chains
-            cols = evaluate(sc.mi_scene, chains, inputs("chain", chain_idx, mi.UInt),
-                                  inputs("target", tgt_idx, mi.UInt),
-                                  inputs("src", sources, mi.Point3f),
-                                  inputs("tgt", targets[g], mi.Point3f),
-                                  inputs("v_tx", v_tx_np, mi.Vector3f),
-                                  inputs("v_rx", v_rx_all[g], mi.Vector3f),
-                                  sc.wavelength, bool(core.config.los))
+            frozen = self.freeze and self.freeze_error is None and len(chain_idx) > 0
+
+            def run(evaluate, inputs):
+                return evaluate(sc.mi_scene, chains, inputs("chain", chain_idx, mi.UInt),
+                                inputs("target", tgt_idx, mi.UInt),
+                                inputs("src", sources, mi.Point3f),
+                                inputs("tgt", targets[g], mi.Point3f),
+                                inputs("v_tx", v_tx_np, mi.Vector3f),
+                                inputs("v_rx", v_rx_all[g], mi.Vector3f),
+                                sc.wavelength, bool(core.config.los))
+
+            if frozen:
+                try:
+                    cols = run(self._evaluate, self._inputs)
+                except RuntimeError as e:
+                    # Dr.Jit refused to record (e.g. a material call it cannot
+                    # traverse): evaluate unfrozen from now on, and say why.
+                    self.freeze_error = str(e).splitlines()[0]
+                    warnings.warn(f"chain reuse: evaluation not frozen ({self.freeze_error})",
+                                  RuntimeWarning, stacklevel=2)
+                    frozen = False
+            if not frozen:
+                cols = run(core.evaluate_chains, _fresh)
             dr.eval(*cols)
             cols = [c.numpy() for c in cols]
             results.append(arrays_to_raw(cols[1:], len(g), ns, depth, counts, cap,
