@@ -340,12 +340,12 @@ class ChainTracer:
             self._context = ctx
         core = self.core
         ns, nt = len(sources), len(targets)
-        src = to_points(sources, ns, mi.Point3f)
         tgt_o_all = np.zeros((nt, 3)) if target_orientations is None else \
             np.asarray(target_orientations, float).reshape(nt, 3)
         v_rx_all = np.zeros((nt, 3)) if target_velocities is None else \
             np.asarray(target_velocities, float).reshape(nt, 3)
-        per_target = self.prepare(sc, src, targets)
+        # (the sources as float32 values, as the chains were always shot from)
+        per_target = self.prepare(sc, sources.astype(np.float32).astype(np.float64), targets)
         counts = np.bincount(self.store.columns()["src"].astype(np.int64), minlength=ns)
         cap = int(counts.max(initial=0)) + 1
         depth = core.config.max_depth
