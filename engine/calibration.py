@@ -504,15 +504,12 @@ class Calibrator:
                                  .astype(np.uint32)))
         weight = mi.Float(np.concatenate([np.ones(n), np.zeros(size - n)]).astype(np.float32))
         dr.make_opaque(weight)
-        buf.detach_geometry()
-        buf = solver._image_method(scene=sc.mi_scene, paths=buf, src_positions=src,
-                                   tgt_positions=tgt, diffraction=False,
-                                   diffraction_lit_region=True)
-        buf = solver._field_calculator(
-            wavelength=sc.wavelength, paths=buf, samples_per_src=s.samples_per_src,
-            diffraction=False, src_positions=src, tgt_positions=tgt, src_orientations=src_o,
-            tgt_orientations=tgt_o, src_antenna_patterns=sc.tx_array.antenna_pattern.patterns,
-            tgt_antenna_patterns=sc.rx_array.antenna_pattern.patterns)
+        from engine.raytrace.solver_core import image_and_field
+
+        buf = image_and_field(solver, buf, sc.mi_scene, sc.wavelength, src, tgt,
+                              samples_per_src=s.samples_per_src, src_o=src_o, tgt_o=tgt_o,
+                              patterns=(sc.tx_array.antenna_pattern.patterns,
+                                        sc.rx_array.antenna_pattern.patterns))
         # H[t, r, s, k] = sum_p a_p exp(j 2pi/lambda (d_r . k_rx,p + d_s . k_tx,p))
         #                 exp(-j 2pi f_k tau_p), over the valid, unpadded p of target t
         n_rx, n_tx, k = self._n_rx_ant, self._n_tx_ant, len(self.meas.subcarrier_offsets_hz)

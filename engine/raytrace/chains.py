@@ -122,7 +122,7 @@ class ChainStore:
         self._index: dict[bytes, int] = {}
         self._chunks: list[dict[str, np.ndarray]] = []
         self._cols: dict[str, np.ndarray] | None = None
-        self._buffer = None
+        self._arrays = None
 
     def __len__(self) -> int:
         return len(self._index)
@@ -150,7 +150,7 @@ class ChainStore:
             new = np.asarray(new)
             self._chunks.append({k: v[new] for k, v in f.items()})
             self._cols = None
-            self._buffer = None
+            self._arrays = None
         return ids[inverse.ravel()]
 
     def _keys(self, f: dict[str, np.ndarray]) -> np.ndarray:
@@ -202,9 +202,9 @@ class ChainStore:
     def arrays(self) -> dict:
         """The chains as :func:`~engine.raytrace.solver_core.chain_arrays`
         (Dr.Jit arrays; entries from ``len(self)`` on are empty chains)."""
-        if self._buffer is None:
-            self._buffer = chain_arrays(self.columns(), self.max_depth)
-        return self._buffer
+        if self._arrays is None:
+            self._arrays = chain_arrays(self.columns(), self.max_depth)
+        return self._arrays
 
 
 class ChainTracer:

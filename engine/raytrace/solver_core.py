@@ -54,6 +54,7 @@ from engine.raytrace.raw import RawPaths, to_points
 
 __all__ = ["MIN_BUFFER_PER_SRC", "SolverCore", "arrays_to_raw", "basis_patterns",
            "buffer_arrays", "buffer_columns", "buffer_to_numpy", "chain_arrays",
+           "image_and_field",
            "load_sionna_rt", "paths_to_numpy", "pinned_spec_table", "spec_table_default"]
 
 #: Smallest candidate buffer per source that :class:`SolverCore` allocates
@@ -288,6 +289,33 @@ def buffer_to_numpy(buf, src_vel, tgt_vel, wavelength, num_rx: int, num_tx: int,
                          src_o, tgt_o)
 
 
+def image_and_field(solver, buf, mi_scene, wavelength, src, tgt, *, samples_per_src: int,
+                    diffraction: bool = False, patterns=None, src_o=None, tgt_o=None):
+    """Sionna's image method and field calculator (the last two stages of
+    ``PathSolver.__call__``, Sionna 2.2) on candidates ``buf`` -> the buffer.
+
+    ``patterns``: ``(tx, rx)`` antenna pattern lists (default
+    :func:`basis_patterns` at both ends); ``src_o`` / ``tgt_o``: orientations
+    (``mi.Point3f``, default zero). The one place these stages are called
+    (chain reuse, the direct trace, the legacy path, calibration)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    if patterns is None:
+        basis = basis_patterns()
+        patterns = (basis, basis)
+    buf.detach_geometry()
+    buf = solver._image_method(scene=mi_scene, paths=buf, src_positions=src,
+                               tgt_positions=tgt, diffraction=diffraction,
+                               diffraction_lit_region=True)
+    return solver._field_calculator(
+        wavelength=wavelength, paths=buf, samples_per_src=samples_per_src,
+        diffraction=diffraction, src_positions=src, tgt_positions=tgt,
+        src_orientations=dr.zeros(mi.Point3f, dr.width(src)) if src_o is None else src_o,
+        tgt_orientations=dr.zeros(mi.Point3f, dr.width(tgt)) if tgt_o is None else tgt_o,
+        src_antenna_patterns=patterns[0], tgt_antenna_patterns=patterns[1])
+
+
 def basis_patterns() -> list:
     """Two isotropic element patterns for Sionna's field calculator: the unit
     vectors ``(C_theta, C_phi) = (1, 0)`` and ``(0, 1)`` of the local
@@ -447,19 +475,10 @@ class SolverCore:
         import drjit as dr
         import mitsuba as mi
 
-        kw = self.solver_kwargs(cap)
-        s = self.solver
-        buf.detach_geometry()
-        buf = s._image_method(scene=mi_scene, paths=buf, src_positions=src,
-                              tgt_positions=tgt, diffraction=kw["diffraction"],
-                              diffraction_lit_region=True)
         pattern = self.basis_array.antenna_pattern.patterns
-        buf = s._field_calculator(
-            wavelength=wavelength, paths=buf, samples_per_src=kw["samples_per_src"],
-            diffraction=kw["diffraction"], src_positions=src, tgt_positions=tgt,
-            src_orientations=dr.zeros(mi.Point3f, dr.width(src)),
-            tgt_orientations=dr.zeros(mi.Point3f, dr.width(tgt)),
-            src_antenna_patterns=pattern, tgt_antenna_patterns=pattern)
+        buf = image_and_field(self.solver, buf, mi_scene, wavelength, src, tgt,
+                              samples_per_src=self.config.samples_per_src,
+                              diffraction=self.config.diffraction, patterns=(pattern, pattern))
         buf.discard_invalid()
         return buffer_to_numpy(buf, v_tx, v_rx, wavelength, dr.width(tgt), dr.width(src),
                                 self.config.max_depth if depth is None else depth,
@@ -550,16 +569,9 @@ class SolverCore:
         buf.schedule()
         dr.eval()
         buf.shrink()
-        buf.detach_geometry()
-        buf = s._image_method(scene=sionna_scene.mi_scene, paths=buf, src_positions=src,
-                              tgt_positions=tgt, diffraction=kw["diffraction"],
-                              diffraction_lit_region=True)
-        buf = s._field_calculator(
-            wavelength=sionna_scene.wavelength, paths=buf,
-            samples_per_src=kw["samples_per_src"], diffraction=kw["diffraction"],
-            src_positions=src, tgt_positions=tgt,
-            src_orientations=dr.zeros(mi.Point3f, ns), tgt_orientations=dr.zeros(mi.Point3f, nt),
-            src_antenna_patterns=pattern, tgt_antenna_patterns=pattern)
+        buf = image_and_field(s, buf, sionna_scene.mi_scene, sionna_scene.wavelength, src, tgt,
+                              samples_per_src=kw["samples_per_src"],
+                              diffraction=kw["diffraction"], patterns=(pattern, pattern))
         buf.discard_invalid()
         # Paths only reads these attributes of the scene.
         stand_in = types.SimpleNamespace(
@@ -640,29 +652,11 @@ class SolverCore:
             seen = dr.gather(mi.Bool, visible, dr.select(in_los, i - off, 0), in_los)
             unused = in_los & ~seen
             b._valid = b._valid | unused
-        kw = self.solver_kwargs(self.config.max_num_paths_per_src)
-        s = self.solver
-        b.detach_geometry()
-        b = s._image_method(scene=mi_scene, paths=b, src_positions=src, tgt_positions=tgt,
-                            diffraction=kw["diffraction"], diffraction_lit_region=True)
         pattern = self.basis_array.antenna_pattern.patterns
-        b = s._field_calculator(
-            wavelength=wavelength, paths=b, samples_per_src=kw["samples_per_src"],
-            diffraction=kw["diffraction"], src_positions=src, tgt_positions=tgt,
-            src_orientations=dr.zeros(mi.Point3f, ns), tgt_orientations=dr.zeros(mi.Point3f, nt),
-            src_antenna_patterns=pattern, tgt_antenna_patterns=pattern)
+        b = image_and_field(self.solver, b, mi_scene, wavelength, src, tgt,
+                            samples_per_src=self.config.samples_per_src,
+                            diffraction=self.config.diffraction, patterns=(pattern, pattern))
         return [b.valid & ~unused, *buffer_arrays(b, v_tx, v_rx, wavelength)]
-
-    def los_test(self, mi_scene, src, tgt, buf) -> None:
-        """Sionna's line-of-sight test: appends the visible LoS paths of every
-        (source, target) pair to ``buf`` as valid entries (after its
-        ``paths_counter``)."""
-        import drjit as dr
-        import mitsuba as mi
-
-        self.candidate_generator._los(mi_scene, src, tgt, buf,
-                                      dr.zeros(mi.UInt, dr.width(src)), None)
-
 
 def buffer_columns(buf) -> list[np.ndarray]:
     """The stored candidates of a generator ``PathsBuffer`` (after ``shrink``) as
