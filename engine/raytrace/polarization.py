@@ -35,7 +35,7 @@ import numpy as np
 
 from engine.pose import rotation_matrix
 
-__all__ = ["local_to_world", "rotations", "v_coefficients", "world_basis"]
+__all__ = ["local_to_world", "rotations", "v_coefficients", "v_world", "world_basis"]
 
 
 def world_basis(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,3 +106,29 @@ def v_coefficients(pol: np.ndarray, k_t: np.ndarray, k_r: np.ndarray, rot_t: np.
     qt = local_to_world(k_t, rot_t)[2][:, :, 0]  # the V unit vector, world components
     qr = local_to_world(k_r, rot_r)[2][:, :, 0]
     return np.einsum("li,lij,lj->l", qr, pol, qt)
+
+
+def v_world(k: np.ndarray, orientations: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """World spherical components ``[L, 2]`` (``theta_hat``, ``phi_hat`` at
+    ``k``) of the V unit vector of elements in the Sionna orientations
+    ``orientations[index]`` (``[N, 3]`` ``[yaw, pitch, roll]`` rad; ``index
+    [L]``), seen from world unit directions ``k [L, 3]``.
+
+    The same as ``local_to_world(k, rotations(orientations)[index])[2][:, :, 0]``,
+    computed once per distinct orientation with its one rotation (no ``[L, 3,
+    3]`` array); an orientation of zero is the world frame itself: ``(1, 0)``."""
+    k = np.asarray(k, np.float64).reshape(-1, 3)
+    o = np.asarray(orientations, np.float64).reshape(-1, 3)
+    index = np.asarray(index).reshape(-1)
+    out = np.empty((len(k), 2))
+    uniq, inv = np.unique(o, axis=0, return_inverse=True)
+    per_path = np.asarray(inv).reshape(-1)[index]
+    for u, ori in enumerate(uniq):
+        m = per_path == u
+        if not m.any():
+            continue
+        if not np.any(ori):
+            out[m] = (1.0, 0.0)
+        else:
+            out[m] = local_to_world(k[m], rotation_matrix(ori[2], ori[1], ori[0]))[2][:, :, 0]
+    return out

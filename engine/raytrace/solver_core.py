@@ -49,7 +49,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from engine.config import TracerConfig
-from engine.raytrace.polarization import rotations, v_coefficients
+from engine.raytrace.polarization import v_world
 from engine.raytrace.raw import RawPaths, to_points
 
 __all__ = ["MIN_BUFFER_PER_SRC", "SolverCore", "arrays_to_raw", "basis_patterns",
@@ -148,8 +148,9 @@ def _with_v(pol, tht, pht, thr, phr, src_i, tgt_i, src_o, tgt_o) -> np.ndarray:
 
     if not (np.any(src_o) or np.any(tgt_o)):
         return pol[:, 0, 0].copy()
-    return v_coefficients(pol, r_hat(tht, pht), r_hat(thr, phr),
-                          rotations(src_o)[src_i], rotations(tgt_o)[tgt_i])
+    qt = v_world(r_hat(tht, pht), src_o, src_i)
+    qr = v_world(r_hat(thr, phr), tgt_o, tgt_i)
+    return np.einsum("li,lij,lj->l", qr, pol, qt)
 
 
 def paths_to_numpy(paths, num_rx: int, num_tx: int, depth: int,
