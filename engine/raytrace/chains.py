@@ -36,6 +36,7 @@ enabled, use the direct solver (``tracer.method = "sbr"``).
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -328,7 +329,23 @@ class ChainTracer:
             link in no particular order; ``candidates_per_source`` counts the
             chains in the store and ``cap`` exceeds it: chain enumeration has no
             candidate buffer to overflow, so the result is never truncated.
+
+        The same as :meth:`assemble` of :meth:`evaluate`.
         """
+        return self.assemble(self.evaluate(
+            sc, sources, targets, source_orientations=source_orientations,
+            source_velocities=source_velocities, target_orientations=target_orientations,
+            target_velocities=target_velocities, context=context))
+
+    def evaluate(self, sc, sources: np.ndarray, targets: np.ndarray, *,
+                 source_orientations=None, source_velocities=None,
+                 target_orientations=None, target_velocities=None,
+                 context=None) -> "Evaluated":
+        """The Dr.Jit part of :meth:`trace` (same arguments): the image method
+        and field calculator of every (chain, target) pair, read into numpy.
+        :meth:`assemble` makes the :class:`RawPaths` from it; it touches no
+        Dr.Jit state, so a caller may run it in another thread while the next
+        targets are evaluated (``trace_grid`` does)."""
         import drjit as dr
         import mitsuba as mi
 
@@ -364,14 +381,22 @@ class ChainTracer:
             np.asarray(source_orientations, float).reshape(ns, 3)
         v_tx_np = np.zeros((ns, 3)) if source_velocities is None else \
             np.asarray(source_velocities, float).reshape(ns, 3)
-        results = []
+        out = Evaluated(ns=ns, depth=depth, counts=counts, cap=cap, src_o=src_o_np)
         for g in groups:
             g = np.asarray(g)
             chain_idx = np.concatenate([per_target[t] for t in g])
             if len(chain_idx) == 0 and not core.config.los:
-                results.append(RawPaths.empty(len(g), ns, depth, counts, cap))
+                out.groups.append((len(g), None, tgt_o_all[g]))
                 continue
             tgt_idx = np.repeat(np.arange(len(g)), [len(per_target[t]) for t in g])
+            # Chain-major lanes: neighbouring lanes trace one chain to
+            # neighbouring targets, so the ray packets of the image method are
+            # coherent (~2.8x less CPU on a grid chunk than target-major).
+            # Within a link the entries stay in chain order, so the arrays
+            # are the same, bit for bit and in the same order.
+            if len(g) > 1:
+                perm = np.argsort(chain_idx, kind="stable")
+                chain_idx, tgt_idx = chain_idx[perm], tgt_idx[perm]
             # (a frozen call with empty inputs aborts in Dr.Jit: no pairs, no freezing)
             frozen = self.freeze and self.freeze_error is None and len(chain_idx) > 0
 
@@ -397,12 +422,39 @@ class ChainTracer:
             if not frozen:
                 cols = run(core.evaluate_chains, _fresh)
             dr.eval(*cols)
-            cols = [c.numpy() for c in cols]
-            results.append(arrays_to_raw(cols[1:], len(g), ns, depth, counts, cap,
-                                         src_o_np, tgt_o_all[g], keep=cols[0].astype(bool)))
+            out.groups.append((len(g), [c.numpy() for c in cols], tgt_o_all[g]))
+        return out
+
+    @staticmethod
+    def assemble(ev: "Evaluated") -> RawPaths:
+        """:class:`RawPaths` ``[T, S, P]`` of an :meth:`evaluate` result (numpy
+        only: thread-safe)."""
+        results = []
+        for nr, cols, tgt_o in ev.groups:
+            if cols is None:
+                results.append(RawPaths.empty(nr, ev.ns, ev.depth, ev.counts, ev.cap))
+            else:
+                results.append(arrays_to_raw(cols[1:], nr, ev.ns, ev.depth, ev.counts, ev.cap,
+                                             ev.src_o, tgt_o, keep=cols[0].astype(bool)))
         if len(results) == 1:
             return results[0]
         return concat_targets(results)
+
+
+@dataclass
+class Evaluated:
+    """:meth:`ChainTracer.evaluate`'s result: per group of targets, ``(targets
+    R, the evaluated columns as numpy (``[keep, *buffer_arrays]``) or None
+    when the group has no pair, target orientations [R, 3])``; ``ns`` sources
+    of orientations ``src_o [S, 3]``; ``depth``, ``counts [S]`` and ``cap`` as
+    :class:`RawPaths` reports them."""
+
+    ns: int
+    depth: int
+    counts: np.ndarray
+    cap: int
+    src_o: np.ndarray
+    groups: list = field(default_factory=list)
 
 
 def _fresh(name: str, values: np.ndarray, cls):
