@@ -52,6 +52,7 @@ import dataclasses
 import datetime as _dt
 import logging
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -93,6 +94,10 @@ _PATH_KEYS = ("valid", "a", "tau", "theta_t", "phi_t", "theta_r", "phi_r", "inte
 
 #: Receivers per solver call (see the module doc for the accuracy trade-off).
 DEFAULT_CHUNK_SIZE = 64
+
+#: Chunks evaluated ahead of the thread that arranges their paths (chain
+#: reuse; 0: no second thread).
+PIPELINE_DEPTH = 2
 
 #: Receivers per :class:`~engine.raytrace.chains.ChainTracer` call (chain reuse).
 CHAIN_CHUNK_SIZE = 1024
@@ -433,13 +438,28 @@ def _trace_by_chains(core, sc, plan: _GridPlan, chunk_size: int, progress: bool)
     from tqdm import tqdm
 
     ct = ChainTracer(core)  # its first trace enumerates the chains
-    pieces = []
-    with tqdm(total=len(plan.todo), unit="pt", desc="grid", disable=not progress) as bar:
+
+    def host_part(ev):
+        return sorted_chunk(ct.assemble(ev), plan.keep_strongest)
+
+    # Pipelined: while Dr.Jit evaluates a chunk (its kernels run in Dr.Jit's
+    # own threads), a second thread arranges the previous chunk's paths in
+    # numpy. At most PIPELINE_DEPTH chunks wait for that thread (memory).
+    pieces, pending = [], []
+    with tqdm(total=len(plan.todo), unit="pt", desc="grid", disable=not progress) as bar, \
+            ThreadPoolExecutor(max_workers=1, thread_name_prefix="grid-assemble") as pool:
         for start in range(0, len(plan.todo), chunk_size):
             idx = plan.todo[start:start + chunk_size]
-            raw = ct.trace(sc, plan.src, plan.points[idx], source_orientations=plan.src_orient)
-            pieces.append((idx, sorted_chunk(raw, plan.keep_strongest)))
+            ev = ct.evaluate(sc, plan.src, plan.points[idx], source_orientations=plan.src_orient)
+            if PIPELINE_DEPTH:
+                pending.append((idx, pool.submit(host_part, ev)))
+            else:
+                pieces.append((idx, host_part(ev)))
+            while len(pending) > PIPELINE_DEPTH:
+                i, fut = pending.pop(0)
+                pieces.append((i, fut.result()))
             bar.update(len(idx))
+        pieces += [(i, fut.result()) for i, fut in pending]
     stats = {"version": CHAIN_REUSE_VERSION, "rays_per_source": ct.rays,
              "chains": len(ct.store)}
     # no candidate buffer, nothing to grow: the configured cap, no retry

@@ -286,9 +286,9 @@ def test_pairs_split_over_several_image_method_calls(room_scene):
 
 
 def test_batched_targets_equal_one_by_one_bit_for_bit(room_scene):
-    """Several targets in one call are evaluated in chain-major lane order (for
-    coherent ray packets) and put back: the same arrays, in the same path
-    order, bit for bit, as each target traced alone."""
+    """Several targets in one call give the same arrays, in the same path
+    order, bit for bit, as each target traced alone (lanes are target-major:
+    see ``ChainTracer.evaluate``)."""
     cfg = room_scene.config.tracer
     src = np.array([[0.5, 0.5, 2.5], [3.5, 2.5, 2.5]])
     pts = np.array([[x, y, 0.25] for x in (0.7, 1.6, 2.4) for y in (1.1, 1.9)])

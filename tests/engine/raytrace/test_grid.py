@@ -150,3 +150,19 @@ def test_verification_tells_an_invented_path_from_a_real_one(room_scene, room_gr
     arrays["vertices"][i, 0, 1] += 0.5
     bad = G._verify(*args, arrays, np.array([i]), 1, 0, cap)
     assert (bad["paths_missing"], bad["paths_extra"], bad["paths_found_more"]) == (1, 1, 0)
+
+
+def test_pipelined_grid_equals_sequential(room_scene, monkeypatch):
+    """Chunks arranged in numpy by a second thread while the next is evaluated
+    (PIPELINE_DEPTH) give the same arrays, in the same order, as one thread."""
+    import engine.raytrace.grid as grid_mod
+
+    monkeypatch.setattr(grid_mod, "PIPELINE_DEPTH", 0)
+    seq = grid_mod.trace_grid(room_scene, spacing=0.25, progress=False, verify=0,
+                              chunk_size=7)
+    monkeypatch.setattr(grid_mod, "PIPELINE_DEPTH", 2)
+    piped = grid_mod.trace_grid(room_scene, spacing=0.25, progress=False, verify=0,
+                                chunk_size=7)
+    assert len(np.flatnonzero(seq.free)) > 3 * 7  # several chunks in flight
+    for k in GRID_ARRAYS:
+        np.testing.assert_array_equal(seq.arrays[k], piped.arrays[k], err_msg=k)
