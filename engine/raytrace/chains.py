@@ -57,6 +57,21 @@ MAX_PAIRS_PER_CALL = 400_000
 
 
 
+#: Recordings of the frozen evaluation kept (LRU): one per combination of
+#: numbers of sources, targets and padded pairs (:func:`pad_pairs`).
+FROZEN_RECORDINGS = 8
+
+
+def pad_pairs(n: int) -> int:
+    """The padded size of ``n`` (chain, target) pairs in a frozen evaluation:
+    at least 1024, else ``n`` rounded up to a multiple of an eighth of its
+    power-of-two octave (at most 12.5 % padding; 8 sizes per octave)."""
+    if n <= 1024:
+        return 1024
+    step = 1 << (int(n).bit_length() - 4)
+    return -(-int(n) // step) * step
+
+
 def method_tag(tracer_meta: dict) -> str:
     """How a grid was traced, from its ``meta["tracer"]``: ``"sbr"`` or
     ``"chains v<CHAIN_REUSE_VERSION>"`` (``v0``: before versions were stored)."""
@@ -261,6 +276,9 @@ class ChainTracer:
         #: Sources whose chains were enumerated since the reset.
         self.sources_shot = 0
         self._evaluate = self._frozen() if self.freeze else self.core.evaluate_chains
+        #: The (sources, targets, padded pairs) sizes of the frozen calls since
+        #: the reset: each is recorded once (:attr:`recordings`), then replayed.
+        self.frozen_sizes: set[tuple[int, int, int]] = set()
         self._inputs = _InputSlots()
 
     def _frozen(self):
@@ -272,8 +290,8 @@ class ChainTracer:
             return (dr.width(chains["_src_indices"]), dr.width(chain_idx), dr.width(src),
                     dr.width(tgt))
 
-        return dr.freeze(self.core.evaluate_chains, state_fn=sizes, limit=4, warn_after=16,
-                         auto_opaque=False)
+        return dr.freeze(self.core.evaluate_chains, state_fn=sizes, limit=FROZEN_RECORDINGS,
+                         warn_after=16, auto_opaque=False)
 
     @property
     def recordings(self) -> int:
@@ -400,18 +418,29 @@ class ChainTracer:
             # (a frozen call with empty inputs aborts in Dr.Jit: no pairs, no freezing)
             frozen = self.freeze and self.freeze_error is None and len(chain_idx) > 0
 
-            def run(evaluate, inputs):
-                return evaluate(sc.mi_scene, chains, inputs("chain", chain_idx, mi.UInt),
-                                inputs("target", tgt_idx, mi.UInt),
+            def run(evaluate, inputs, ci, ti, pad=None):
+                return evaluate(sc.mi_scene, chains, inputs("chain", ci, mi.UInt),
+                                inputs("target", ti, mi.UInt),
                                 inputs("src", sources, mi.Point3f),
                                 inputs("tgt", targets[g], mi.Point3f),
                                 inputs("v_tx", v_tx_np, mi.Vector3f),
                                 inputs("v_rx", v_rx_all[g], mi.Vector3f),
-                                sc.wavelength, bool(core.config.los))
+                                sc.wavelength, bool(core.config.los),
+                                None if pad is None else inputs("pad", pad, mi.UInt))
 
             if frozen:
+                # Padded to a bucket of sizes (pad_pairs), so that the varying
+                # pair counts of mirror-filtered receivers replay a few
+                # recordings instead of recording every call.
+                n = len(chain_idx)
+                b = pad_pairs(n)
+                empty = dr.width(chains["_src_indices"]) - 1
+                ci = np.concatenate([chain_idx, np.full(b - n, empty, chain_idx.dtype)])
+                ti = np.concatenate([tgt_idx, np.zeros(b - n, tgt_idx.dtype)])
+                pad = np.concatenate([np.zeros(n, np.uint32), np.ones(b - n, np.uint32)])
                 try:
-                    cols = run(self._evaluate, self._inputs)
+                    cols = run(self._evaluate, self._inputs, ci, ti, pad)
+                    self.frozen_sizes.add((ns, len(g), b))
                 except RuntimeError as e:
                     # Dr.Jit refused to record (e.g. a material call it cannot
                     # traverse): evaluate unfrozen from now on, and say why.
@@ -420,7 +449,7 @@ class ChainTracer:
                                   RuntimeWarning, stacklevel=2)
                     frozen = False
             if not frozen:
-                cols = run(core.evaluate_chains, _fresh)
+                cols = run(core.evaluate_chains, _fresh, chain_idx, tgt_idx)
             dr.eval(*cols)
             out.groups.append((len(g), [c.numpy() for c in cols], tgt_o_all[g]))
         return out
@@ -468,8 +497,6 @@ def _fresh(name: str, values: np.ndarray, cls):
         dr.eval(out)
         return out
     return to_points(values, len(values), cls)
-
-
 class _InputSlots:
     """The per-call inputs of a frozen evaluation, in Dr.Jit arrays allocated
     once per name and shape and overwritten in place (LLVM backend: host

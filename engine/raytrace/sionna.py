@@ -64,11 +64,11 @@ class SionnaTracer:
         #: None when tracing directly.
         self.chains = None
         if self.config.uses_chains and not legacy:
-            # Every chain to every receiver (no mirror filter): a step's
-            # image-method buffer then keeps its size, and Sionna bakes buffer
-            # sizes into its kernels -- with the filter's varying sizes a retrace
-            # recompiled a kernel nearly every step (+20 ms LLVM; bench_retrace).
-            self.chains = ChainTracer(self.core, mirror_filter=False, freeze=True)
+            # Each receiver gets the chains mirror geometry allows (about a
+            # seventh of them in the lab), the evaluation is frozen, and the
+            # varying pair counts are padded to a few sizes (chains.pad_pairs),
+            # each recorded once.
+            self.chains = ChainTracer(self.core, freeze=True)
         #: Where each source of chain reuse was at its last call (name -> [3] m).
         self._source_positions: dict[str, np.ndarray] = {}
         #: Calls traced by shoot-and-bounce (all of them without chain reuse;

@@ -585,7 +585,7 @@ class SolverCore:
                                _orient(tgt_o, nt))
 
     def evaluate_chains(self, mi_scene, chains: dict, chain_idx, target_idx, src, tgt,
-                        v_tx, v_rx, wavelength, los: bool) -> list:
+                        v_tx, v_rx, wavelength, los: bool, pad=None) -> list:
         """Image method and field calculator on (chain, target) pairs.
 
         Args:
@@ -599,6 +599,9 @@ class SolverCore:
             los: also test the ``S x T`` line-of-sight paths (Sionna's LoS test,
                 written into fixed slots after the pairs, source-major, so the
                 call has no data-dependent size).
+            pad: ``mi.UInt [M]`` (optional), non-zero for pairs that only pad
+                the call to a fixed size: the image method skips them and
+                ``keep`` drops them.
 
         Returns:
             ``[keep, *arrays]``: ``keep`` ``mi.Bool [M (+ S T)]`` marks the
@@ -653,6 +656,12 @@ class SolverCore:
             seen = dr.gather(mi.Bool, visible, dr.select(in_los, i - off, 0), in_los)
             unused = in_los & ~seen
             b._valid = b._valid | unused
+        if pad is not None:
+            padded = pad != 0
+            if m:
+                padded = dr.concat([padded, dr.zeros(mi.Bool, m)])
+            b._valid = b._valid | padded
+            unused = unused | padded
         pattern = self.basis_array.antenna_pattern.patterns
         b = image_and_field(self.solver, b, mi_scene, wavelength, src, tgt,
                             samples_per_src=self.config.samples_per_src,
