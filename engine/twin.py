@@ -713,7 +713,7 @@ class Twin:
             result.sensing = self.flush_sensing()
         job = self.radar.prepare(self, result)
         if job is not None:
-            w.submit(job, result.step, inline=job.scene_changed)
+            w.submit(job, result.step)
 
     def flush_sensing(self):
         """Wait for the radar frame computed off the stepping thread (if any),

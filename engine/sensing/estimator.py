@@ -78,8 +78,6 @@ class SensingJob:
         truth: target name -> ``[3]`` centre (m).
         grid: the OFDM grid.
         contains: ``contains(point, tol=) -> bool``, inside the room.
-        scene_changed: posing the targets rebuilt the Mitsuba scene (a target
-            added to it: the first frame), not only moved shapes in it.
     """
 
     step: int
@@ -90,7 +88,6 @@ class SensingJob:
     truth: dict
     grid: ResourceGrid
     contains: object
-    scene_changed: bool = False
 
 
 class RadarEstimator:
@@ -245,14 +242,12 @@ class RadarEstimator:
         due = [s for s in self.links if call % max(int(s.every), 1) == 0]
         if not due:
             return None
-        shapes = twin.scene.sionna.mi_scene
         truth = self.update_targets(twin, result)
         dt = twin.dt if self._last_t is None else max(result.time_s - self._last_t, 1e-9)
         self._last_t = result.time_s
         return SensingJob(step=result.step, time_s=result.time_s, dt=dt, links=due,
                           poses=twin.device_poses(), truth=truth,
-                          grid=grid_from_config(twin.config), contains=twin.scene.contains,
-                          scene_changed=twin.scene.sionna.mi_scene is not shapes)
+                          grid=grid_from_config(twin.config), contains=twin.scene.contains)
 
     def compute(self, job: SensingJob) -> SensingStep:
         """Trace, receive, process and track one frame (any thread; it touches

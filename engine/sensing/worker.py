@@ -61,25 +61,11 @@ class SensingWorker:
         """The frame out must be delivered on ``step``."""
         return self._pending is not None and step >= self._pending[0]
 
-    def submit(self, job, step: int, *, inline: bool = False) -> None:
+    def submit(self, job, step: int) -> None:
         """Compute ``job`` (a :class:`~engine.sensing.estimator.SensingJob`) on the
-        worker; it is due on ``step + latency``. Only one frame is out at a time.
-
-        ``inline``: compute it now, on the calling thread (still delivered on
-        ``step + latency``): for a frame whose preparation changed the Mitsuba
-        scene's shapes (the targets' first frame), because the twin's tracer
-        records its frozen evaluation anew on the next step and Dr.Jit fails such
-        a recording while another thread launches kernels."""
+        worker; it is due on ``step + latency``. Only one frame is out at a time."""
         if self._pending is not None:
             raise RuntimeError("SensingWorker.submit: collect the frame out first")
-        if inline:
-            fut: Future = Future()
-            try:
-                fut.set_result(self.radar.compute(job))
-            except Exception as exc:  # raised by collect(), as from the thread
-                fut.set_exception(exc)
-            self._pending = (int(step) + self.latency, fut)
-            return
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isac-sensing")
             weakref.finalize(self, self._pool.shutdown, wait=True)
