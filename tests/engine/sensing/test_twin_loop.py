@@ -110,3 +110,15 @@ def test_monostatic_table_runs_in_the_twin(tmp_path):
         found += [abs(d.path_length_m - d_true) for d in r.sensing.detections["AP1->AP1"]]
     # EMA background: the first frame is the background; later ones see the robot
     assert found and min(found) < 0.3
+
+
+def test_run_command_prints_the_frame_still_out_at_the_end(capsys):
+    """`isac-twin run` waits for the radar frame the sensing worker still computes
+    when the steps end and prints it with the step it sensed."""
+    from engine.cli import main
+
+    assert main(["run", str(LAB), "--steps", "2", "--no-phy"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [ln.split()[1] for ln in lines[:2]] == ["0", "1"]
+    assert "radar" not in lines[0] and "radar" not in lines[1]  # not delivered yet
+    assert lines[2].startswith("radar (step 0) ") and lines[2].endswith(" tracks")
