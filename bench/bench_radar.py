@@ -81,7 +81,8 @@ def twin_sensing_cost(steps: int, dt: float = 0.05) -> dict:
     import engine
     from engine.twin import Twin
 
-    tw = Twin.from_scene(engine.bundled_scene_dir(), dt=dt, phy=False)
+    # the frame within its own step (the default sensing worker delivers it later)
+    tw = Twin.from_scene(engine.bundled_scene_dir(), dt=dt, phy=False, sync_sensing=True)
     every = tw.radar.links[0].every
     for _ in tw.run(2 * every):  # warm-up: Sionna scenes, kernels, background
         pass

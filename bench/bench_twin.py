@@ -23,6 +23,7 @@ on time.
     .venv/bin/python bench/bench_twin.py --robots 1,2,4,8,16   # batched vs per-link PHY
     .venv/bin/python bench/bench_twin.py --robots 1,4,16 --split  # + the parts of a step
     .venv/bin/python bench/bench_twin.py --polarization VH    # VH access points vs V
+    .venv/bin/python bench/bench_twin.py --sensing --robots 4 [--rate 20]  # radar: off / sync / worker
 
 ``--polarization P``: the lab with both access points' arrays set to ``P``
 (``VH`` / ``cross``: two ports per element, so AP1 has 64 ports) against the
@@ -70,10 +71,12 @@ def overlap_config(cfg):
 
 
 def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
-                overlap: bool = False, sensing: bool = False, folder: Path | None = None) -> dict:
+                overlap: bool = False, sensing: bool = False, folder: Path | None = None,
+                sync_sensing: bool = False, rate_hz: float | None = None) -> dict:
+    kw = {"sync_sensing": True} if sync_sensing else {}  # (an older engine lacks the option)
     tw = Twin.from_scene(folder or engine.bundled_scene_dir(), seed=seed, tracer=tracer,
                          sensors=SensorOptions(lidar=True, imu=True, odometry=True,
-                                               camera=False), sensing=sensing)
+                                               camera=False), sensing=sensing, **kw)
     cfg = overlap_config(tw.config) if overlap else tw.config
     tw.phy = NetworkPHY(cfg, **VARIANTS[name])
     tw.set_path("robot1", PATH)
@@ -83,7 +86,7 @@ def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
     phy_ms = []
     t0 = time.perf_counter()
     last = None
-    for res in tw.run(steps):
+    for res in tw.run(steps, rate_hz=rate_hz):
         phy_ms.append(1e3 * res.timings_s["phy"])
         last = res
     wall = time.perf_counter() - t0
@@ -92,6 +95,7 @@ def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
                 stage_ms={s: 1e3 * tw.stats.stage_s[s] / steps for s in STAGES},
                 rates={lk: ls.rate_bps for lk, ls in last.links.items()},
                 paths={lk: ls.paths for lk, ls in last.links.items()}, config=cfg,
+                overruns=tw.stats.overrun_summary(),
                 doppler_phase=tw.phy.max_doppler_phase({lk: ls.paths
                                                         for lk, ls in last.links.items()}))
 
@@ -294,21 +298,39 @@ def run_robots_variant(counts, steps: int, warmup: int, split: bool = False) -> 
     return {r["n"]: r for r in rows}
 
 
-def run_sensing_variant(steps: int, warmup: int) -> dict:
-    """The lab with its ``[[sensing]]`` radar (AP2 -> AP1, every 2nd step) against
-    the same twin without it, same seed, both with the default (batched) PHY. Prints the
-    stage tables, steps/s, the radar's ms per sensing step and the slow-down."""
+def run_sensing_variant(steps: int, warmup: int, robots: int = 1,
+                        rate_hz: float | None = None) -> dict:
+    """The lab (with ``robots`` robots) and its ``[[sensing]]`` radar (AP2 -> AP1,
+    every 10th step) three ways, same seed, default (batched) PHY: without sensing,
+    the radar on the stepping thread (``sync_sensing=True``) and on the twin's
+    sensing worker (the default). Prints the stage tables (the sense stage's wall
+    and stepping-thread CPU), steps/s, overruns when paced at ``rate_hz``, and
+    each against the twin without sensing."""
+    import gc
+    import tempfile
+
     out = {}
-    for label, on in (("without sensing", False), ("with sensing", True)):
-        r = run_variant("batched", steps, warmup, sensing=on)
-        out[label] = r
-        print(f"== bundled/batched {label} ({steps} steps)\n{r['table']}")
-        print(f"  -> {r['steps_s']:.1f} steps/s\n", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = (engine.bundled_scene_dir() if robots == 1
+                  else lab_with_robots(robots, Path(tmp) / f"lab{robots}"))
+        for label, on, sync in (("without sensing", False, False),
+                                ("radar on the stepping thread", True, True),
+                                ("radar on the sensing worker", True, False)):
+            gc.collect()  # a dead twin's sensing targets would keep this one's trace unfrozen
+            r = run_variant("batched", steps, warmup, sensing=on, folder=folder,
+                            sync_sensing=sync, rate_hz=rate_hz)
+            out[label] = r
+            print(f"== {robots} robot(s), {label} ({steps} steps"
+                  + (f", paced at {rate_hz:g} Hz" if rate_hz else "") + f")\n{r['table']}")
+            print(f"  -> {r['steps_s']:.1f} steps/s\n", flush=True)
     every = load_config(engine.bundled_scene_dir()).sensing[0].every
-    sense = out["with sensing"]["stage_ms"]["sense"]
-    print(f"radar: {sense:.1f} ms per step on average, {sense * every:.1f} ms per sensing "
-          f"step (every {every}); step rate x{out['with sensing']['steps_s'] / out['without sensing']['steps_s']:.2f} "
-          "of the twin without sensing")
+    base = out["without sensing"]
+    for label in list(out)[1:]:
+        r = out[label]
+        print(f"{label}: sense stage {r['stage_ms']['sense']:.1f} ms/step wall "
+              f"({r['stage_ms']['sense'] * every:.1f} ms per frame, every {every}), "
+              f"step rate x{r['steps_s'] / base['steps_s']:.2f} of the twin without sensing; "
+              f"{r['overruns']}")
     return out
 
 
@@ -363,7 +385,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--variants", default="batched,fast,fast-exact,reference")
     ap.add_argument("--allocations", default="bundled,overlap")
     ap.add_argument("--sensing", action="store_true",
-                    help="only the sensing variant (run_sensing_variant)")
+                    help="only the sensing variant (run_sensing_variant): without sensing, "
+                         "radar on the stepping thread, radar on the sensing worker; with "
+                         "--robots N (one count) the lab with N robots, with --rate HZ paced")
+    ap.add_argument("--rate", type=float, default=None,
+                    help="with --sensing: pace the steps at this rate and count overruns")
     ap.add_argument("--robots", default="",
                     help="only the many-robot variant: comma-separated robot counts, e.g. "
                          "1,2,4,8,16 (the lab with n robots, 2n downlinks; batched vs "
@@ -381,6 +407,11 @@ def main(argv: list[str] | None = None) -> None:
         run_polarization_variant(args.polarization, 10 if args.quick else args.steps,
                                  1 if args.quick else args.warmup)
         return
+    if args.sensing:
+        n = int(args.robots or 1)
+        run_sensing_variant(10 if args.quick else args.steps, 1 if args.quick else args.warmup,
+                            robots=n, rate_hz=args.rate)
+        return
     if args.robots:
         try:
             counts = [int(c) for c in args.robots.split(",") if c.strip()]
@@ -392,9 +423,6 @@ def main(argv: list[str] | None = None) -> None:
                      f"1..{1 + len(EXTRA_ROBOTS)}")
         run_robots_variant(counts, 10 if args.quick else args.steps,
                            1 if args.quick else args.warmup, split=args.split)
-        return
-    if args.sensing:
-        run_sensing_variant(10 if args.quick else args.steps, 1 if args.quick else args.warmup)
         return
     steps = 10 if args.quick else args.steps
     names = [v for v in args.variants.split(",") if v]

@@ -344,10 +344,14 @@ def cmd_run(args) -> int:
             parts.append(f"{tx}->{rx} {ls.paths.num_paths if ls.paths else 0} paths"
                          + ("" if args.no_phy else f" {ls.rate_bps / 1e6:.0f} Mbit/s"
                             f" (MCS {ls.mcs_rate_bps / 1e6:.0f})"))
-        if r.sensing is not None:  # a [[sensing]] radar ran this step
+        if r.sensing is not None:  # a [[sensing]] radar frame was delivered this step
             n = sum(len(v) for v in r.sensing.detections.values())
-            parts.append(f"radar {n} det {len(r.sensing.tracks)} tracks")
+            parts.append(f"radar (step {r.sensing.step}) {n} det {len(r.sensing.tracks)} tracks")
         print("  ".join(parts), flush=True)
+    last = twin.flush_sensing()  # a frame still computed off the stepping thread
+    if last is not None:
+        n = sum(len(v) for v in last.detections.values())
+        print(f"radar (step {last.step}) {n} det {len(last.tracks)} tracks", flush=True)
     if args.rate is not None:
         st = twin.stats
         print(f"paced at {args.rate:g} Hz: {st.steps} steps in {st.wall_s:.2f} s, "

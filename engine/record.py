@@ -453,6 +453,9 @@ def record_twin(twin, steps: int, out: str | Path, *, rate_hz: float | None = No
             if period:
                 next_t += period
                 time.sleep(max(0.0, next_t - time.perf_counter()))
+        flush = getattr(twin, "flush_sensing", None)
+        if flush is not None:  # a radar frame still out (Twin.sensing_worker): keep it
+            flush()
     finally:
         rec.close()
     return rec

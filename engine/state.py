@@ -71,8 +71,10 @@ class StepResult:
         signals: ``(tx, rx) -> engine.phy.network.LinkSignal``, the full PHY state
             (channels, precoders, powers) when the PHY ran.
         sensing: the radar's ``engine.sensing.estimator.SensingStep`` (detections
-            per sensing link, confirmed tracks) when a ``[[sensing]]`` link ran
-            this step, else None.
+            per sensing link, confirmed tracks) delivered this step, else None:
+            the frame of this step with ``Twin(sync_sensing=True)``, by default a
+            frame sensed ``latency`` steps earlier (its ``step`` and ``time_s``
+            say which; ``engine.sensing.worker``).
     """
 
     step: int

@@ -141,6 +141,11 @@ class Twin:
         estimators: stage-5 callables, run in order.
         sensing: run the config's ``[[sensing]]`` radar links (stage "sense",
             before the estimators; see :meth:`_build_sensing`).
+        sync_sensing: compute each radar frame on the stepping thread, within its
+            step (``result.sensing`` of the sensed step). Default: on a worker
+            thread while the next steps run, delivered a fixed number of steps
+            later (:class:`~engine.sensing.worker.SensingWorker`; the same frames,
+            stamped with the step they sensed).
         asset_dirs: folders an ``add`` edit may name a mesh in by absolute path
             (besides the scene folder, where paths are relative).
         localize: run the config's ``[localization]`` (a
@@ -173,7 +178,7 @@ class Twin:
                  sensors: SensorOptions | None = None, tracer=None, phy: bool = True,
                  estimators: list[Estimator] | None = None, sensing: bool = True,
                  asset_dirs: list[str | Path] | tuple = (),
-                 localize: bool = True) -> None:
+                 localize: bool = True, sync_sensing: bool = False) -> None:
         if not dt > 0:
             raise ValueError(f"dt: expected a positive step in s, got {dt}")
         self.scene = scene
@@ -189,8 +194,12 @@ class Twin:
         #: estimators), or None without that table or with ``localize=False``
         self.localizer = None
         self.sensing_enabled = bool(sensing) and bool(self.config.sensing)
+        self.sync_sensing = bool(sync_sensing)
         #: the ``[[sensing]]`` radar (a RadarEstimator), rebuilt by reset(); None without
         self.radar = None
+        #: the radar's worker thread (a SensingWorker; None without a radar or
+        #: with ``sync_sensing``)
+        self.sensing_worker = None
         #: ``schedule(step_index) -> bool``: trace on this step (None: every step)
         self.trace_schedule: Callable[[int], bool] | None = None
         #: robot name -> ``source(t, dt) -> KinematicState`` replacing its motion model
@@ -255,13 +264,20 @@ class Twin:
         """One :class:`~engine.sensing.estimator.RadarEstimator` for every
         ``[[sensing]]`` table (fresh tracker after a reset); its detections
         topic is advertised on the new bus at once."""
+        if self.sensing_worker is not None:  # a reset: the old radar's frame is dropped
+            self.sensing_worker.close()
+            self.sensing_worker = None
         if not self.sensing_enabled:
             return
         from engine.sensing.config import parse_sensing
         from engine.sensing.estimator import RadarEstimator
+        from engine.sensing.worker import SensingWorker
 
         self.radar = RadarEstimator(parse_sensing(self.config), seed=self.seed)
         self.radar.attach(self.bus)
+        if not self.sync_sensing:
+            latency = min(max(int(s.every), 1) for s in self.radar.links)
+            self.sensing_worker = SensingWorker(self.radar, latency)
 
     def _build_localizer(self) -> None:
         """The ``[localization]`` estimator, appended to :attr:`estimators` once
@@ -425,6 +441,8 @@ class Twin:
 
     def _apply_pending(self) -> None:
         edits, self._pending_edits = self._pending_edits, []
+        if edits and self.sensing_worker is not None:
+            self.sensing_worker.wait()  # the radar frame out traces this scene
         for e in edits:
             try:
                 self._apply_one(e)
@@ -662,7 +680,7 @@ class Twin:
                     header=Header(stamp=t_next, frame_id=rx), tx=tx, rx=rx, h=sig.h))
         clock.mark("publish")
         if self.radar is not None:
-            self.radar(self, result)
+            self._sense(result)
         clock.mark("sense")
         for est in self.estimators:
             est(self, result)
@@ -681,6 +699,32 @@ class Twin:
         self.time_s = t_next
         self.last = result
         return result
+
+    def _sense(self, result: StepResult) -> None:
+        """Stage "sense": the radar frame of this step, synchronously or through
+        :attr:`sensing_worker` (deliver the frame out when its step has come or a
+        new frame is due, then prepare and submit this step's frame, if due)."""
+        w = self.sensing_worker
+        if w is None:
+            self.radar(self, result)
+            return
+        result.sensing = None
+        if w.due(result.step) or (w.pending and self.radar.frame_due()):
+            result.sensing = self.flush_sensing()
+        job = self.radar.prepare(self, result)
+        if job is not None:
+            w.submit(job, result.step)
+
+    def flush_sensing(self):
+        """Wait for the radar frame computed off the stepping thread (if any),
+        publish it (stamped with the step it sensed) and return its
+        :class:`~engine.sensing.estimator.SensingStep`; None when no frame is out.
+        A run that ends with a frame out calls this to keep it (``record_twin`` does)."""
+        w = self.sensing_worker
+        out = w.collect() if w is not None else None
+        if out is not None:
+            self.radar.deliver(self, out)
+        return out
 
     def _publish_frames(self, t: float) -> None:
         """``/clock``, every robot's ``/tf`` (map -> odom -> base_footprint) and, on the

@@ -32,7 +32,7 @@ from engine.sensing.tracker import KalmanTracker, Track
 
 log = logging.getLogger(__name__)
 
-__all__ = ["RadarEstimator", "SensingStep", "grid_from_config"]
+__all__ = ["RadarEstimator", "SensingStep", "SensingJob", "grid_from_config"]
 
 
 def grid_from_config(config) -> ResourceGrid:
@@ -51,12 +51,43 @@ class SensingStep:
         maps: link name -> :class:`RangeDopplerMap` (only if ``keep_maps``).
         tracks: confirmed tracks after this step.
         truth: target name -> ``[3]`` centre (m) used for the echo.
+        step, time_s: the twin step that was sensed and its time (s); a frame
+            computed off the stepping thread is delivered on a later step
+            (:class:`~engine.sensing.worker.SensingWorker`).
     """
 
     detections: dict = field(default_factory=dict)
     maps: dict = field(default_factory=dict)
     tracks: list = field(default_factory=list)
     truth: dict = field(default_factory=dict)
+    step: int | None = None
+    time_s: float | None = None
+
+
+@dataclass
+class SensingJob:
+    """What one radar frame needs from the twin, taken on the stepping thread
+    (:meth:`RadarEstimator.prepare`), so :meth:`RadarEstimator.compute` needs
+    nothing else.
+
+    Attributes:
+        step, time_s: the sensed step and its time (s).
+        dt: time since the previous frame (s), for the tracker.
+        links: the due :class:`SensingLinkSpec`.
+        poses: device name -> :class:`DevicePose` at the sensed step.
+        truth: target name -> ``[3]`` centre (m).
+        grid: the OFDM grid.
+        contains: ``contains(point, tol=) -> bool``, inside the room.
+    """
+
+    step: int
+    time_s: float
+    dt: float
+    links: list
+    poses: dict
+    truth: dict
+    grid: ResourceGrid
+    contains: object
 
 
 class RadarEstimator:
@@ -183,22 +214,50 @@ class RadarEstimator:
 
     def __call__(self, twin, result) -> SensingStep | None:
         """Sense on the links due this call (``SensingLinkSpec.every``); sets and
-        returns ``result.sensing`` (None when no link is due)."""
+        returns ``result.sensing`` (None when no link is due). The synchronous
+        path: :meth:`prepare`, :meth:`compute` and :meth:`deliver` in a row."""
+        job = self.prepare(twin, result)
+        if job is None:
+            result.sensing = None
+            return None
+        out = self.compute(job)
+        self.deliver(twin, out)
+        result.sensing = out
+        return out
+
+    def frame_due(self) -> bool:
+        """A link is due on the next call (``SensingLinkSpec.every``); False before
+        the first call sets the links up."""
+        return bool(self.links) and any(self._calls % max(int(s.every), 1) == 0
+                                        for s in self.links)
+
+    def prepare(self, twin, result) -> SensingJob | None:
+        """The part of a frame that reads or changes the twin (on the stepping
+        thread): the links due this call, the robot targets posed in the Sionna
+        scene from the step's truth, a snapshot of the device poses. None when no
+        link is due (the call still counts for ``every``)."""
         if self.tracer is None or self._scene is not twin.scene:
             self._setup(twin)
         call, self._calls = self._calls, self._calls + 1
         due = [s for s in self.links if call % max(int(s.every), 1) == 0]
         if not due:
-            result.sensing = None
             return None
         truth = self.update_targets(twin, result)
-        poses = twin.device_poses()
-        links = [(s.tx, s.rx) for s in due]
-        traced = self.tracer(poses, links)
-        grid = grid_from_config(twin.config)
-        out = SensingStep(truth=truth)
+        dt = twin.dt if self._last_t is None else max(result.time_s - self._last_t, 1e-9)
+        self._last_t = result.time_s
+        return SensingJob(step=result.step, time_s=result.time_s, dt=dt, links=due,
+                          poses=twin.device_poses(), truth=truth,
+                          grid=grid_from_config(twin.config), contains=twin.scene.contains)
+
+    def compute(self, job: SensingJob) -> SensingStep:
+        """Trace, receive, process and track one frame (any thread; it touches
+        neither the twin nor its bus, only this estimator's own state: tracer,
+        noise streams, background, tracker, in frame order)."""
+        poses, grid = job.poses, job.grid
+        traced = self.tracer(poses, [(s.tx, s.rx) for s in job.links])
+        out = SensingStep(truth=job.truth, step=job.step, time_s=job.time_s)
         measurements = []
-        for s in due:
+        for s in job.links:
             st = self._state[s.name]
             ep = traced[(s.tx, s.rx)]
             key = id(ep.clutter)
@@ -219,21 +278,23 @@ class RadarEstimator:
                 d.position = locate(d.path_length_m, d.azimuth_rad, d.zenith_rad,
                                     poses[s.tx].position, poses[s.rx].position,
                                     s.target_height_m)
-                if d.position is not None and twin.scene.contains(d.position, tol=0.3):
+                if d.position is not None and job.contains(d.position, tol=0.3):
                     measurements.append(d.position[:2])
                 elif d.position is not None:
                     d.position = None
             out.detections[s.name] = dets
             if self.keep_maps:
                 out.maps[s.name] = rd
-        dt = twin.dt if self._last_t is None else max(result.time_s - self._last_t, 1e-9)
-        self._last_t = result.time_s
-        out.tracks = [_copy_track(t) for t in self.tracker.update(np.array(measurements), dt)]
-        result.sensing = out
+        out.tracks = [_copy_track(t)
+                      for t in self.tracker.update(np.array(measurements), job.dt)]
+        return out
+
+    def deliver(self, twin, out: SensingStep) -> None:
+        """Keep a computed frame in :attr:`history` and publish it on the twin's
+        bus, stamped with the time it sensed (``out.time_s``), on the stepping thread."""
         self.history.append(out)
         if self.publish:
-            self._publish(twin, result.time_s, out)
-        return out
+            self._publish(twin, out.time_s, out)
 
     def _publish(self, twin, stamp: float, out: SensingStep) -> None:
         self.attach(twin.bus)

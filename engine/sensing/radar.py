@@ -449,12 +449,22 @@ class OFDMRadar:
         loc0 = rot.T @ k0
         x0 = np.array([np.arctan2(loc0[1], loc0[0]), np.arcsin(np.clip(loc0[2], -1, 1))])
 
+        if self.rx_array.pattern == "iso":
+            # the rotated element positions once per search, not per evaluation (the
+            # same operations as PlanarArray.steering_vectors_from_directions)
+            pos_t = (self.rx_array.normalized_positions @ rot.T).T  # [3, Nr]
+
+            def steer(k):
+                return np.exp(1j * (2.0 * np.pi * (k[None] @ pos_t)))[0]
+        else:
+            def steer(k):
+                return self.rx_array.steering_vectors_from_directions(
+                    k[None], self.rx_orientation)[0]
+
         def cost(v):
             az, el = v
             kl = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-            a = self.rx_array.steering_vectors_from_directions((rot @ kl)[None],
-                                                               self.rx_orientation)[0]
-            return -np.abs(np.vdot(a, s)) ** 2
+            return -np.abs(np.vdot(steer(rot @ kl), s)) ** 2
 
         r = scipy.optimize.minimize(cost, x0, method="Nelder-Mead",
                                     options={"xatol": 1e-4, "fatol": 1e-12 * -cost(x0),

@@ -143,7 +143,8 @@ class SensingTracer:
         max_depth: echo paths: total interactions incl. the scattering event
             (1 = direct tx -> target -> rx only); clutter: reflections.
         samples: rays per scattering point / per source.
-        seed: solver seed (fixed -> reproducible).
+        seed: solver seed (fixed, with Sionna's deterministic candidate
+            generators -> the same paths on every call, whatever else runs).
         monostatic_offset_m: displacement of the dummy clutter receiver of a
             monostatic link [m].
     """
@@ -163,8 +164,12 @@ class SensingTracer:
         rt = load_sionna_rt()
         from sionna.rt.rcs import RCSSolver
 
-        self._rcs = RCSSolver(deterministic=False)
-        self._ps = rt.PathSolver()
+        # Sionna's deterministic candidate generators: with the default ones the
+        # order in which rays record their paths (atomic counters) follows the
+        # thread schedule, and the paths' gains changed at float32 level when the
+        # twin's tracer ran at the same time (the sensing worker); same cost.
+        self._rcs = RCSSolver(deterministic=True)
+        self._ps = rt.PathSolver(deterministic=True)
         self._iso = rt.PlanarArray(num_rows=1, num_cols=1, pattern="iso", polarization="V")
 
     # ------------------------------------------------------------------ targets
@@ -207,20 +212,32 @@ class SensingTracer:
 
     # ------------------------------------------------------------------ trace
 
-    def _sync(self, txs: Mapping[str, DevicePose], rxs: Mapping[str, DevicePose]) -> None:
+    def _devices_view(self, txs: Mapping[str, DevicePose], rxs: Mapping[str, DevicePose]):
+        """A view of the twin's Sionna scene with this tracer's own devices.
+
+        The view is a :class:`sionna.rt.Scene` sharing everything of the twin's
+        scene (Mitsuba scene, objects, radio materials, sensing targets) except
+        the transmitters, receivers and arrays, which it holds itself: the
+        sensing solvers read those from the scene they are given, and the
+        twin's tracer sets the scene's arrays to its own. So tracing the sensing
+        links never writes to the twin's scene, and it may run on another
+        thread while the twin's tracer runs (:class:`~engine.sensing.worker.SensingWorker`).
+        """
         rt = load_sionna_rt()
         sc = self.scene.sionna
-        sc.tx_array = self._iso
-        sc.rx_array = self._iso
-        for n in list(sc.transmitters) + list(sc.receivers):
-            sc.remove(n)
+        view = object.__new__(type(sc))
+        view.__dict__.update(sc.__dict__)
+        view._transmitters, view._receivers = {}, {}
+        view._tx_array = view._rx_array = self._iso
+        view._preview_widget = None
         devs = [rt.Transmitter(f"stx:{n}", position=list(p.position),
                                orientation=list(sionna_orientation(p.orientation)),
                                velocity=list(p.velocity)) for n, p in txs.items()]
         devs += [rt.Receiver(f"srx:{n}", position=list(p.position),
                              orientation=list(sionna_orientation(p.orientation)),
                              velocity=list(p.velocity)) for n, p in rxs.items()]
-        sc.add(devs)
+        view.add(devs)
+        return view
 
     def __call__(self, poses: Mapping[str, DevicePose],
                  links: list[tuple[str, str]]) -> dict[tuple[str, str], EchoPaths]:
@@ -237,8 +254,8 @@ class SensingTracer:
         out: dict = {}
         echo_raw = None
         if self._targets:
-            self._sync(txs, rxs)
-            paths = self._rcs(self.scene.sionna, max_depth=self.max_depth,
+            view = self._devices_view(txs, rxs)
+            paths = self._rcs(view, max_depth=self.max_depth,
                               samples_per_sp=self.samples, buffer_size_per_sp=self.samples,
                               seed=self.seed)
             echo_raw, _ = _to_numpy_paths(paths, len(rx_names), len(tx_names), self.max_depth)
@@ -280,8 +297,8 @@ class SensingTracer:
                 pos = np.asarray(pr.position) + np.array([0.0, 0.0, -self.mono_offset])
                 pr = DevicePose(tuple(pos), pr.orientation, pr.velocity)
             rxs[rx + ("#dummy" if tx == rx else "")] = pr
-        self._sync(txs, rxs)
-        paths = self._ps(self.scene.sionna, max_depth=self.clutter_depth,
+        view = self._devices_view(txs, rxs)
+        paths = self._ps(view, max_depth=self.clutter_depth,
                          max_num_paths_per_src=max(self.samples, 100000),
                          samples_per_src=max(self.samples, 100000), synthetic_array=True,
                          seed=self.seed)

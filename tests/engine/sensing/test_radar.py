@@ -59,6 +59,24 @@ def test_point_target_bins_and_refinement(snr_db):
     assert abs(np.rad2deg(det.zenith_rad - ZE)) < TOL_ANGLE_DEG
 
 
+def test_angle_search_equals_the_library_steering_vectors():
+    """The angle search's own steering vectors (iso array: rotated positions once
+    per search) give bit for bit the result of PlanarArray's, which a unit
+    element pattern routes through (``a * 1`` is exact)."""
+    ori = (0.3, 0.0, 0.0)
+    iso = PlanarArray(2, 4)
+    unit = PlanarArray(2, 4, pattern=lambda th, ph: np.ones_like(th))
+    y, x, _, _ = _frame(10.0, iso)
+    out = []
+    for arr in (iso, unit):
+        radar = OFDMRadar(ResourceSet(GRID, name="AP1->AP1"), FC, rx_array=arr,
+                          rx_orientation=ori, max_detections=2)
+        out.append(radar(y, x)[0])
+    assert len(out[0]) == len(out[1]) > 0
+    for a, b in zip(*out):
+        assert (a.azimuth_rad, a.zenith_rad) == (b.azimuth_rad, b.zenith_rad)
+
+
 @pytest.mark.slow
 def test_full_32_element_array_and_first_arrival():
     arr = PlanarArray(4, 8)

@@ -32,17 +32,21 @@ def recording(tmp_path_factory):
 
 def test_lab_twin_senses_every_nth_step(recording):
     tw, results, _ = recording
-    # steps 0, 10, 20, 30 sense, the others do not
-    assert [r.sensing is not None for r in results] == ([True] + [False] * (EVERY - 1)) * 4
-    sensed = [r.sensing for r in results if r.sensing is not None]
+    # steps 0, 10, 20, 30 sense; each frame is computed off the stepping thread and
+    # delivered EVERY steps later (the last one by record_twin's flush at the end)
+    assert tw.sensing_worker is not None and tw.sensing_worker.latency == EVERY
+    assert [r.sensing.step if r.sensing is not None else None for r in results] == \
+        ([None] * EVERY + ([0] + [None] * (EVERY - 1)) + ([10] + [None] * (EVERY - 1))
+         + ([20] + [None] * (EVERY - 1)))
+    sensed = tw.radar.history
+    assert [s.step for s in sensed] == [0, 10, 20, 30]
+    assert [s.time_s for s in sensed] == [results[k].time_s for k in (0, 10, 20, 30)]
     assert all(set(s.detections) == {"AP2->AP1"} for s in sensed)
-    # the robot is detected near its true position on most sensing steps
+    # the robot is detected near its true position (at the sensed step) on most frames
     hits = 0
-    for r in results:
-        if r.sensing is None:
-            continue
-        truth = r.robots["robot1"].pose[:2]
-        p = [d.position[:2] for d in r.sensing.detections["AP2->AP1"] if d.position is not None]
+    for s in sensed:
+        truth = results[s.step].robots["robot1"].pose[:2]
+        p = [d.position[:2] for d in s.detections["AP2->AP1"] if d.position is not None]
         hits += bool(p) and np.min(np.linalg.norm(np.array(p) - truth, axis=1)) < 0.5
     assert hits >= 3, "the robot within 0.5 m of a detection on 3 of 4 sensing steps"
     assert sensed[-1].tracks, "a confirmed track after four sensing steps"
@@ -56,14 +60,14 @@ def test_recorded_detections_decode_with_rosbags_and_mcap_ros2(recording):
     from rosbags.highlevel import AnyReader
 
     tw, results, out = recording
-    sensed = [r for r in results if r.sensing is not None]
+    sensed = tw.radar.history  # every frame, the last one flushed at the end
     with open(out, "rb") as f:
         msgs = [(ch.topic, m) for _, ch, _, m in
                 make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
                     topics=[DETECTIONS_TOPIC])]
     assert len(msgs) == len(sensed)
     last = msgs[-1][1]
-    want = sensed[-1].sensing
+    want = sensed[-1]
     assert last.link == "AP2->AP1"
     assert len(last.path_length) == len(want.detections["AP2->AP1"])
     assert list(last.track_id) == [t.id for t in want.tracks]
@@ -96,11 +100,25 @@ def test_monostatic_table_runs_in_the_twin(tmp_path):
     tw = Twin.from_scene(folder, dt=0.5, phy=False)
     assert [(s.name, s.every) for s in tw.radar.links] == [("AP1->AP1", 1)]
     found = []
-    for _ in range(4):
-        r = tw.step()
+    results = [tw.step() for _ in range(5)]
+    assert results[0].sensing is None  # every step senses; each frame arrives one step later
+    for r in results[1:]:
         assert r.sensing is not None and set(r.sensing.detections) == {"AP1->AP1"}
-        ant = np.r_[r.robots["robot1"].pose[:2], 0.096]
+        assert r.sensing.step == r.step - 1
+        ant = np.r_[results[r.sensing.step].robots["robot1"].pose[:2], 0.096]
         d_true = 2 * np.linalg.norm(ant - [0.05, 3.0, 2.0])
         found += [abs(d.path_length_m - d_true) for d in r.sensing.detections["AP1->AP1"]]
     # EMA background: the first frame is the background; later ones see the robot
     assert found and min(found) < 0.3
+
+
+def test_run_command_prints_the_frame_still_out_at_the_end(capsys):
+    """`isac-twin run` waits for the radar frame the sensing worker still computes
+    when the steps end and prints it with the step it sensed."""
+    from engine.cli import main
+
+    assert main(["run", str(LAB), "--steps", "2", "--no-phy"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [ln.split()[1] for ln in lines[:2]] == ["0", "1"]
+    assert "radar" not in lines[0] and "radar" not in lines[1]  # not delivered yet
+    assert lines[2].startswith("radar (step 0) ") and lines[2].endswith(" tracks")

@@ -1,0 +1,120 @@
+"""The radar off the stepping thread (``engine.sensing.worker``): the same frames
+as the synchronous radar, delivered a fixed number of steps later, and the twin's
+own links untouched by the frame traced beside them."""
+
+from pathlib import Path
+
+import gc
+import warnings
+
+import numpy as np
+import pytest
+
+from engine.sensing.msgs import DETECTIONS_TOPIC, Detections
+from engine.sensing.worker import SensingWorker
+
+LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"
+
+
+class _Frames:
+    """A radar whose ``compute`` returns its job, or raises it when it is an exception."""
+
+    def compute(self, job):
+        if isinstance(job, Exception):
+            raise job
+        return job
+
+
+def test_worker_delivers_after_latency_and_raises_on_the_caller():
+    w = SensingWorker(_Frames(), latency=3)
+    assert not w.pending and not w.due(0) and w.collect() is None
+    w.submit("frame 5", 5)
+    assert w.pending and not w.due(7) and w.due(8) and w.due(9)
+    with pytest.raises(RuntimeError, match="collect the frame out first"):
+        w.submit("frame 6", 6)
+    assert w.collect() == "frame 5" and not w.pending
+    w.submit(ValueError("sensing link 'AP2->AP1': bad"), 9)
+    w.wait()  # finished, error kept for collect
+    with pytest.raises(ValueError, match="AP2->AP1"):
+        w.collect()
+    w.close()
+    with pytest.raises(ValueError, match="latency"):
+        SensingWorker(_Frames(), latency=0)
+
+
+def _run(sync: bool, steps: int):
+    from engine.twin import Twin
+
+    tw = Twin.from_scene(LAB, dt=0.05, phy=False, sync_sensing=sync)
+    msgs = []
+    tw.bus.node("test").subscribe(DETECTIONS_TOPIC, Detections, msgs.append)
+    with warnings.catch_warnings():
+        # the twin's frozen trace must record while no frame is computed beside it
+        warnings.filterwarnings("error", message="chain reuse: evaluation not frozen")
+        results = [tw.step() for _ in range(steps)]
+    tw.flush_sensing()
+    latency = tw.sensing_worker.latency if tw.sensing_worker is not None else None
+    # (not returned: while one twin whose radar put targets into its Sionna scene
+    # lives, another twin's frozen trace cannot record -- a Dr.Jit registry limit)
+    return tw.radar.history, latency, results, msgs
+
+
+@pytest.mark.slow
+def test_worker_frames_equal_the_synchronous_radar():
+    every = 10
+    steps = 2 * every + 1  # frames of steps 0, 10, 20; the last one flushed
+    a, sync_latency, sync_res, sync_msgs = _run(True, steps)
+    gc.collect()
+    b, latency, res, msgs = _run(False, steps)
+    assert sync_latency is None and latency == every
+    # synchronous: a frame on its own step; worker: the same frame `every` steps later
+    assert [r.step for r in sync_res if r.sensing is not None] == [0, 10, 20]
+    assert [(r.step, r.sensing.step) for r in res if r.sensing is not None] == [(10, 0), (20, 10)]
+    assert [f.step for f in a] == [f.step for f in b] == [0, 10, 20]
+    assert sum(len(f.detections["AP2->AP1"]) for f in a) > 0  # (frame 0: the background)
+    for fa, fb in zip(a, b):
+        assert fa.time_s == fb.time_s
+        da, db = fa.detections["AP2->AP1"], fb.detections["AP2->AP1"]
+        assert len(da) == len(db)
+        for x, y in zip(da, db):  # bit-identical, not merely close
+            assert (x.path_length_m, x.doppler_hz, x.azimuth_rad, x.snr_db) == \
+                (y.path_length_m, y.doppler_hz, y.azimuth_rad, y.snr_db)
+            assert (x.position is None) == (y.position is None)
+            if x.position is not None:
+                assert np.array_equal(x.position, y.position)
+        assert [t.id for t in fa.tracks] == [t.id for t in fb.tracks]
+        for ta, tb in zip(fa.tracks, fb.tracks):
+            assert np.array_equal(ta.x, tb.x) and np.array_equal(ta.P, tb.P)
+    # the published messages: the same, stamped with the sensed step's time
+    assert [m.header.stamp for m in msgs] == [m.header.stamp for m in sync_msgs] \
+        == [sync_res[k].time_s for k in (0, 10, 20)]
+    for ma, mb in zip(sync_msgs, msgs):
+        assert np.array_equal(ma.path_length, mb.path_length)
+        assert np.array_equal(ma.track_position, mb.track_position)
+    # the twin's own links were traced beside the frames: the same paths
+    for ra, rb in zip(sync_res, res):
+        for lk, la in ra.links.items():
+            assert np.array_equal(la.paths.tau, rb.links[lk].paths.tau)
+            assert np.array_equal(la.paths.a, rb.links[lk].paths.a)
+
+
+@pytest.mark.slow
+def test_edit_and_reset_wait_for_the_frame_out():
+    """An edit applied while a frame is out waits for it (the frame traced the room
+    before the edit); a reset drops it and starts a new radar."""
+    from engine.state import Edit
+    from engine.twin import Twin
+
+    tw = Twin.from_scene(LAB, dt=0.05, phy=False)
+    tw.step()  # frame of step 0 out
+    assert tw.sensing_worker.pending
+    tw.apply_edit(Edit(op="move", target="Chair_1", position=[1.0, 1.0, 0.0]))
+    tw.step()
+    assert tw.sensing_worker.pending  # waited for, not delivered: due at step 10
+    # the radar traced on a view of the Sionna scene: the twin's scene has none of its devices
+    sc = tw.scene.sionna
+    assert not [n for n in list(sc.transmitters) + list(sc.receivers) if n[:4] in ("stx:", "srx:")]
+    worker = tw.sensing_worker
+    tw.reset()
+    assert not worker.pending and tw.sensing_worker is not worker
+    assert tw.radar.history == []
