@@ -685,7 +685,8 @@ class Calibrator:
         from 1.29 to 0.83 dB^2); a search that compares traced values is not stopped.
 
         Returns:
-            ``(values [P], mismatch dB^2, traces)``.
+            ``(values [P], mismatch dB^2, traces)``; :attr:`polish_converged` says whether
+            every step reached ``steps[1]`` (else ``max_evaluations`` ended it).
         """
         x = np.clip(np.asarray(start, float).reshape(-1).copy(),
                     [p.limits[0] for p in self.params], [p.limits[1] for p in self.params])
@@ -719,6 +720,8 @@ class Calibrator:
                         break
                 else:
                     step[i] /= 2.0
+        self.polish_converged = not any(step[i] >= steps[1] * self.scales[i] * (1 - 1e-9)
+                                        for i in free)
         self.evaluate(x, grad=False)  # leave the scene there
         log.info("calibrate: polish %d traces -> %.5g dB^2", n, f)
         return x, f, n
@@ -803,7 +806,16 @@ class Calibrator:
                 if gain <= ROUND_GAIN * abs(best):
                     break
             self.freeze_candidates, self._candidates = False, None
-        final = values(u)
+        return self.result(values(u), converged=bool(res.success),
+                           message=str(res.message)
+                           + (f" ({rounds} trust-box rounds)" if trust else ""),
+                           history=history)
+
+    def result(self, final, *, converged: bool, message: str,
+               history: list[float] | None = None) -> CalibrationResult:
+        """The :class:`CalibrationResult` of ``final`` (physical units, ``[P]``), traced
+        afresh and reported against the scene's values; leaves the scene at ``final``."""
+        final = np.asarray(final, float).reshape(-1)
         if self._at_initial is None:  # report against the scene's values
             self._at_initial = self.evaluate(self.initial)
         first = dict(zip(("f", "g", "model"), self._at_initial))
@@ -816,9 +828,7 @@ class Calibrator:
             names=names, initial=self.initial.copy(), final=final, gradient_initial=first["g"],
             unobserved=unobserved(first["g"] * self.scales, names),
             mismatch_initial=first["f"], mismatch_final=f_final, residual_db=residual,
-            converged=bool(res.success),
-            message=str(res.message) + (f" ({rounds} trust-box rounds)" if trust else ""),
-            evaluations=self.evaluations,
+            converged=bool(converged), message=message, evaluations=self.evaluations,
             seconds_per_step=float(np.mean(self.step_seconds)) if self.step_seconds else 0.0,
-            history=history,
+            history=list(history or []),
             residual_db_initial=residual0)
