@@ -161,13 +161,14 @@ def print_per_fix(folder, r, cache_dir) -> dict:
     pf = per_fix_errors(twins, real_room(folder, seed=r["seed"])[0], r["recording"],
                         seed=r["seed"], cache_dir=cache_dir)
     st = pf["settings"]
-    print(f"per-fix localization against the truth (no fusion): pilots {st['snr_db']:g} dB "
-          f"received in the real room, {st['spacing_m'] * 100:g} cm database, "
-          f"{pf['steps']} fixes every {st['dt_s']} s along the recorded lap")
-    for m in st["methods"]:
+    print(f"per-fix localization against the truth (no fusion), in the real room: pilots "
+          f"{st['snr_db']:g} dB (realistic) or the traced paths' delays (the paper's MDP), "
+          f"{st['spacing_m'] * 100:g} cm database, {pf['steps']} fixes every {st['dt_s']} s "
+          f"along the recorded lap")
+    for m in pf["original"]:
         for label in twins:
             e = pf[label][m]
-            print(f"  {m:10s} {label:10s} twin: RMSE {e['rmse'] * 100:5.1f} cm, median "
+            print(f"  {m:17s} {label:10s} twin: RMSE {e['rmse'] * 100:5.1f} cm, median "
                   f"{e['median'] * 100:5.1f}, P90 {e['p90'] * 100:5.1f}, max "
                   f"{e['max'] * 100:5.1f} cm (database {pf['database_s'][label]:.0f} s)")
     return pf

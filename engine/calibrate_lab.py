@@ -30,6 +30,9 @@ from engine.scene import load_scene
 
 log = logging.getLogger(__name__)
 
+#: The case study's MCA options (:func:`engine.casestudy.run_case_study`'s default).
+CASE_STUDY_MCA = {"eps": 0.5, "k": 4, "num_paths": 9}
+
 
 def real_room(folder, *, seed: int = 1, changed_material: str = "wood-0.03",
               permittivity_factor: float = 1.3):
@@ -166,7 +169,7 @@ def localization_errors(folder, calibrated_folder, *, seed: int = 1,
                                                 summarize)
     from engine.localization.fingerprints import cached_database
 
-    mca = {"eps": 0.5, "k": 4, "num_paths": 9}  # the case study's (engine.casestudy)
+    mca = dict(CASE_STUDY_MCA)
     out: dict = {"settings": {"method": method, "fusion": fusion, "closed_loop": closed_loop,
                               "mode": "pilots", "snr_db": snr_db, "spacing_m": spacing,
                               "dt_s": dt, "seed": seed}}
@@ -190,12 +193,9 @@ def localization_errors(folder, calibrated_folder, *, seed: int = 1,
     return out
 
 
-#: The case study's MCA options (:mod:`engine.casestudy`).
-CASE_STUDY_MCA = {"eps": 0.5, "k": 4, "num_paths": 9}
-
-
 def per_fix_errors(twins: dict, real_scene, recording, *, methods=("MCA", "MCA-angles"),
-                   spacing: float = 0.05, dt: float = 0.5, snr_db: float = 20.0,
+                   modes=("pilots", "tracer"), spacing: float = 0.05, dt: float = 0.5,
+                   snr_db: float = 20.0,
                    seed: int = 1, robot: str | None = None,
                    cache_dir: str | Path = "out/cache") -> dict:
     """Per-fix localization errors against the truth, before any fusion, of the same
@@ -203,13 +203,16 @@ def per_fix_errors(twins: dict, real_scene, recording, *, methods=("MCA", "MCA-a
 
     The robot is replayed along the lap of ``recording`` (its ``/<robot>/ground_truth``,
     :class:`~engine.record.TrajectoryReplay`) in ``real_scene`` every ``dt`` s; at each
-    step one observation is formed from the pilots received there at ``snr_db`` (the
-    realistic mode: :func:`~engine.localization.measurements.observe_pilots` with the
-    delay-only MDP at every AP and the delay-direction estimates at multi-antenna
-    APs), and every method of ``methods`` (``"MCA"``: the paper's fingerprinting on
-    multipath delay profiles; ``"MCA-angles"``: the twin's default localizer) localizes
-    it on every twin's database (the case study's MCA options). No odometry, no EKF:
-    what the database alone gives.
+    step one observation per mode of ``modes`` is formed there: ``"pilots"`` from the
+    pilots received at ``snr_db`` (the realistic mode:
+    :func:`~engine.localization.measurements.observe_pilots` with the delay-only MDP at
+    every AP and the delay-direction estimates at multi-antenna APs), ``"tracer"``
+    straight from the real room's traced paths (the paper's MDP, noise-free:
+    :func:`~engine.localization.measurements.observe_tracer`); every method of
+    ``methods`` (``"MCA"``: the paper's fingerprinting on multipath delay profiles;
+    ``"MCA-angles"``: the twin's default localizer) localizes each on every twin's
+    database (the case study's MCA options). No odometry, no EKF: what the database
+    alone gives.
 
     Args:
         twins: ``label -> TwinScene`` (e.g. original, calibrated, the real room itself).
@@ -219,20 +222,23 @@ def per_fix_errors(twins: dict, real_scene, recording, *, methods=("MCA", "MCA-a
         spacing: database grid, m (cached in ``cache_dir`` by scene content).
 
     Returns:
-        ``{"settings": {...}, "steps": n, label: {method: summary}, "database_s": {label: s},
-        "errors_m": {label: {method: [n]}}}`` (:func:`~engine.localization.deployment.
-        summarize`: RMSE, median, P90, max, m).
+        ``{"settings": {...}, "steps": n, label: {"method/mode": summary}, "database_s":
+        {label: s}, "errors_m": {label: {"method/mode": [n]}}}``
+        (:func:`~engine.localization.deployment.summarize`: RMSE, median, P90, max, m).
     """
     from engine.localization.baselines import make_localizer
     from engine.localization.deployment import summarize
     from engine.localization.fingerprints import cached_database
-    from engine.localization.measurements import FeatureSpec, PilotSettings, observe_pilots
+    from engine.localization.measurements import (FeatureSpec, PilotSettings, observe_pilots,
+                                                  observe_tracer)
     from engine.phy.network import NetworkPHY
     from engine.pose import antenna_pose, planar_pose
     from engine.record import TrajectoryReplay
     from engine.robots import SensorOptions
     from engine.twin import Twin
 
+    if not modes or set(modes) - {"pilots", "tracer"}:
+        raise ValueError(f"per_fix_errors: modes must be 'pilots' and/or 'tracer', got {modes!r}")
     cfg = real_scene.config
     spec = FeatureSpec.from_config(cfg)
     robot = robot or next(d.name for d in cfg.devices if d.kind == "robot")
@@ -252,17 +258,24 @@ def per_fix_errors(twins: dict, real_scene, recording, *, methods=("MCA", "MCA-a
     phy = NetworkPHY(cfg)
     pilots = PilotSettings(snr_db=snr_db, seed=seed)
     rng = np.random.default_rng([seed, 7])
-    truth, est = [], {k: [] for k in locs}
+    truth, est = [], {}
 
     def localize(twin, result):
         pose = result.robots[robot].pose
         links = [result.links[(ap, robot)].paths for ap in ap_names]
-        obs = observe_pilots(links, [phy.channel(lp) for lp in links], spec, pilots,
-                             CASE_STUDY_MCA["num_paths"], rng=rng, features=("mdp", "dirs"))
+        obs = {}
+        if "pilots" in modes:
+            obs["pilots"] = observe_pilots(links, [phy.channel(lp) for lp in links], spec,
+                                           pilots, CASE_STUDY_MCA["num_paths"], rng=rng,
+                                           features=("mdp", "dirs"))
+        if "tracer" in modes:
+            obs["tracer"] = observe_tracer(links, spec, CASE_STUDY_MCA["num_paths"])
         truth.append(np.asarray(antenna_pose(planar_pose(pose[0], pose[1], pose[5]),
                                              dev.antenna_offset).position)[:2])
-        for k, loc in locs.items():
-            est[k].append(np.asarray(loc(obs), float)[:2])
+        for (label, m), loc in locs.items():
+            for mode, o in obs.items():
+                est.setdefault((label, f"{m}/{mode}"), []).append(
+                    np.asarray(loc(o), float)[:2])
 
     reality = Twin(real_scene, seed=seed, dt=dt, phy=False, sensing=False, localize=False,
                    sensors=SensorOptions(lidar=False, imu=False), estimators=[localize])
@@ -272,7 +285,7 @@ def per_fix_errors(twins: dict, real_scene, recording, *, methods=("MCA", "MCA-a
     for _ in reality.run(n):
         pass
     truth = np.array(truth)
-    out: dict = {"settings": {"methods": list(methods), "mode": "pilots", "snr_db": snr_db,
+    out: dict = {"settings": {"methods": list(methods), "modes": list(modes), "snr_db": snr_db,
                               "fusion": None, "spacing_m": spacing, "dt_s": dt, "seed": seed,
                               "recording": str(recording)},
                  "steps": n, "database_s": t_db, "errors_m": {}}

@@ -83,6 +83,13 @@ def test_closing_the_loop_shortened(tmp_path):
     json.dumps(pf)
     assert pf["steps"] == 6  # the recorded half lap (13 s) every 2 s
     e = pf["errors_m"]
-    assert len(e["original"]["MCA"]) == 6 and np.isfinite(e["true room"]["MCA"]).all()
-    assert e["original"]["MCA"] == e["copy"]["MCA"]
-    assert pf["original"]["MCA"]["rmse"] < 1.0  # m: a fix, not noise
+    assert set(e["original"]) == {"MCA/pilots", "MCA/tracer"}
+    assert len(e["original"]["MCA/pilots"]) == 6
+    assert np.isfinite(e["true room"]["MCA/pilots"]).all()
+    assert e["original"] == e["copy"]
+    # two observations per fix: the pilots' estimated delays and the traced ones
+    assert e["original"]["MCA/pilots"] != e["original"]["MCA/tracer"]
+    assert np.all(np.array(e["true room"]["MCA/tracer"]) < 6.4)  # inside the 5 x 4 m room
+    with pytest.raises(ValueError, match="modes"):
+        per_fix_errors(twins, twins["original"], r["recording"], modes=("radar",),
+                       cache_dir=tmp_path / "cache")
