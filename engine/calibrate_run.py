@@ -443,9 +443,11 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     typical changes (1 cm, 1 deg, 10 % of a material value) about the round's start
     (:meth:`~engine.calibration.Calibrator.fit`); None: one unbounded L-BFGS-B.
     ``polish``: then search the poses of the objects with a clear path to the robot
-    (:data:`CLEAR_PATH_SHARE`), and the permittivities, on traced values (:meth:`~engine.calibration.Calibrator.
-    polish`) and fit once more from there; the report's ``objects`` says which objects
-    have a clear path, ``could_not_see`` names the others with their numbers."""
+    (:data:`CLEAR_PATH_SHARE`), and the permittivities, on traced values
+    (:meth:`~engine.calibration.Calibrator.polish`); the result is where that search
+    ends when it lowered the mismatch. The report's ``objects`` says which objects
+    have a clear path, ``polish`` what the search did, ``could_not_see`` names the
+    objects without a clear path with their numbers."""
     from engine.scene import load_scene
 
     out = Path(out)
