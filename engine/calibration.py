@@ -59,7 +59,9 @@ DEFAULT_BOUNDS = {"permittivity": (1.0, 100.0), "conductivity": (0.0, 1.0e7),
 #: mismatch by more than this fraction.
 ROUND_GAIN = 0.01
 
-#: Trial steps of one L-BFGS-B line search (SciPy's default 20). Where a path appears or
+#: Trial steps of one L-BFGS-B line search in a trust-box round of :meth:`Calibrator.fit`
+#: (SciPy's default 20 without ``trust``: near an exact minimum, 1e-9 dB^2, the shorter
+#: search ended "ABNORMAL" where SciPy's converged). Where a path appears or
 #: disappears the mismatch jumps and the line search fails; SciPy then shrank the step
 #: 20 times down to moves too small to change a float32 vertex (lab: 20 evaluations
 #: at exactly 1.7018 dB^2, 200 of the first fit's 324).
@@ -408,6 +410,10 @@ class Calibrator:
         #: Evaluations that found more candidates than the buffer held (it grew:
         #: Dr.Jit recompiled the evaluation's kernels once).
         self.buffer_regrows = 0
+        #: The last :meth:`polish`: its first step's trials per parameter name and
+        #: whether every step reached its last size (None before one ran).
+        self.polish_trials: dict[str, list] = {}
+        self.polish_converged: bool | None = None
         self._freqs = mi.Float(measurements.subcarrier_offsets_hz)
         # Sionna's cfr order [N, Nr, (tx=1), Nt, (time=1), K]
         self._meas_db = mi.Float64(power_db(measurements.csi.transpose(0, 2, 3, 1))
@@ -696,8 +702,8 @@ class Calibrator:
                                    f"got {free!r}")
         step = {i: steps[0] * self.scales[i] for i in free}
         f = self.evaluate(x, grad=False)[0]
-        #: name -> [[move (physical units), mismatch change dB^2], ...] of the first step
-        self.polish_trials: dict[str, list] = {self.params[i].name: [] for i in free}
+        # name -> [[move (physical units), mismatch change dB^2], ...] of the first step
+        self.polish_trials = {self.params[i].name: [] for i in free}
         n = 1
         while n < max_evaluations and any(step[i] >= steps[1] * self.scales[i] * (1 - 1e-9)
                                           for i in free):
@@ -781,8 +787,7 @@ class Calibrator:
         if trust is None:
             res = minimize(fun, np.zeros(len(idx)), jac=True, method="L-BFGS-B",
                            bounds=list(zip(lo, hi)),
-                           options={"maxiter": max_steps, "ftol": ftol, "gtol": gtol,
-                                    "maxls": MAX_LINE_SEARCH})
+                           options={"maxiter": max_steps, "ftol": ftol, "gtol": gtol})
             u, rounds = res.x, 1
         else:
             # rounds of L-BFGS-B in a box of +-trust (scaled units) about the round's
