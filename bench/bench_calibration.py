@@ -49,6 +49,9 @@ def main(argv=None) -> int:
     ap.add_argument("--snr", type=float, default=None, help="--lab: CSI noise SNR, dB")
     ap.add_argument("--localize", action="store_true",
                     help="--lab: also the localization errors, original vs calibrated twin")
+    ap.add_argument("--per-fix", action="store_true",
+                    help="--lab: also the per-fix errors (no fusion) of MCA and MCA-angles on "
+                         "the recorded lap, original vs calibrated vs true-room twin")
     ap.add_argument("--snapshots", type=int, default=8, help="--lab: CSI snapshots used")
     ap.add_argument("--max-steps", type=int, default=40, help="--lab: optimiser iterations")
     ap.add_argument("--objects", default="", help="--lab: objects whose poses are fitted "
@@ -101,11 +104,12 @@ def lab(a) -> int:
     print(f"lab, one lap ({r['steps']} steps of {r['dt']} s), CSI noise "
           f"{'none' if a.snr is None else f'{a.snr:g} dB SNR'}")
     print(f"{'object':14s} {'truth dx dy (cm) dyaw (deg)':>30s} {'fitted':>24s} "
-          f"{'error':>24s}  unseen")
+          f"{'error':>24s}  clear path  unseen")
     for name, o in r["objects"].items():
         f3 = lambda v: " ".join(f"{x:+7.2f}" for x in v)  # noqa: E731
         print(f"{name:14s} {f3(o['truth_cm_deg']):>30s} {f3(o['fitted_cm_deg']):>24s} "
-              f"{f3(o['error_cm_deg']):>24s}  {','.join(o['unobserved'])}")
+              f"{f3(o['error_cm_deg']):>24s}  {'yes' if o['clear_path'] else 'no':10s}  "
+              f"{','.join(o['unobserved'])}")
     m = r["material"]
     print(f"material {m['name']}: permittivity twin {m['twin_permittivity']:.3f}, real "
           f"{m['relative_permittivity']:.3f}, fitted {m['fitted']:.3f} "
@@ -141,8 +145,33 @@ def lab(a) -> int:
                   f"{e['database_s']:.0f} s, run {e['run_s']:.0f} s)")
         print(f"  calibrated / original RMSE: "
               f"{loc['calibrated']['rmse'] / loc['original']['rmse']:.2f}x")
+    if a.per_fix:
+        r["per_fix"] = print_per_fix(folder, r, a.out / "cache")
     (a.out / "lab.json").write_text(json.dumps(r, indent=1))
     return 0
+
+
+def print_per_fix(folder, r, cache_dir) -> dict:
+    """:func:`engine.calibrate_lab.per_fix_errors` of the original, the calibrated and the
+    true-room twin on the lap recorded for ``r`` (a :func:`closing_the_loop` result)."""
+    from engine.calibrate_lab import per_fix_errors, real_room
+
+    twins = {"original": load_scene(folder), "calibrated": load_scene(r["calibrated_scene"]),
+             "true room": real_room(folder, seed=r["seed"])[0]}
+    pf = per_fix_errors(twins, real_room(folder, seed=r["seed"])[0], r["recording"],
+                        seed=r["seed"], cache_dir=cache_dir)
+    st = pf["settings"]
+    print(f"per-fix localization against the truth (no fusion), in the real room: pilots "
+          f"{st['snr_db']:g} dB (realistic) or the traced paths' delays (the paper's MDP), "
+          f"{st['spacing_m'] * 100:g} cm database, {pf['steps']} fixes every {st['dt_s']} s "
+          f"along the recorded lap")
+    for m in pf["original"]:
+        for label in twins:
+            e = pf[label][m]
+            print(f"  {m:17s} {label:10s} twin: RMSE {e['rmse'] * 100:5.1f} cm, median "
+                  f"{e['median'] * 100:5.1f}, P90 {e['p90'] * 100:5.1f}, max "
+                  f"{e['max'] * 100:5.1f} cm (database {pf['database_s'][label]:.0f} s)")
+    return pf
 
 
 if __name__ == "__main__":

@@ -30,6 +30,9 @@ from engine.scene import load_scene
 
 log = logging.getLogger(__name__)
 
+#: The case study's MCA options (:func:`engine.casestudy.run_case_study`'s default).
+CASE_STUDY_MCA = {"eps": 0.5, "k": 4, "num_paths": 9}
+
 
 def real_room(folder, *, seed: int = 1, changed_material: str = "wood-0.03",
               permittivity_factor: float = 1.3):
@@ -131,7 +134,8 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
                       "fitted_cm_deg": [fx * 100, fy * 100, fyaw],
                       "error_cm_deg": [abs(fx - dx) * 100, abs(fy - dy) * 100, abs(fyaw - dyaw)],
                       "unobserved": sorted(k for k in ("x", "y", "yaw")
-                                           if f"{name}.{k}" in unseen)}
+                                           if f"{name}.{k}" in unseen),
+                      "clear_path": rep["objects"].get(name, {}).get("clear_path")}
     m = truth["material"]
     eps_fit = got[f"{changed_material}.permittivity"]
     return {"steps": steps, "dt": dt, "snr_db": snr_db, "seed": seed, "objects": rows,
@@ -144,6 +148,7 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
             "observability": rep["observability"], "could_not_see": rep["could_not_see"],
             "candidate_buffer": rep["candidate_buffer"],
             "calibration_s": t_cal, "calibrated_scene": str(run.scene_dir),
+            "recording": str(mcap),
             "report": str(run.report_path)}
 
 
@@ -164,7 +169,7 @@ def localization_errors(folder, calibrated_folder, *, seed: int = 1,
                                                 summarize)
     from engine.localization.fingerprints import cached_database
 
-    mca = {"eps": 0.5, "k": 4, "num_paths": 9}  # the case study's (engine.casestudy)
+    mca = dict(CASE_STUDY_MCA)
     out: dict = {"settings": {"method": method, "fusion": fusion, "closed_loop": closed_loop,
                               "mode": "pilots", "snr_db": snr_db, "spacing_m": spacing,
                               "dt_s": dt, "seed": seed}}
@@ -185,4 +190,107 @@ def localization_errors(folder, calibrated_folder, *, seed: int = 1,
         err = errors(dep.records)["estimate_vs_truth"]
         out[label] = {**summarize(err), "steps": n, "database_s": t_db,
                       "run_s": time.perf_counter() - t0}
+    return out
+
+
+def per_fix_errors(twins: dict, real_scene, recording, *, methods=("MCA", "MCA-angles"),
+                   modes=("pilots", "tracer"), spacing: float = 0.05, dt: float = 0.5,
+                   snr_db: float = 20.0,
+                   seed: int = 1, robot: str | None = None,
+                   cache_dir: str | Path = "out/cache") -> dict:
+    """Per-fix localization errors against the truth, before any fusion, of the same
+    observations matched against each twin's fingerprint database.
+
+    The robot is replayed along the lap of ``recording`` (its ``/<robot>/ground_truth``,
+    :class:`~engine.record.TrajectoryReplay`) in ``real_scene`` every ``dt`` s; at each
+    step one observation per mode of ``modes`` is formed there: ``"pilots"`` from the
+    pilots received at ``snr_db`` (the realistic mode:
+    :func:`~engine.localization.measurements.observe_pilots` with the delay-only MDP at
+    every AP and the delay-direction estimates at multi-antenna APs), ``"tracer"``
+    straight from the real room's traced paths (the paper's MDP, noise-free:
+    :func:`~engine.localization.measurements.observe_tracer`); every method of
+    ``methods`` (``"MCA"``: the paper's fingerprinting on multipath delay profiles;
+    ``"MCA-angles"``: the twin's default localizer) localizes each on every twin's
+    database (the case study's MCA options). No odometry, no EKF: what the database
+    alone gives.
+
+    Args:
+        twins: ``label -> TwinScene`` (e.g. original, calibrated, the real room itself).
+        real_scene: the room the pilots are received in (not one of ``twins``' objects:
+            its twin runs the replay).
+        recording: an ``.mcap`` with the robot's ground truth.
+        spacing: database grid, m (cached in ``cache_dir`` by scene content).
+
+    Returns:
+        ``{"settings": {...}, "steps": n, label: {"method/mode": summary}, "database_s":
+        {label: s}, "errors_m": {label: {"method/mode": [n]}}}``
+        (:func:`~engine.localization.deployment.summarize`: RMSE, median, P90, max, m).
+    """
+    from engine.localization.baselines import make_localizer
+    from engine.localization.deployment import summarize
+    from engine.localization.fingerprints import cached_database
+    from engine.localization.measurements import (FeatureSpec, PilotSettings, observe_pilots,
+                                                  observe_tracer)
+    from engine.phy.network import NetworkPHY
+    from engine.pose import antenna_pose, planar_pose
+    from engine.record import TrajectoryReplay
+    from engine.robots import SensorOptions
+    from engine.twin import Twin
+
+    if not modes or set(modes) - {"pilots", "tracer"}:
+        raise ValueError(f"per_fix_errors: modes must be 'pilots' and/or 'tracer', got {modes!r}")
+    cfg = real_scene.config
+    spec = FeatureSpec.from_config(cfg)
+    robot = robot or next(d.name for d in cfg.devices if d.kind == "robot")
+    dev = cfg.device(robot)
+    locs, t_db, ap_names = {}, {}, None
+    for label, sc in twins.items():
+        t0 = time.perf_counter()
+        db = cached_database(sc, spacing=spacing, cache_dir=cache_dir)
+        t_db[label] = time.perf_counter() - t0
+        if ap_names is not None and db.ap_names != ap_names:
+            raise ValueError(f"per_fix_errors: twin {label!r} has APs {db.ap_names}, "
+                             f"the others {ap_names}")
+        ap_names = db.ap_names
+        for m in methods:
+            locs[(label, m)] = make_localizer(m, db, spec, num_paths=CASE_STUDY_MCA["num_paths"],
+                                              mca=CASE_STUDY_MCA)
+    phy = NetworkPHY(cfg)
+    pilots = PilotSettings(snr_db=snr_db, seed=seed)
+    rng = np.random.default_rng([seed, 7])
+    truth, est = [], {}
+
+    def localize(twin, result):
+        pose = result.robots[robot].pose
+        links = [result.links[(ap, robot)].paths for ap in ap_names]
+        obs = {}
+        if "pilots" in modes:
+            obs["pilots"] = observe_pilots(links, [phy.channel(lp) for lp in links], spec,
+                                           pilots, CASE_STUDY_MCA["num_paths"], rng=rng,
+                                           features=("mdp", "dirs"))
+        if "tracer" in modes:
+            obs["tracer"] = observe_tracer(links, spec, CASE_STUDY_MCA["num_paths"])
+        truth.append(np.asarray(antenna_pose(planar_pose(pose[0], pose[1], pose[5]),
+                                             dev.antenna_offset).position)[:2])
+        for (label, m), loc in locs.items():
+            for mode, o in obs.items():
+                est.setdefault((label, f"{m}/{mode}"), []).append(
+                    np.asarray(loc(o), float)[:2])
+
+    reality = Twin(real_scene, seed=seed, dt=dt, phy=False, sensing=False, localize=False,
+                   sensors=SensorOptions(lidar=False, imu=False), estimators=[localize])
+    replay = TrajectoryReplay(reality, recording)
+    span = float(replay.trajectories[robot].t[-1] - replay.trajectories[robot].t[0])
+    n = max(1, int(span / dt))
+    for _ in reality.run(n):
+        pass
+    truth = np.array(truth)
+    out: dict = {"settings": {"methods": list(methods), "modes": list(modes), "snr_db": snr_db,
+                              "fusion": None, "spacing_m": spacing, "dt_s": dt, "seed": seed,
+                              "recording": str(recording)},
+                 "steps": n, "database_s": t_db, "errors_m": {}}
+    for (label, m), e in est.items():
+        err = np.linalg.norm(np.array(e) - truth, axis=1)
+        out.setdefault(label, {})[m] = summarize(err)
+        out["errors_m"].setdefault(label, {})[m] = err.tolist()
     return out

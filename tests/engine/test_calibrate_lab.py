@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from engine import synthetic as syn
-from engine.calibrate_lab import closing_the_loop, lap_steps, real_room
+from engine.calibrate_lab import closing_the_loop, lap_steps, per_fix_errors, real_room
 from engine.calibration import SolverSettings
 from engine.scene import load_scene
 
@@ -69,3 +69,27 @@ def test_closing_the_loop_shortened(tmp_path):
     assert 0 < seen["uncertainty_percent"] < 100
     back = load_scene(r["calibrated_scene"], load_sionna=False)
     assert back.objects["Screen"].material == "wood-0.03-calibrated"
+    # every path crosses the screen; none touches the cabinet: only the screen has a
+    # clear path, and the report says why the cabinet is not held to the target
+    assert r["objects"]["Screen"]["clear_path"] and not r["objects"]["Cabinet"]["clear_path"]
+    assert any(n.startswith("Cabinet: no clear path") for n in r["could_not_see"])
+
+    # per-fix localization on the recorded lap, one observation per fix for every twin:
+    # two copies of the original twin give the same errors, to the bit
+    twins = {"original": load_scene(folder), "copy": load_scene(folder),
+             "true room": real_room(folder, seed=2)[0]}
+    pf = per_fix_errors(twins, real_room(folder, seed=2)[0], r["recording"], seed=2,
+                        spacing=0.25, dt=2.0, methods=("MCA",), cache_dir=tmp_path / "cache")
+    json.dumps(pf)
+    assert pf["steps"] == 6  # the recorded half lap (13 s) every 2 s
+    e = pf["errors_m"]
+    assert set(e["original"]) == {"MCA/pilots", "MCA/tracer"}
+    assert len(e["original"]["MCA/pilots"]) == 6
+    assert np.isfinite(e["true room"]["MCA/pilots"]).all()
+    assert e["original"] == e["copy"]
+    # two observations per fix: the pilots' estimated delays and the traced ones
+    assert e["original"]["MCA/pilots"] != e["original"]["MCA/tracer"]
+    assert np.all(np.array(e["true room"]["MCA/tracer"]) < 6.4)  # inside the 5 x 4 m room
+    with pytest.raises(ValueError, match="modes"):
+        per_fix_errors(twins, twins["original"], r["recording"], modes=("radar",),
+                       cache_dir=tmp_path / "cache")
