@@ -24,14 +24,12 @@ import numpy as np
 
 from engine.calibrate_run import calibrate_recording, material_users
 from engine.calibration import SolverSettings
+from engine.casestudy import CASE_STUDY_MCA
 from engine.localization.deployment import perturb_scene
 from engine.record import CsiRecording, record_twin
 from engine.scene import load_scene
 
 log = logging.getLogger(__name__)
-
-#: The case study's MCA options (:func:`engine.casestudy.run_case_study`'s default).
-CASE_STUDY_MCA = {"eps": 0.5, "k": 4, "num_paths": 9}
 
 
 def real_room(folder, *, seed: int = 1, changed_material: str = "wood-0.03",

@@ -36,6 +36,9 @@ from engine.scene import load_scene
 log = logging.getLogger(__name__)
 
 #: The paper's reported numbers (section IV-B), m.
+#: The case study's MCA options (:func:`run_case_study`'s default ``mca``).
+CASE_STUDY_MCA = {"eps": 0.5, "k": 4, "num_paths": 9}
+
 PAPER_MAX_POSITIONING_M = 0.16
 PAPER_MAX_MODELLING_M = 0.08
 
@@ -446,7 +449,7 @@ def run_case_study(folder, out_dir="out/demo", *, spacing: float = 0.05, steps: 
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    mca = dict(mca or {"eps": 0.5, "k": 4, "num_paths": 9})
+    mca = dict(mca or CASE_STUDY_MCA)
     # refused before anything is traced (the same checks as DeploymentSettings)
     closed = DeploymentSettings(source="real", mode="pilots", snr_db=20.0, perturb=True,
                                 closed_loop=True, method=closed_loop_method,
