@@ -108,27 +108,39 @@ def v_coefficients(pol: np.ndarray, k_t: np.ndarray, k_r: np.ndarray, rot_t: np.
     return np.einsum("li,lij,lj->l", qr, pol, qt)
 
 
+#: Up to this many paths :func:`v_world` gathers one rotation per path and makes
+#: one pass (a live step's few hundred paths: per-call overhead dominates);
+#: more are computed once per distinct orientation (a grid chunk: no ``[L, 3,
+#: 3]`` array). Both give the same values.
+V_WORLD_GATHER = 4096
+
+
 def v_world(k: np.ndarray, orientations: np.ndarray, index: np.ndarray) -> np.ndarray:
     """World spherical components ``[L, 2]`` (``theta_hat``, ``phi_hat`` at
     ``k``) of the V unit vector of elements in the Sionna orientations
     ``orientations[index]`` (``[N, 3]`` ``[yaw, pitch, roll]`` rad; ``index
     [L]``), seen from world unit directions ``k [L, 3]``.
 
-    The same as ``local_to_world(k, rotations(orientations)[index])[2][:, :, 0]``,
-    computed once per distinct orientation with its one rotation (no ``[L, 3,
-    3]`` array); an orientation of zero is the world frame itself: ``(1, 0)``."""
+    The same as ``local_to_world(k, rotations(orientations)[index])[2][:, :, 0]``
+    but for an orientation of zero, which is the world frame itself: exactly
+    ``(1, 0)``."""
     k = np.asarray(k, np.float64).reshape(-1, 3)
     o = np.asarray(orientations, np.float64).reshape(-1, 3)
     index = np.asarray(index).reshape(-1)
     out = np.empty((len(k), 2))
+    zero = ~np.any(o, axis=1)[index]
+    out[zero] = (1.0, 0.0)
+    rest = np.flatnonzero(~zero)
+    if len(rest) == 0:
+        return out
+    if len(rest) <= V_WORLD_GATHER:
+        mats = np.stack([rotation_matrix(r[2], r[1], r[0]) for r in o])
+        out[rest] = local_to_world(k[rest], mats[index[rest]])[2][:, :, 0]
+        return out
     uniq, inv = np.unique(o, axis=0, return_inverse=True)
     per_path = np.asarray(inv).reshape(-1)[index]
     for u, ori in enumerate(uniq):
-        m = per_path == u
-        if not m.any():
-            continue
-        if not np.any(ori):
-            out[m] = (1.0, 0.0)
-        else:
+        m = (per_path == u) & ~zero
+        if m.any():
             out[m] = local_to_world(k[m], rotation_matrix(ori[2], ori[1], ori[0]))[2][:, :, 0]
     return out
