@@ -69,7 +69,18 @@ class SensingWorker:
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isac-sensing")
             weakref.finalize(self, self._pool.shutdown, wait=True)
-        self._pending = (int(step) + self.latency, self._pool.submit(self.radar.compute, job))
+        _new_scope()  # the job's arrays were made in this thread's current scope
+        self._pending = (int(step) + self.latency, self._pool.submit(self._compute, job))
+
+    def _compute(self, job):
+        # Dr.Jit orders work by scope ids: before this thread reads arrays the
+        # stepping thread made (the prepared targets, the scene), it takes a
+        # newer scope than theirs, else evaluation fails ("scope ID of
+        # predecessors must be lower"; seen in a 1,000-step paced run).
+        _new_scope()
+        out = self.radar.compute(job)
+        _new_scope()
+        return out
 
     def collect(self):
         """Wait for the frame out and return its ``SensingStep`` (None if none is
@@ -78,7 +89,9 @@ class SensingWorker:
             return None
         _, fut = self._pending
         self._pending = None
-        return fut.result()
+        out = fut.result()
+        _new_scope()  # the stepping thread may now read what the worker made
+        return out
 
     def wait(self) -> None:
         """Wait until the frame out (if any) is finished, without collecting it
@@ -94,3 +107,11 @@ class SensingWorker:
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
+
+
+def _new_scope() -> None:
+    """A new Dr.Jit scope on the calling thread (``drjit.detail.new_scope``),
+    the handoff Dr.Jit requires between threads that share arrays."""
+    import drjit as dr
+
+    dr.detail.new_scope(dr.JitBackend.LLVM)

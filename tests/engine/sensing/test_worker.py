@@ -118,3 +118,37 @@ def test_edit_and_reset_wait_for_the_frame_out():
     tw.reset()
     assert not worker.pending and tw.sensing_worker is not worker
     assert tw.radar.history == []
+
+
+class _DrJitFrames:
+    """A radar whose ``compute`` evaluates Dr.Jit work on the job's array."""
+
+    def compute(self, x):
+        import drjit as dr
+        import mitsuba as mi
+
+        y = x * 2 + dr.arange(mi.Float, dr.width(x))
+        dr.eval(y)
+        return y.numpy().tolist()
+
+
+def test_worker_reads_arrays_the_stepping_thread_made_in_a_newer_scope():
+    """Dr.Jit orders work by scope ids: an unevaluated array the stepping thread
+    made after the worker thread's last scope (Dr.Jit loops and frozen calls
+    open new scopes all the time) failed to evaluate on the worker ("scope ID of
+    predecessors must be lower", seen in a 1,000-step paced run of 4 robots);
+    the worker now takes a new scope at each handoff. Failed before the fix."""
+    from engine.raytrace.solver_core import load_sionna_rt
+
+    load_sionna_rt()  # Sionna sets the Mitsuba variant
+    import drjit as dr
+    import mitsuba as mi
+
+    w = SensingWorker(_DrJitFrames(), latency=1)
+    w.submit(mi.Float([1.0, 2.0]) + 0, 0)
+    assert w.collect() == [2.0, 5.0]
+    for _ in range(3):  # the stepping thread moves on
+        dr.detail.new_scope(dr.JitBackend.LLVM)
+    w.submit(mi.Float([1.0, 2.0]) + 1, 1)  # made in the newer scope, not evaluated
+    assert w.collect() == [4.0, 7.0]
+    w.close()
