@@ -44,7 +44,7 @@ from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_SPEC_TABLE_SIZE, PathGr
                                   assemble_grid, grid_metadata, save_grid)
 from engine.scaleout.checkpoint import TileCheckpoints, checkpoint_key
 from engine.scaleout.tiles import (DEFAULT_WORKER_THREADS, GridPlan, TileJob, plan_grid,
-                                   scene_folder, trace_tile)
+                                   scene_folder, shoot_source, trace_tile)
 
 log = logging.getLogger(__name__)
 
@@ -215,8 +215,13 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
     log.info("tracing %d x %d grid (%d free points) in %d tiles of %d on %d workers",
              *plan.shape, len(plan.todo), len(tiles), plan.tile_size, workers)
     t_submit = time.perf_counter()
+    # each AP's chains enumerated once, by one worker; every tile takes them all
+    # (Dask sends each to each worker once): shared_chains
+    shots = [client.submit(shoot_source, job, s, pure=False, priority=1,
+                           key=f"isac-chains-{key}-{s}")
+             for s in range(len(plan.src))] if len(done) < len(tiles) else []
     futures = [client.submit(trace_tile, job, k, plan.points[tile.index], tile.part,
-                             tile.parts, pure=False, key=f"isac-tile-{key}-{k}")
+                             tile.parts, shots, pure=False, key=f"isac-tile-{key}-{k}")
                for k, tile in enumerate(tiles) if k not in done]
     runs: list[dict] = []
     try:
@@ -235,9 +240,11 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
                 bar.update(1)
                 if on_tile is not None:
                     on_tile({"index": k, **res})
+        shot = [{k: v for k, v in f.result().items() if k != "chains"} for f in shots]
     except BaseException:
-        client.cancel(futures)
+        client.cancel(futures + shots)
         raise
+    client.cancel(shots)  # (released: the workers may drop the chains)
     t_traced = time.perf_counter()
     pieces = []
     for k in sorted(done):
@@ -260,7 +267,10 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
                         "checkpoint_key": key,
                         "seconds": {"plan": t_submit - t_start, "trace": t_traced - t_submit,
                                     "assemble": time.perf_counter() - t_traced},
-                        "worker_runs": worker_runs(runs)}
+                        "worker_runs": worker_runs(runs),
+                        "chains": [{k: (round(v, 3) if isinstance(v, float) else v)
+                                    for k, v in r.items() if k not in ("start", "end")}
+                                   for r in shot]}
     grid = PathGrid(meta=meta, arrays=arrays)
     if out is not None:
         save_grid(grid, out)

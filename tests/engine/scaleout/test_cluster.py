@@ -5,8 +5,9 @@ per point and AP the same paths -- the same number, the same interaction types
 per bounce, delays equal to float32 rounding (rtol 1e-6; stored as float64
 computed from float32), gains ``a``, angles and vertices equal to float32
 rounding (rtol 1e-5, atol 1e-6 of the largest value); in the runs so far they
-were bit-identical. Every worker enumerates the same chains (chain reuse v3,
-no sampling) and tiles are whole ``trace_grid`` chunks (docs/scaleout.md).
+were bit-identical. Each AP's chains are enumerated once (chain reuse v3, no
+sampling) and used by every worker, and tiles are whole ``trace_grid`` chunks
+(docs/scaleout.md).
 """
 
 from __future__ import annotations
@@ -51,7 +52,8 @@ def test_tiled_grid_and_database_equal_the_single_process_ones(room_scene, singl
                                                                 client):
     from engine.localization.fingerprints import from_grid
 
-    got = tiled(room_scene, client)
+    summaries = []
+    got = tiled(room_scene, client, on_tile=summaries.append)
     so = got.meta["scaleout"]
     assert so["tiles"] == len(range(0, int(single_grid.free.sum()), TILE)) > 4
     assert so["workers"] == 2 and so["tiles_traced"] == so["tiles"]
@@ -61,8 +63,14 @@ def test_tiled_grid_and_database_equal_the_single_process_ones(room_scene, singl
     assert min(r["idle_end_s"] for r in runs) == 0.0
     assert set(so["seconds"]) == {"plan", "trace", "assemble"}
     assert_equal_grids(single_grid, got)
-    # every worker enumerated the chains the single process enumerated
-    assert got.meta["tracer"]["chains"]["chains"] == single_grid.meta["tracer"]["chains"]["chains"]
+    # each AP's chains were enumerated once, by one task, and every tile used
+    # those: the chains the single process enumerated
+    assert sorted(c["source"] for c in so["chains"]) == [0, 1]
+    assert all(c["count"] > 0 and c["shoot_s"] > 0 for c in so["chains"])
+    assert all(t["sources_shot"] == 0 for t in summaries)  # no worker shot in a tile
+    n_chains = single_grid.meta["tracer"]["chains"]["chains"]
+    assert got.meta["tracer"]["chains"]["chains"] == n_chains
+    assert sum(c["count"] for c in so["chains"]) == n_chains
     da, db = from_grid(single_grid, room_scene), from_grid(got, room_scene)
     for k, v in da.arrays.items():
         np.testing.assert_allclose(db.arrays[k], v, rtol=1e-5, equal_nan=True, err_msg=k)
