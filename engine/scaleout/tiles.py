@@ -19,9 +19,10 @@ than the client's scene is refused. The tile is traced exactly as
 ``ChainTracer.trace`` over chunks of
 :data:`~engine.raytrace.grid.CHAIN_CHUNK_SIZE` points, then
 :func:`~engine.raytrace.grid.sorted_chunk`. Chain reuse gives every receiver
-every chain of the transmitters (enumerated once per worker process, without
-sampling), so a point's paths do not depend on which other tiles the process
-traced before; tiles are whole ``trace_grid`` chunks so that every point
+every chain of the transmitters (each AP's enumerated once, without sampling,
+by one worker's :func:`shoot_source`, and used by every worker:
+:mod:`engine.scaleout.shared_chains`), so a point's paths do not depend on
+which other tiles the process traced before; tiles are whole ``trace_grid`` chunks so that every point
 shares its image-method calls with the same points as in one process (the
 equality test in ``tests/engine/scaleout/test_cluster.py`` checks it against
 the single-process grid). Shoot-and-bounce per receiver (``method = "sbr"``) is not tiled (see
@@ -372,6 +373,55 @@ def trace_tile(job: TileJob, index: int, points: np.ndarray, part: int = 0,
             "setup_s": t_setup - t, "trace_s": t_end - t_setup, "start": start,
             "end": start + (t_end - t), "cpu_s": time.process_time() - cpu,
             "chains_s": t_chains - t_setup, "sources_shot": int(ct.sources_shot)}
+
+
+def point_paths(parts: Sequence[dict], j: int) -> dict[str, np.ndarray]:
+    """The paths of the ``j``-th point a tile traced, from its parts (as
+    :func:`trace_tile` returns them; the grid file's values): ``num_paths
+    [S]``, ``a, tau [S, P]``, ``interactions [S, P, D]``, ``vertices [S, P, D, 3]``.
+
+    Raises:
+        IndexError: the parts hold fewer than ``j + 1`` points.
+    """
+    off = 0
+    for part in parts:
+        n = part["num_paths"].shape[0]
+        if j < off + n:
+            return {k: np.array(part[k][j - off])
+                    for k in ("num_paths", "a", "tau", "interactions", "vertices")}
+        off += n
+    raise IndexError(f"point {j}: the tile's parts hold {off} points")
+
+
+def verify_points(job: TileJob, index: Sequence[int], points: np.ndarray,
+                  stored: Sequence[dict], top_n: int) -> dict:
+    """Re-trace grid points directly in this worker process and compare with
+    their traced paths (:func:`~engine.raytrace.grid.verify_point`, as
+    ``trace_grid``'s verification: the same solver settings).
+
+    Args:
+        job: the grid's shared settings.
+        index: ``[n]`` grid indices of the points (returned).
+        points: ``[n, 3]`` m.
+        stored: per point, its paths (:func:`point_paths`).
+        top_n: ``trace_grid``'s ``verify_top``.
+
+    Returns:
+        ``{"index": [n], "counts": [n dicts of VERIFY_COUNTS], "pid",
+        "verify_s"}``.
+    """
+    import time
+
+    from engine.raytrace.grid import verify_point
+
+    t = time.perf_counter()
+    scene, ct = worker_state(job)
+    confirm: dict = {}
+    counts = [verify_point(ct.core, scene.sionna, job.src, job.src_orient, p, st, top_n,
+                           job.keep_strongest, confirm)
+              for p, st in zip(np.asarray(points, np.float64).reshape(-1, 3), stored)]
+    return {"index": [int(i) for i in index], "counts": counts, "pid": os.getpid(),
+            "verify_s": time.perf_counter() - t}
 
 
 def image_method_calls(pairs: Sequence[int], max_pairs: int) -> list[tuple[int, int]]:

@@ -61,7 +61,8 @@ def test_tiled_grid_and_database_equal_the_single_process_ones(room_scene, singl
     assert sum(r["tiles"] for r in runs) == so["tiles"]
     assert all(r["trace_s"] > 0 and r["cpu_s"] > 0 and r["idle_end_s"] >= 0 for r in runs)
     assert min(r["idle_end_s"] for r in runs) == 0.0
-    assert set(so["seconds"]) == {"plan", "trace", "assemble"}
+    assert set(so["seconds"]) == {"plan", "trace", "verify", "assemble"}
+    assert got.meta["verification"] == {"points": 0}  # none asked for
     assert_equal_grids(single_grid, got)
     # each AP's chains were enumerated once, by one task, and every tile used
     # those: the chains the single process enumerated
@@ -128,9 +129,11 @@ def test_an_interrupted_build_resumes_with_the_missing_tiles(room_scene, single_
     files = sorted(ckpt.rglob("tile-*.npz"))
     assert len(files) == n_tiles - 2
     traced = []
-    got = tiled(room_scene, client, tile_size=CHUNK, checkpoints=ckpt,
+    got = tiled(room_scene, client, tile_size=CHUNK, checkpoints=ckpt, verify=4,
                 out=tmp_path / "grid.npz", on_tile=lambda t: traced.append(t["index"]))
     so = got.meta["scaleout"]
+    # points of resumed tiles are verified from their checkpointed paths
+    assert got.meta["verification"]["points"] == 4 and got.meta["verification"]["links"] == 8
     assert so["tiles"] == n_tiles
     assert so["tiles_resumed"] == n_tiles - 2 and so["tiles_traced"] == 2
     assert sorted(traced) == sorted(set(range(so["tiles"])) - set(seen))
@@ -146,3 +149,18 @@ def test_a_worker_with_another_scene_state_is_refused(room_folder, client):
     scene.move_object("cabinet", position=(2.5, 0.6, 0.0))  # the folder on disk is unchanged
     with pytest.raises(ValueError, match=r"hashes to .*the client's scene"):
         tiled(scene, client)
+
+
+def test_the_verification_runs_on_the_workers_as_in_one_process(room_scene, client):
+    """``verify`` re-traces the same points on the workers and records the same
+    ``meta["verification"]`` as ``trace_grid`` (the direct traces use the grid's
+    seed)."""
+    from engine.raytrace.grid import trace_grid
+
+    ref = trace_grid(room_scene, spacing=SPACING, chunk_size=CHUNK, progress=False, verify=3)
+    got = tiled(room_scene, client, verify=3)
+    v = got.meta["verification"]
+    assert v["points"] == 3 and v["links"] == 6
+    assert v["paths_grid"] > 0 and v["paths_single_calls"] > 0
+    assert v == ref.meta["verification"]
+    assert len(got.meta["scaleout"]["verify_s"]) == 3
