@@ -6,7 +6,8 @@ In one run, on one scene and grid (default: the bundled lab, 5 cm):
    traces it (chain reuse, Dr.Jit using every core), no verification re-trace.
 2. **Local Dask cluster, 1 worker** and **2 workers** (spawned processes,
    one Dask thread and one Dr.Jit thread each): ``trace_grid_tiled`` (each
-   worker enumerates the APs' chains once, tiles of whole chunks). The cluster
+   AP's chains enumerated once, by one worker, and sent to every worker;
+   tiles of whole chunks). The cluster
    start (seconds, printed: it includes the workers' import of Sionna RT,
    :mod:`engine.scaleout.preload`) is not counted; the workers' scene loads
    and chain enumerations are.
@@ -58,9 +59,10 @@ def same_paths(a, b) -> bool:
 def breakdown(w: int, t_start: float, cpu: float, so: dict) -> str:
     """Lines per cluster run: start-up (not counted above), the client's
     planning / tracing / assembly and CPU time (the client process, with the
-    local scheduler in it, shares the cores with the workers), and per worker
-    its scene load, first tile (with the chain enumeration), mean later tile
-    and idle time at the end."""
+    local scheduler in it, shares the cores with the workers), which worker
+    enumerated each AP's chains and how long it took, and per worker its scene
+    load, first tile (with taking the shipped chains), mean later tile and idle
+    time at the end."""
     sec = so["seconds"]
     per = []
     for r in so["worker_runs"]:
@@ -68,9 +70,14 @@ def breakdown(w: int, t_start: float, cpu: float, so: dict) -> str:
         per.append(f"{r['tiles']} tiles, setup {r['setup_s']:.2f}, first {r['first_trace_s']:.2f}, "
                    f"later {later:.2f}/tile, idle at end {r['idle_end_s']:.2f}, "
                    f"CPU {r['cpu_s']:.2f}")
+    pids = {r["pid"]: i for i, r in enumerate(so["worker_runs"])}
+    shots = ", ".join(f"AP {c['source']} on worker {pids.get(c['pid'], '?')}: "
+                      f"{c['count']} chains in {c['shoot_s']:.2f}"
+                      + (f" (+ scene load {c['setup_s']:.2f})" if c["setup_s"] > 0.01 else "")
+                      for c in so.get("chains", []))
     return (f"  {w} worker(s): cluster start {t_start:.1f} (not counted); client plan "
             f"{sec['plan']:.2f}, trace {sec['trace']:.2f}, assemble {sec['assemble']:.2f}, "
-            f"client CPU {cpu:.2f}\n"
+            f"client CPU {cpu:.2f}\n    chains (once per AP): {shots}\n"
             + "\n".join(f"    worker {i}: {p}" for i, p in enumerate(per)))
 
 

@@ -249,8 +249,7 @@ def cmd_grid(args) -> int:
     if distributed:
         so = g.meta["scaleout"]
         print(f"traced on {so['workers']} workers: {so['tiles_traced']} tiles of "
-              f"{so['tile_size']} points ({so['tiles_resumed']} resumed from checkpoints); "
-              "no verification re-trace on a cluster")
+              f"{so['tile_size']} points ({so['tiles_resumed']} resumed from checkpoints)")
     if v.get("points"):
         print(f"verification: {v['points']} points re-traced one per call: "
               f"{v['paths_missing']} of {v['paths_single_calls']} paths missing in the grid, "

@@ -326,6 +326,39 @@ class ChainTracer:
             self._filter = MirrorFilter(self.store.planes, self._sources, self.store.columns())
         return self._filter(np.asarray(targets, np.float64).reshape(-1, 3))
 
+    def use_chains(self, sc, sources: np.ndarray, columns: dict[str, np.ndarray],
+                   context=None, planes: PlaneIndex | None = None) -> None:
+        """Take chains enumerated elsewhere instead of shooting them: the next
+        :meth:`trace` with these ``sources`` and ``context`` evaluates
+        ``columns`` (and shoots nothing; :attr:`sources_shot` stays 0).
+
+        Args:
+            sc: the ``sionna.rt.Scene`` the chains belong to.
+            sources: ``[S, 3]`` m, as :meth:`trace` will be given them.
+            columns: the chains of these sources, as :meth:`ChainStore.columns`
+                gives them (e.g. another tracer's ``store.columns()`` of the same
+                scene), with this process's shape ids; ``src`` indexes ``sources``.
+            context: the ``context`` :meth:`trace` will be given.
+            planes: the scene's :class:`~engine.raytrace.planes.PlaneIndex`
+                (built when None).
+
+        The store holds the same chains in the same order as one that shot
+        them: :meth:`ChainStore.add_columns` orders new chains by identity.
+        """
+        sources = np.asarray(sources, np.float64).reshape(-1, 3)
+        src = np.asarray(columns["src"])
+        if len(src) and int(src.max()) >= len(sources):
+            raise ValueError(f"use_chains: a chain of source {int(src.max())}, but "
+                             f"{len(sources)} sources were given")
+        self.reset()
+        self._context = (context, np.round(sources, 6).tobytes())
+        self.store = ChainStore(self.core.config.max_depth,
+                                planes if planes is not None else PlaneIndex(sc.mi_scene))
+        self.store.add_columns({k: np.array(v) for k, v in columns.items()})
+        self._all = np.arange(len(self.store), dtype=np.int64)
+        # (the sources as float32 values, as trace() gives them to prepare())
+        self._sources = sources.astype(np.float32).astype(np.float64)
+
     # ----------------------------------------------------------------- tracing
 
     def trace(self, sc, sources: np.ndarray, targets: np.ndarray, *,

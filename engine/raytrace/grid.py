@@ -672,3 +672,116 @@ def grid_summary(grid: PathGrid) -> dict:
             "max_paths_per_link": int(n.max()) if n.size else 0,
             "truncation_retries": grid.meta["tracer"]["truncation_retries"],
             "verification": grid.meta.get("verification", {})}
+
+
+# --------------------------------------------------------------------------- per-point verification
+
+
+#: The counts :func:`verify_point` returns (summed over points by
+#: :func:`verification_summary`).
+VERIFY_COUNTS = ("paths_grid", "paths_single_calls", "paths_missing", "paths_extra",
+                 "paths_found_more", "paths_repeated", "links_differing", "links",
+                 "top_paths_checked", "top_paths_missing")
+
+
+def verify_pick(todo: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """The grid indices ``trace_grid``'s verification re-traces: ``n`` of the
+    free indices ``todo`` (``[F]``), drawn with ``seed`` (none when ``n <= 0``)."""
+    if n <= 0 or len(todo) == 0:
+        return np.zeros(0, np.int64)
+    return np.random.default_rng(seed).choice(todo, size=min(n, len(todo)), replace=False)
+
+
+def verify_point(core, sc, src, src_orient, point: np.ndarray, stored: dict[str, np.ndarray],
+                 top_n: int = VERIFY_TOP_N, keep_strongest: int | None = None,
+                 confirm: dict | None = None) -> dict:
+    """Re-trace one grid point directly and compare with its stored paths, as
+    ``trace_grid``'s verification does for each of its points (e.g. on the
+    worker of a tiled grid: ``engine.scaleout``).
+
+    Args:
+        core: the grid's :class:`~engine.raytrace.solver_core.SolverCore`
+            (its settings trace the direct reference; ``max_num_paths_per_src``
+            is the cap).
+        sc: the ``sionna.rt.Scene``.
+        src: ``[S, 3]`` m; src_orient: ``[S, 3]`` rad Sionna ``[yaw, pitch, roll]``.
+        point: ``[3]`` m, the grid point.
+        stored: the grid's arrays at the point: ``num_paths [S]``, ``a, tau
+            [S, P]``, ``interactions [S, P, D]``, ``vertices [S, P, D, 3]``.
+        top_n, keep_strongest: as ``trace_grid``'s ``verify_top`` and
+            ``keep_strongest``.
+        confirm: a dict kept between calls (the solvers with 10x and 100x the
+            rays that confirm paths the direct trace lacks; None: a new one).
+
+    Returns:
+        The counts :data:`VERIFY_COUNTS` of this point (paths the grid lacks,
+        all and among the ``top_n`` strongest per link; paths the direct trace
+        lacks that more rays do not confirm; paths more rays confirmed;
+        repeated paths; links and links that differ).
+    """
+    confirm = {} if confirm is None else confirm
+    if keep_strongest is not None:
+        top_n = min(top_n, keep_strongest)
+    cap = core.config.max_num_paths_per_src
+    pt = np.asarray(point, np.float64).reshape(1, 3)
+    raw = core.solve_endpoints(sc, src, pt, cap, src_orient)
+    c = dict.fromkeys(VERIFY_COUNTS, 0)
+    c["paths_grid"] = int(np.asarray(stored["num_paths"]).sum())
+    for s in range(raw.valid.shape[1]):
+        ref = raw.link(0, s)
+        if keep_strongest is not None:  # the grid keeps only these
+            top = np.sort(np.argsort(-np.abs(ref["a"]), kind="stable")[:keep_strongest])
+            ref = {k: v[top] for k, v in ref.items()}
+        k = int(stored["num_paths"][s])
+        mine = {f: np.asarray(stored[f])[s, :k] for f in ("a", "tau", "interactions", "vertices")}
+        m = match_paths(_Paths(mine), _Paths(ref))
+        found = np.zeros(k, bool)
+        found[m[m >= 0]] = True
+        for factor in CONFIRM_FACTORS:  # more rays: real paths the direct trace missed?
+            if found.all():
+                break
+            if factor not in confirm:
+                confirm[factor] = SolverCore(dataclasses.replace(
+                    core.config, samples_per_src=factor * core.config.samples_per_src),
+                    deterministic=True)
+            big = confirm[factor].solve_endpoints(sc, src, pt, cap, src_orient)
+            mb = match_paths(_Paths(mine), _Paths(big.link(0, s)))
+            real = np.zeros(k, bool)
+            real[mb[mb >= 0]] = True
+            c["paths_found_more"] += int((~found & real).sum())
+            found |= real
+        c["links"] += 1
+        c["paths_single_calls"] += len(ref["tau"])
+        c["paths_missing"] += int((m < 0).sum())
+        c["paths_extra"] += int((~found).sum())
+        c["links_differing"] += int((m < 0).any() or not found.all())
+        c["paths_repeated"] += len(find_repeats(_Paths(mine)))
+        tm, tc = top_missing(ref, mine, top_n)
+        c["top_paths_missing"] += tm
+        c["top_paths_checked"] += tc
+    return c
+
+
+def verification_summary(pick: np.ndarray, counts: Sequence[dict], top_n: int = VERIFY_TOP_N,
+                         keep_strongest: int | None = None) -> dict:
+    """``meta["verification"]`` from :func:`verify_point`'s counts of the
+    points ``pick`` (grid indices, in :func:`verify_pick`'s order), as
+    ``trace_grid`` records it; logs a warning when paths are missing, extra or
+    repeated."""
+    if len(pick) == 0:
+        return {"points": 0}
+    if keep_strongest is not None:
+        top_n = min(top_n, keep_strongest)
+    tot = {k: int(sum(c[k] for c in counts)) for k in VERIFY_COUNTS}
+    out = {"points": int(len(pick)), "indices": [int(i) for i in pick], **tot,
+           "top_n": int(top_n)}
+    out = {k: out[k] for k in ("points", "indices", "paths_grid", "paths_single_calls",
+                               "paths_missing", "paths_extra", "paths_found_more",
+                               "paths_repeated", "links_differing", "links", "top_n",
+                               "top_paths_checked", "top_paths_missing")}
+    if tot["paths_missing"] or tot["paths_extra"] or tot["paths_repeated"]:
+        log.warning("grid verification at %d re-traced points: %d of %d paths missing "
+                    "(%d of the %d strongest per link), %d extra, %d repeated", len(pick),
+                    tot["paths_missing"], tot["paths_single_calls"], tot["top_paths_missing"],
+                    tot["top_paths_checked"], tot["paths_extra"], tot["paths_repeated"])
+    return out

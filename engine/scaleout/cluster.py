@@ -18,13 +18,18 @@ Nothing is lost:
   (Ctrl-C, the client machine rebooted) resumes with the missing tiles only;
 - a tqdm progress bar counts finished tiles.
 
-What differs from ``trace_grid``: no ``meta["verification"]`` re-trace (it
-records ``{"points": 0, "skipped": ...}``; trace one process with ``verify``
-for it), and ``meta["scaleout"]`` says how the grid was
+Each AP's chains are enumerated once, by one worker, and sent to every
+worker (:mod:`engine.scaleout.shared_chains`). The ``verify`` re-trace runs on
+the workers too, point by point (:func:`~engine.raytrace.grid.verify_point`:
+the points ``trace_grid`` picks, the same counts in ``meta["verification"]``),
+each point's task submitted as soon as its tile is back.
+
+What differs from ``trace_grid``: ``meta["scaleout"]`` says how the grid was
 built (tiles, tile size, workers, tiles resumed from checkpoints) and where
-the time went (``seconds``: planning, tracing, assembly in the client;
+the time went (``seconds``: planning, tracing, verification, assembly in the
+client; ``chains``: per AP the worker that enumerated it and how long it took;
 ``worker_runs``: per worker process its tiles, scene load, tracing and idle
-time at the end).
+time at the end; ``verify_s``: per verified point).
 """
 
 from __future__ import annotations
@@ -40,11 +45,13 @@ import numpy as np
 
 from engine.config import TracerConfig
 from engine.raytrace.chains import CHAIN_REUSE_VERSION
-from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_SPEC_TABLE_SIZE, PathGrid,
-                                  assemble_grid, grid_metadata, save_grid)
+from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_SPEC_TABLE_SIZE, VERIFY_TOP_N,
+                                  PathGrid, assemble_grid, grid_metadata, save_grid,
+                                  verification_summary, verify_pick)
 from engine.scaleout.checkpoint import TileCheckpoints, checkpoint_key
 from engine.scaleout.tiles import (DEFAULT_WORKER_THREADS, GridPlan, TileJob, plan_grid,
-                                   scene_folder, trace_tile)
+                                   point_paths, scene_folder, shoot_source, trace_tile,
+                                   verify_points)
 
 log = logging.getLogger(__name__)
 
@@ -131,7 +138,7 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
                      method: str | None = None, deterministic: bool | None = None,
                      max_cap: int | None = None, chunk_size: int | None = None,
                      worker_threads: int = DEFAULT_WORKER_THREADS, verify: int = 0,
-                     out: str | Path | None = None,
+                     verify_top: int = VERIFY_TOP_N, out: str | Path | None = None,
                      on_tile: Callable[[dict], None] | None = None) -> PathGrid:
     """Trace a floor grid on the workers of ``client`` (see the module doc).
 
@@ -155,8 +162,10 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
             tiles are kept there until the grid is complete.
         progress: tqdm progress bar over tiles.
         worker_threads: Dr.Jit threads per worker process.
-        verify: accepted for the signature of ``trace_grid``; not run here
-            (logged when > 0).
+        verify, verify_top: as ``trace_grid``'s (the same points re-traced
+            directly and compared, :func:`~engine.raytrace.grid.verify_point`,
+            on the workers: a point's task is submitted when its tile is
+            back); default 0 (none).
         out: also write the grid NPZ there.
         on_tile: called in the client with each finished tile's summary
             (``index``, ``pid``, ``chains``, ``setup_s``, ``trace_s``, ``start``,
@@ -192,9 +201,8 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
                   spec_table_size=GRID_SPEC_TABLE_SIZE,
                   keep_strongest=None if keep_strongest is None else int(keep_strongest),
                   chunk_size=chunk, worker_threads=int(worker_threads))
-    if verify:
-        log.info("tiled grid: the %d-point verification re-trace is not run on a cluster",
-                 verify)
+    pick = verify_pick(plan.todo, int(verify), config.seed)
+    picked = set(pick.tolist())
     key = checkpoint_key({**job.settings(), "spacing": float(spacing), "height": plan.height,
                           "margin": float(margin), "tx_names": plan.tx_names,
                           "points": len(plan.points), "tile_size": plan.tile_size,
@@ -209,15 +217,32 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
             parts, infos[k] = hit
             done[k] = (infos[k].get("span", [0, len(tile.index)]), parts)
     resumed = len(done)
+    checks: list = []  # verification futures
+
+    def submit_checks(k: int, span: list[int], parts: list[dict]) -> None:
+        idx = tiles[k].index[span[0]:span[1]]
+        for j, g in enumerate(idx.tolist()):
+            if g in picked:
+                checks.append(client.submit(
+                    verify_points, job, [g], plan.points[g:g + 1], [point_paths(parts, j)],
+                    int(verify_top), pure=False, key=f"isac-verify-{key}-{g}"))
+
     if resumed:
         log.info("resuming: %d of %d tiles from %s", resumed, len(tiles), ckpt.dir)
     workers = len(client.scheduler_info().get("workers", {}))
     log.info("tracing %d x %d grid (%d free points) in %d tiles of %d on %d workers",
              *plan.shape, len(plan.todo), len(tiles), plan.tile_size, workers)
     t_submit = time.perf_counter()
+    # each AP's chains enumerated once, by one worker; every tile takes them all
+    # (Dask sends each to each worker once): shared_chains
+    shots = [client.submit(shoot_source, job, s, pure=False, priority=1,
+                           key=f"isac-chains-{key}-{s}")
+             for s in range(len(plan.src))] if len(done) < len(tiles) else []
     futures = [client.submit(trace_tile, job, k, plan.points[tile.index], tile.part,
-                             tile.parts, pure=False, key=f"isac-tile-{key}-{k}")
+                             tile.parts, shots, pure=False, key=f"isac-tile-{key}-{k}")
                for k, tile in enumerate(tiles) if k not in done]
+    for k in sorted(done):
+        submit_checks(k, *done[k])
     runs: list[dict] = []
     try:
         with tqdm(total=len(tiles), initial=resumed, unit="tile", desc="grid tiles",
@@ -231,14 +256,25 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
                 if ckpt:
                     ckpt.save(k, plan.points[tiles[k].index], parts, info)
                 done[k], infos[k] = (info["span"], parts), info
+                submit_checks(k, info["span"], parts)
                 runs.append(res)
                 bar.update(1)
                 if on_tile is not None:
                     on_tile({"index": k, **res})
+        shot = [{k: v for k, v in f.result().items() if k != "chains"} for f in shots]
+        client.cancel(shots)  # (released: the workers may drop the chains)
+        t_traced = time.perf_counter()
+        counts, verify_s = {}, []
+        for fut in as_completed(checks):
+            res = fut.result()
+            counts.update(zip(res["index"], res["counts"]))
+            verify_s.append(round(res["verify_s"], 3))
     except BaseException:
-        client.cancel(futures)
+        client.cancel(futures + shots + checks)
         raise
-    t_traced = time.perf_counter()
+    t_checked = time.perf_counter()
+    verification = verification_summary(pick, [counts[int(i)] for i in pick], int(verify_top),
+                                        job.keep_strongest)
     pieces = []
     for k in sorted(done):
         (a, b), parts = done[k]
@@ -254,13 +290,18 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
         "chains": {"version": CHAIN_REUSE_VERSION, "rays_per_source": config.samples_per_src,
                    "chains": max((int(i.get("chains", 0)) for i in infos.values()),
                                  default=0)}},
-        {"points": 0, "skipped": "not run on a cluster"})
+        verification)
     meta["scaleout"] = {"tiles": len(tiles), "tile_size": plan.tile_size, "workers": workers,
                         "tiles_resumed": resumed, "tiles_traced": len(tiles) - resumed,
                         "checkpoint_key": key,
                         "seconds": {"plan": t_submit - t_start, "trace": t_traced - t_submit,
-                                    "assemble": time.perf_counter() - t_traced},
-                        "worker_runs": worker_runs(runs)}
+                                    "verify": t_checked - t_traced,
+                                    "assemble": time.perf_counter() - t_checked},
+                        "verify_s": verify_s,
+                        "worker_runs": worker_runs(runs),
+                        "chains": [{k: (round(v, 3) if isinstance(v, float) else v)
+                                    for k, v in r.items() if k not in ("start", "end")}
+                                   for r in shot]}
     grid = PathGrid(meta=meta, arrays=arrays)
     if out is not None:
         save_grid(grid, out)
@@ -272,7 +313,7 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
 def worker_runs(runs: list[dict]) -> list[dict]:
     """Per worker process, from the tiles it traced (``trace_tile``'s summaries):
     ``pid``, ``tiles``, ``setup_s`` (scene load, tracer), ``trace_s`` (tracing;
-    its first tile includes enumerating the chains), ``cpu_s`` (the worker
+    its first tile includes taking the shipped chains), ``cpu_s`` (the worker
     process's CPU time in its tiles), ``first_trace_s``,
     ``idle_end_s`` (from its last tile's end to the last tile's end of any
     worker: the imbalance at the end), all in seconds."""

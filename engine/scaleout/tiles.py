@@ -19,9 +19,10 @@ than the client's scene is refused. The tile is traced exactly as
 ``ChainTracer.trace`` over chunks of
 :data:`~engine.raytrace.grid.CHAIN_CHUNK_SIZE` points, then
 :func:`~engine.raytrace.grid.sorted_chunk`. Chain reuse gives every receiver
-every chain of the transmitters (enumerated once per worker process, without
-sampling), so a point's paths do not depend on which other tiles the process
-traced before; tiles are whole ``trace_grid`` chunks so that every point
+every chain of the transmitters (each AP's enumerated once, without sampling,
+by one worker's :func:`shoot_source`, and used by every worker:
+:mod:`engine.scaleout.shared_chains`), so a point's paths do not depend on
+which other tiles the process traced before; tiles are whole ``trace_grid`` chunks so that every point
 shares its image-method calls with the same points as in one process (the
 equality test in ``tests/engine/scaleout/test_cluster.py`` checks it against
 the single-process grid). Shoot-and-bounce per receiver (``method = "sbr"``) is not tiled (see
@@ -48,6 +49,7 @@ from engine.raytrace.base import device_poses, sionna_orientation, validate_pose
 from engine.raytrace.chains import MAX_PAIRS_PER_CALL
 from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_ARRAYS, GRID_SPEC_TABLE_SIZE, grid_points,
                                   sorted_chunk)
+from engine.scaleout.shared_chains import local, merge, portable
 
 log = logging.getLogger(__name__)
 
@@ -254,8 +256,60 @@ def worker_state(job: TileJob):
     return _STATE[key]
 
 
+def shoot_source(job: TileJob, source: int) -> dict:
+    """Enumerate the chains of transmitter ``source`` of ``job`` in this worker
+    process, for every worker's tiles (:mod:`engine.scaleout.shared_chains`).
+
+    The chains are those ``ChainTracer.trace`` enumerates for this source in a
+    grid trace: the same tracer settings, the source at its float32 position
+    (sources are enumerated one by one, independently).
+
+    Returns:
+        ``{"source", "chains": portable chains (``src`` = ``source``), "count",
+        "pid", "setup_s" (scene load, 0 once this process has it), "shoot_s",
+        "start", "end" (``time.time()``)}``.
+
+    Raises:
+        ValueError: no such source, or the worker's scene folder differs.
+    """
+    import time
+
+    from engine.raytrace.chains import ChainTracer
+
+    start, t = time.time(), time.perf_counter()
+    s = int(source)
+    if not 0 <= s < len(job.src):
+        raise ValueError(f"shoot_source: source {s}, the job has {len(job.src)} transmitters")
+    scene, ct = worker_state(job)
+    t_setup = time.perf_counter()
+    shooter = ChainTracer(ct.core, mirror_filter=False)
+    pos = np.asarray(job.src, np.float64)[s:s + 1].astype(np.float32).astype(np.float64)
+    shooter.prepare(scene.sionna, pos, np.zeros((0, 3)))
+    cols = dict(shooter.store.columns())
+    cols["src"] = np.full(len(cols["src"]), s, np.uint32)
+    chains = portable(cols, shooter.store.planes)
+    t_end = time.perf_counter()
+    return {"source": s, "chains": chains, "count": len(cols["src"]), "pid": os.getpid(),
+            "setup_s": t_setup - t, "shoot_s": t_end - t_setup, "start": start,
+            "end": start + (t_end - t)}
+
+
+def use_shipped_chains(scene, ct, job: TileJob, shot: Sequence[dict]) -> None:
+    """Give the chain tracer ``ct`` of this process the chains of every
+    transmitter of ``job`` (:func:`shoot_source`'s results, any order)."""
+    from engine.raytrace.planes import PlaneIndex
+
+    have = sorted(int(r["source"]) for r in shot)
+    if have != list(range(len(job.src))):
+        raise ValueError(f"shipped chains: sources {have}, the job has {len(job.src)} "
+                         "transmitters")
+    planes = PlaneIndex(scene.sionna.mi_scene)
+    cols = local(merge([r["chains"] for r in shot]), planes)
+    ct.use_chains(scene.sionna, job.src, cols, planes=planes)
+
+
 def trace_tile(job: TileJob, index: int, points: np.ndarray, part: int = 0,
-               parts: int = 1) -> dict:
+               parts: int = 1, chains: Sequence[dict] | None = None) -> dict:
     """Trace one tile in this worker process.
 
     Args:
@@ -269,15 +323,21 @@ def trace_tile(job: TileJob, index: int, points: np.ndarray, part: int = 0,
             same calls with the same (chain, point) pairs as in one process,
             so the same paths (a point's paths can depend on which points share
             its call); a share can be empty.
+        chains: :func:`shoot_source`'s results for every transmitter: a
+            process without chains uses these (:func:`use_shipped_chains`)
+            instead of enumerating them (None: it enumerates them).
 
     Returns:
         ``{"index", "span": [a, b] (the points traced: points[a:b]), "parts":
         [dict of [t, S, P] arrays as sorted_chunk returns, in the grid file's
         dtypes], "chains", "pid", "setup_s", "trace_s", "start", "end",
-        "cpu_s"}``:
+        "cpu_s", "chains_s", "sources_shot"}``:
         ``setup_s`` loading the scene and building the tracer (0 once this
-        process has them), ``trace_s`` tracing the tile (the first tile of a
-        process includes enumerating the chains), ``start``/``end``
+        process has them), ``chains_s`` handing it the shipped chains (0 but
+        in a process's first tile), ``trace_s`` tracing the tile (with
+        ``chains_s``; without shipped chains a process's first tile
+        includes enumerating them), ``sources_shot`` the sources this process
+        enumerated chains of (0 with shipped chains), ``start``/``end``
         wall-clock (``time.time()``) of the task, ``cpu_s`` the process's CPU
         time in it (less than the wall time when the cores are shared).
     """
@@ -286,6 +346,9 @@ def trace_tile(job: TileJob, index: int, points: np.ndarray, part: int = 0,
     start, t, cpu = time.time(), time.perf_counter(), time.process_time()
     scene, ct = worker_state(job)
     t_setup = time.perf_counter()
+    if chains is not None and ct.store is None:
+        use_shipped_chains(scene, ct, job, chains)
+    t_chains = time.perf_counter()
     a, b = 0, len(points)
     if parts > 1:
         if len(points) > job.chunk_size:
@@ -308,7 +371,57 @@ def trace_tile(job: TileJob, index: int, points: np.ndarray, part: int = 0,
     return {"index": int(index), "span": [int(a), int(b)], "parts": out,
             "chains": len(ct.store) if ct.store is not None else 0, "pid": os.getpid(),
             "setup_s": t_setup - t, "trace_s": t_end - t_setup, "start": start,
-            "end": start + (t_end - t), "cpu_s": time.process_time() - cpu}
+            "end": start + (t_end - t), "cpu_s": time.process_time() - cpu,
+            "chains_s": t_chains - t_setup, "sources_shot": int(ct.sources_shot)}
+
+
+def point_paths(parts: Sequence[dict], j: int) -> dict[str, np.ndarray]:
+    """The paths of the ``j``-th point a tile traced, from its parts (as
+    :func:`trace_tile` returns them; the grid file's values): ``num_paths
+    [S]``, ``a, tau [S, P]``, ``interactions [S, P, D]``, ``vertices [S, P, D, 3]``.
+
+    Raises:
+        IndexError: the parts hold fewer than ``j + 1`` points.
+    """
+    off = 0
+    for part in parts:
+        n = part["num_paths"].shape[0]
+        if j < off + n:
+            return {k: np.array(part[k][j - off])
+                    for k in ("num_paths", "a", "tau", "interactions", "vertices")}
+        off += n
+    raise IndexError(f"point {j}: the tile's parts hold {off} points")
+
+
+def verify_points(job: TileJob, index: Sequence[int], points: np.ndarray,
+                  stored: Sequence[dict], top_n: int) -> dict:
+    """Re-trace grid points directly in this worker process and compare with
+    their traced paths (:func:`~engine.raytrace.grid.verify_point`, as
+    ``trace_grid``'s verification: the same solver settings).
+
+    Args:
+        job: the grid's shared settings.
+        index: ``[n]`` grid indices of the points (returned).
+        points: ``[n, 3]`` m.
+        stored: per point, its paths (:func:`point_paths`).
+        top_n: ``trace_grid``'s ``verify_top``.
+
+    Returns:
+        ``{"index": [n], "counts": [n dicts of VERIFY_COUNTS], "pid",
+        "verify_s"}``.
+    """
+    import time
+
+    from engine.raytrace.grid import verify_point
+
+    t = time.perf_counter()
+    scene, ct = worker_state(job)
+    confirm: dict = {}
+    counts = [verify_point(ct.core, scene.sionna, job.src, job.src_orient, p, st, top_n,
+                           job.keep_strongest, confirm)
+              for p, st in zip(np.asarray(points, np.float64).reshape(-1, 3), stored)]
+    return {"index": [int(i) for i in index], "counts": counts, "pid": os.getpid(),
+            "verify_s": time.perf_counter() - t}
 
 
 def image_method_calls(pairs: Sequence[int], max_pairs: int) -> list[tuple[int, int]]:

@@ -5,8 +5,9 @@ per point and AP the same paths -- the same number, the same interaction types
 per bounce, delays equal to float32 rounding (rtol 1e-6; stored as float64
 computed from float32), gains ``a``, angles and vertices equal to float32
 rounding (rtol 1e-5, atol 1e-6 of the largest value); in the runs so far they
-were bit-identical. Every worker enumerates the same chains (chain reuse v3,
-no sampling) and tiles are whole ``trace_grid`` chunks (docs/scaleout.md).
+were bit-identical. Each AP's chains are enumerated once (chain reuse v3, no
+sampling) and used by every worker, and tiles are whole ``trace_grid`` chunks
+(docs/scaleout.md).
 """
 
 from __future__ import annotations
@@ -51,7 +52,8 @@ def test_tiled_grid_and_database_equal_the_single_process_ones(room_scene, singl
                                                                 client):
     from engine.localization.fingerprints import from_grid
 
-    got = tiled(room_scene, client)
+    summaries = []
+    got = tiled(room_scene, client, on_tile=summaries.append)
     so = got.meta["scaleout"]
     assert so["tiles"] == len(range(0, int(single_grid.free.sum()), TILE)) > 4
     assert so["workers"] == 2 and so["tiles_traced"] == so["tiles"]
@@ -59,10 +61,17 @@ def test_tiled_grid_and_database_equal_the_single_process_ones(room_scene, singl
     assert sum(r["tiles"] for r in runs) == so["tiles"]
     assert all(r["trace_s"] > 0 and r["cpu_s"] > 0 and r["idle_end_s"] >= 0 for r in runs)
     assert min(r["idle_end_s"] for r in runs) == 0.0
-    assert set(so["seconds"]) == {"plan", "trace", "assemble"}
+    assert set(so["seconds"]) == {"plan", "trace", "verify", "assemble"}
+    assert got.meta["verification"] == {"points": 0}  # none asked for
     assert_equal_grids(single_grid, got)
-    # every worker enumerated the chains the single process enumerated
-    assert got.meta["tracer"]["chains"]["chains"] == single_grid.meta["tracer"]["chains"]["chains"]
+    # each AP's chains were enumerated once, by one task, and every tile used
+    # those: the chains the single process enumerated
+    assert sorted(c["source"] for c in so["chains"]) == [0, 1]
+    assert all(c["count"] > 0 and c["shoot_s"] > 0 for c in so["chains"])
+    assert all(t["sources_shot"] == 0 for t in summaries)  # no worker shot in a tile
+    n_chains = single_grid.meta["tracer"]["chains"]["chains"]
+    assert got.meta["tracer"]["chains"]["chains"] == n_chains
+    assert sum(c["count"] for c in so["chains"]) == n_chains
     da, db = from_grid(single_grid, room_scene), from_grid(got, room_scene)
     for k, v in da.arrays.items():
         np.testing.assert_allclose(db.arrays[k], v, rtol=1e-5, equal_nan=True, err_msg=k)
@@ -120,9 +129,11 @@ def test_an_interrupted_build_resumes_with_the_missing_tiles(room_scene, single_
     files = sorted(ckpt.rglob("tile-*.npz"))
     assert len(files) == n_tiles - 2
     traced = []
-    got = tiled(room_scene, client, tile_size=CHUNK, checkpoints=ckpt,
+    got = tiled(room_scene, client, tile_size=CHUNK, checkpoints=ckpt, verify=4,
                 out=tmp_path / "grid.npz", on_tile=lambda t: traced.append(t["index"]))
     so = got.meta["scaleout"]
+    # points of resumed tiles are verified from their checkpointed paths
+    assert got.meta["verification"]["points"] == 4 and got.meta["verification"]["links"] == 8
     assert so["tiles"] == n_tiles
     assert so["tiles_resumed"] == n_tiles - 2 and so["tiles_traced"] == 2
     assert sorted(traced) == sorted(set(range(so["tiles"])) - set(seen))
@@ -138,3 +149,18 @@ def test_a_worker_with_another_scene_state_is_refused(room_folder, client):
     scene.move_object("cabinet", position=(2.5, 0.6, 0.0))  # the folder on disk is unchanged
     with pytest.raises(ValueError, match=r"hashes to .*the client's scene"):
         tiled(scene, client)
+
+
+def test_the_verification_runs_on_the_workers_as_in_one_process(room_scene, client):
+    """``verify`` re-traces the same points on the workers and records the same
+    ``meta["verification"]`` as ``trace_grid`` (the direct traces use the grid's
+    seed)."""
+    from engine.raytrace.grid import trace_grid
+
+    ref = trace_grid(room_scene, spacing=SPACING, chunk_size=CHUNK, progress=False, verify=3)
+    got = tiled(room_scene, client, verify=3)
+    v = got.meta["verification"]
+    assert v["points"] == 3 and v["links"] == 6
+    assert v["paths_grid"] > 0 and v["paths_single_calls"] > 0
+    assert v == ref.meta["verification"]
+    assert len(got.meta["scaleout"]["verify_s"]) == 3
