@@ -346,8 +346,8 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
         chain_stats = None
     arrays = assemble_grid(plan, pieces, max(1, config.max_depth))
     verification = _verify(core, scene.sionna, plan.src, plan.src_orient, plan.points, arrays,
-                           plan.todo, int(verify), config.seed, config.max_num_paths_per_src,
-                           int(verify_top), plan.keep_strongest)
+                           plan.todo, int(verify), config.seed, int(verify_top),
+                           plan.keep_strongest)
     meta = grid_metadata(scene, plan, spacing, margin, {
         **dataclasses.asdict(config), "deterministic": det,
         "max_num_paths_per_src_used": cap_used, "chunk_size": chunk_size,
@@ -565,71 +565,24 @@ CONFIRM_FACTORS = (10, 100)
 
 
 def _verify(core, sc, src, src_orient, points, arrays, todo, n: int, seed: int,
-            cap: int, top_n: int = VERIFY_TOP_N, keep_strongest: int | None = None) -> dict:
+            top_n: int = VERIFY_TOP_N, keep_strongest: int | None = None) -> dict:
     """Re-trace ``n`` random free points one per solver call (Sionna's own
-    shoot-and-bounce, the grid's settings) and compare path by path: paths
-    the grid lacks (all, and among the ``top_n`` strongest per link), paths
-    the direct trace lacks (extra, unless a trace with 10x, then 100x the rays
-    holds them: ``paths_found_more``, real paths the direct trace's rays
-    missed; chain reuse finds paths that Sionna's own traces at 10x miss), and
-    repeated paths in the grid."""
-    if n <= 0 or len(todo) == 0:
-        return {"points": 0}
-    num_paths = arrays["num_paths"]
-    if keep_strongest is not None:
-        top_n = min(top_n, keep_strongest)
-    rng = np.random.default_rng(seed)
-    pick = rng.choice(todo, size=min(n, len(todo)), replace=False)
-    single = missing = extra = more = repeats = n_top_missing = top_checked = differing = 0
-    confirm: dict[int, object] = {}
-    links = 0
-    for i in pick:
-        raw = core.solve_endpoints(sc, src, points[i:i + 1], cap, src_orient)
-        for s in range(raw.valid.shape[1]):
-            ref = raw.link(0, s)
-            if keep_strongest is not None:  # the grid keeps only these
-                top = np.sort(np.argsort(-np.abs(ref["a"]), kind="stable")[:keep_strongest])
-                ref = {k: v[top] for k, v in ref.items()}
-            k = int(num_paths[i, s])
-            stored = {f: arrays[f][i, s, :k] for f in ("a", "tau", "interactions", "vertices")}
-            m = match_paths(_Paths(stored), _Paths(ref))
-            found = np.zeros(k, bool)
-            found[m[m >= 0]] = True
-            for factor in CONFIRM_FACTORS:  # more rays: real paths the direct trace missed?
-                if found.all():
-                    break
-                if factor not in confirm:
-                    confirm[factor] = SolverCore(dataclasses.replace(
-                        core.config, samples_per_src=factor * core.config.samples_per_src),
-                        deterministic=True)
-                big = confirm[factor].solve_endpoints(sc, src, points[i:i + 1], cap, src_orient)
-                mb = match_paths(_Paths(stored), _Paths(big.link(0, s)))
-                real = np.zeros(k, bool)
-                real[mb[mb >= 0]] = True
-                more += int((~found & real).sum())
-                found |= real
-            links += 1
-            single += len(ref["tau"])
-            missing += int((m < 0).sum())
-            extra += int((~found).sum())
-            differing += int((m < 0).any() or not found.all())
-            repeats += len(find_repeats(_Paths(stored)))
-            tm, tc = top_missing(ref, stored, top_n)
-            n_top_missing += tm
-            top_checked += tc
-    out = {"points": int(len(pick)), "indices": pick.tolist(),
-           "paths_grid": int(num_paths[pick].sum()), "paths_single_calls": int(single),
-           "paths_missing": int(missing), "paths_extra": int(extra),
-           "paths_found_more": int(more),
-           "paths_repeated": int(repeats),
-           "links_differing": int(differing), "links": int(links),
-           "top_n": int(top_n), "top_paths_checked": int(top_checked),
-           "top_paths_missing": int(n_top_missing)}
-    if missing or extra or repeats:
-        log.warning("grid verification at %d re-traced points: %d of %d paths missing "
-                    "(%d of the %d strongest per link), %d extra, %d repeated", len(pick),
-                    missing, single, n_top_missing, top_checked, extra, repeats)
-    return out
+    shoot-and-bounce, the grid's settings) and compare path by path
+    (:func:`verify_point`: paths the grid lacks, all and among the ``top_n``
+    strongest per link; paths the direct trace lacks, unless a trace with 10x,
+    then 100x the rays holds them: ``paths_found_more``, real paths the direct
+    trace's rays missed; repeated paths in the grid), summed by
+    :func:`verification_summary`."""
+    pick = verify_pick(todo, n, seed)
+    confirm: dict = {}
+    counts = [verify_point(core, sc, src, src_orient, points[i],
+                           {k: arrays[k][i] for k in _STORED_AT_POINT},
+                           top_n, keep_strongest, confirm) for i in pick]
+    return verification_summary(pick, counts, top_n, keep_strongest)
+
+
+#: The grid arrays :func:`verify_point` reads at a point.
+_STORED_AT_POINT = ("num_paths", "a", "tau", "interactions", "vertices")
 
 
 def _pkg_version(name: str) -> str:

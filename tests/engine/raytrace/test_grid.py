@@ -141,14 +141,17 @@ def test_verification_tells_an_invented_path_from_a_real_one(room_scene, room_gr
     core = SolverCore(room_scene.config.tracer, deterministic=False,
                       spec_table_size=G.GRID_SPEC_TABLE_SIZE)
     i = int(np.flatnonzero(g.free)[5])
-    args = (core, room_scene.sionna, src, so, g.points)
-    cap = room_scene.config.tracer.max_num_paths_per_src
-    ok = G._verify(*args, g.arrays, np.array([i]), 1, 0, cap)
+    args = (core, room_scene.sionna, src, so, g.points[i])
+
+    def at(arrays):
+        return {k: arrays[k][i] for k in ("num_paths", "a", "tau", "interactions", "vertices")}
+
+    ok = G.verify_point(*args, at(g.arrays))
     assert ok["paths_missing"] == 0 and ok["paths_extra"] == 0 and ok["paths_repeated"] == 0
     arrays = {k: v.copy() for k, v in g.arrays.items()}
     arrays["tau"][i, 0, 1] += 3e-9
     arrays["vertices"][i, 0, 1] += 0.5
-    bad = G._verify(*args, arrays, np.array([i]), 1, 0, cap)
+    bad = G.verify_point(*args, at(arrays))
     assert (bad["paths_missing"], bad["paths_extra"], bad["paths_found_more"]) == (1, 1, 0)
 
 
