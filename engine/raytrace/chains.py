@@ -62,6 +62,11 @@ MAX_PAIRS_PER_CALL = 400_000
 FROZEN_RECORDINGS = 8
 
 
+#: Extra calls made right after the frozen evaluation records a new size,
+#: until one replays (Dr.Jit recorded the same size on the next two calls).
+PRIME_CALLS = 3
+
+
 def pad_pairs(n: int) -> int:
     """The padded size of ``n`` (chain, target) pairs in a frozen evaluation:
     at least 1024, else ``n`` rounded up to a multiple of an eighth of its
@@ -472,8 +477,20 @@ class ChainTracer:
                 ti = np.concatenate([tgt_idx, np.zeros(b - n, tgt_idx.dtype)])
                 pad = np.concatenate([np.zeros(n, np.uint32), np.ones(b - n, np.uint32)])
                 try:
+                    size = (ns, len(g), b)
+                    before = self.recordings
                     cols = run(self._evaluate, self._inputs, ci, ti, pad)
-                    self.frozen_sizes.add((ns, len(g), b))
+                    if size not in self.frozen_sizes and self.recordings > before:
+                        # Dr.Jit records a new size again on its next call or
+                        # two; do it now, in the call that records anyway,
+                        # not in the steps after (a paced run's overruns).
+                        for _ in range(PRIME_CALLS):
+                            dr.eval(*cols)
+                            n_rec = self.recordings
+                            cols = run(self._evaluate, self._inputs, ci, ti, pad)
+                            if self.recordings == n_rec:
+                                break
+                    self.frozen_sizes.add(size)
                 except RuntimeError as e:
                     # Dr.Jit refused to record (e.g. a material call it cannot
                     # traverse): evaluate unfrozen from now on, and say why.

@@ -397,7 +397,11 @@ fields = ("a", "pol", "tau", "theta_t", "phi_t", "theta_r", "phi_r", "interactio
 for i in range(8):
     pos = (1.0 + 0.21 * i, 0.7 + 0.17 * i, 0.25)
     p = dict(poses, robot1=DevicePose(pos, velocity=(0.1 * i, -0.2, 0.0)))
+    known, rec = set(live.chains.frozen_sizes), live.chains.recordings
     a, b = live(room_scene, p), plain(room_scene, p)
+    # a size seen before replays; a new one records in this call only (primed)
+    if live.chains.frozen_sizes == known:
+        assert live.chains.recordings == rec, (i, rec, live.chains.recordings)
     for lk in a:
         assert a[lk].num_paths == b[lk].num_paths > 0
         for f in fields:
