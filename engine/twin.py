@@ -17,6 +17,7 @@ are applied before the next step starts.
 
 from __future__ import annotations
 
+import gc
 import hashlib
 import logging
 import shutil
@@ -78,6 +79,9 @@ class RunStats:
             ``stage_s``: on a shared machine a stage whose wall time far exceeds
             its CPU time waited for a core; Dr.Jit's kernel threads and BLAS
             threads are not counted, so for ``trace`` it is the Python side).
+        startup_s: the start-up step of a paced run, s: the twin's first step
+            (chain enumeration, kernel recording and compilation), which the
+            schedule starts after and which is no overrun.
     """
 
     steps: int = 0
@@ -87,14 +91,18 @@ class RunStats:
     overrun_stages: dict[str, int] = field(default_factory=dict)
     overrun_ms: float = 0.0
     stage_cpu_s: dict[str, float] = field(default_factory=lambda: {s: 0.0 for s in STAGES})
+    startup_s: float = 0.0
 
     def overrun_summary(self) -> str:
-        """``"N overruns"`` with their causes, e.g. ``"2 overruns (trace 2; 3.1 ms late)"``."""
+        """``"N overruns"`` with their causes, e.g. ``"2 overruns (trace 2; 3.1 ms late)"``,
+        and the start-up step's time when a paced run had one."""
+        start = f" after a {self.startup_s:.2f} s start-up step" if self.startup_s else ""
         if not self.overruns:
-            return "0 overruns"
+            return f"0 overruns{start}"
         causes = ", ".join(f"{k} {v}" for k, v in sorted(self.overrun_stages.items(),
                                                          key=lambda kv: -kv[1]))
-        return f"{self.overruns} overruns ({causes}; {self.overrun_ms:.1f} ms late in total)"
+        return (f"{self.overruns} overruns ({causes}; {self.overrun_ms:.1f} ms late in "
+                f"total){start}")
 
     def table(self) -> str:
         """A per-stage timing breakdown (mean wall ms per step, share, and the
@@ -754,6 +762,14 @@ class Twin:
         ``"caller"`` when the consumer of the previous result took longer; see
         :attr:`RunStats.overrun_stages`) and logged, and the schedule restarts
         from now (no burst of catch-up steps).
+
+        Paced, the twin's first step is its start-up (the tracer enumerates its
+        chains and Dr.Jit records and compiles its kernels: ~1.2 s for the lab
+        with 4 robots): the schedule starts when it ends
+        (:attr:`RunStats.startup_s`). Then the objects alive are moved out of
+        Python's cyclic garbage collector (``gc.freeze``: they are kept for the
+        process's life), so that its full collections, which walked them all
+        (~30 ms on the lab, an overrun at 20 Hz), stay short.
         """
         if steps < 0:
             raise ValueError(f"steps: expected >= 0, got {steps}")
@@ -763,12 +779,21 @@ class Twin:
         start = time.perf_counter()
         deadline = start + period
         for _ in range(steps):
+            startup = bool(period) and self.step_index == 0
             res = self.step()
             t_done = time.perf_counter()
             if on_step is not None:
                 on_step(res)
             yield res
-            if period:
+            if startup:
+                now = time.perf_counter()
+                self.stats.startup_s = now - start
+                gc.collect()
+                gc.freeze()
+                deadline = time.perf_counter() + period
+                log.info("start-up step took %.2f s; pacing at %.1f Hz from now",
+                         now - start, rate_hz)
+            elif period:
                 now = time.perf_counter()
                 if now > deadline:
                     costs = dict(res.timings_s)
