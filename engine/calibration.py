@@ -67,6 +67,16 @@ ROUND_GAIN = 0.01
 #: at exactly 1.7018 dB^2, 200 of the first fit's 324).
 MAX_LINE_SEARCH = 6
 
+#: L-BFGS-B's "ABNORMAL" line-search end counts as converged when this many last
+#: evaluations all equal the best mismatch (:func:`_flat_tail`).
+FLAT_TAIL = 4
+
+
+def _flat_tail(history: list[float]) -> bool:
+    """The last :data:`FLAT_TAIL` mismatches all equal the lowest one seen."""
+    return len(history) >= FLAT_TAIL and all(f == min(history) for f in history[-FLAT_TAIL:])
+
+
 #: :meth:`Calibrator.polish`: first and last step of each parameter, in its ``scale``
 #: (x/y 0.5 -> 0.125 cm, yaw 0.5 -> 0.125 deg, a material 5 % -> 1.25 %).
 POLISH_STEPS = (0.5, 0.125)
@@ -811,9 +821,16 @@ class Calibrator:
                 if gain <= ROUND_GAIN * abs(best):
                     break
             self.freeze_candidates, self._candidates = False, None
-        return self.result(values(u), converged=bool(res.success),
-                           message=str(res.message)
-                           + (f" ({rounds} trust-box rounds)" if trust else ""),
+        converged, message = bool(res.success), str(res.message)
+        if not converged and message.startswith("ABNORMAL") and _flat_tail(history):
+            # the line search's trial steps all gave the best value: no step it
+            # can take changes the traced geometry's mismatch (float32 vertices),
+            # a minimum to that resolution (a noise-free room: 1e-9 dB^2)
+            converged = True
+            message += (f" at the float32 floor: the last {FLAT_TAIL} evaluations equal "
+                        f"the best mismatch, {min(history):.3g} dB^2")
+        return self.result(values(u), converged=converged,
+                           message=message + (f" ({rounds} trust-box rounds)" if trust else ""),
                            history=history)
 
     def result(self, final, *, converged: bool, message: str,
