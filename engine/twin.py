@@ -723,6 +723,13 @@ class Twin:
         if job is not None:
             w.submit(job, result.step)
 
+    def close(self) -> None:
+        """Stop the radar's worker thread (dropping a frame still out; call
+        :meth:`flush_sensing` first to keep it). The twin may step again
+        afterwards (a frame then starts a new thread). Idempotent."""
+        if self.sensing_worker is not None:
+            self.sensing_worker.close()
+
     def flush_sensing(self):
         """Wait for the radar frame computed off the stepping thread (if any),
         publish it (stamped with the step it sensed) and return its

@@ -268,6 +268,7 @@ class ChainTracer:
         self.freeze_error: str | None = None
         self.rays = int(core.config.samples_per_src)
         self._context = None
+        self._mi_scene = None
         self.reset()
 
     def reset(self) -> None:
@@ -280,7 +281,7 @@ class ChainTracer:
         self._sources: np.ndarray | None = None
         #: Sources whose chains were enumerated since the reset.
         self.sources_shot = 0
-        self._evaluate = self._frozen() if self.freeze else self.core.evaluate_chains
+        self._evaluate = self._frozen() if self.freeze else None
         #: The (sources, targets, padded pairs) sizes of the frozen calls since
         #: the reset: each is recorded once (:attr:`recordings`), then replayed.
         self.frozen_sizes: set[tuple[int, int, int]] = set()
@@ -408,9 +409,16 @@ class ChainTracer:
         sources = np.asarray(sources, np.float64).reshape(-1, 3)
         targets = np.asarray(targets, np.float64).reshape(-1, 3)
         ctx = (context, np.round(sources, 6).tobytes())
-        if ctx != self._context:
+        # A new Mitsuba scene is new geometry even when the context says
+        # nothing changed: Sionna rebuilds ``sc.mi_scene`` when an object is
+        # added (the radar's sensing targets, at its first frame). The chains
+        # hold the old scene's shapes; kept, they missed the new objects and
+        # Dr.Jit refused every later recording (instances of the old scene
+        # that the new one's traversal does not reach).
+        if ctx != self._context or sc.mi_scene is not self._mi_scene:
             self.reset()
             self._context = ctx
+            self._mi_scene = sc.mi_scene
         core = self.core
         ns, nt = len(sources), len(targets)
         tgt_o_all = np.zeros((nt, 3)) if target_orientations is None else \
@@ -456,7 +464,8 @@ class ChainTracer:
             # (a frozen call with empty inputs aborts in Dr.Jit: no pairs, no freezing)
             frozen = self.freeze and self.freeze_error is None and len(chain_idx) > 0
 
-            def run(evaluate, inputs, ci, ti, pad=None):
+            def run(frozen_call, inputs, ci, ti, pad=None):
+                evaluate = self._evaluate if frozen_call else core.evaluate_chains
                 return evaluate(sc.mi_scene, chains, inputs("chain", ci, mi.UInt),
                                 inputs("target", ti, mi.UInt),
                                 inputs("src", sources, mi.Point3f),
@@ -479,7 +488,7 @@ class ChainTracer:
                 try:
                     size = (ns, len(g), b)
                     before = self.recordings
-                    cols = run(self._evaluate, self._inputs, ci, ti, pad)
+                    cols = run(True, self._inputs, ci, ti, pad)
                     if size not in self.frozen_sizes and self.recordings > before:
                         # Dr.Jit records a new size again on its next call or
                         # two; do it now, in the call that records anyway,
@@ -487,19 +496,21 @@ class ChainTracer:
                         for _ in range(PRIME_CALLS):
                             dr.eval(*cols)
                             n_rec = self.recordings
-                            cols = run(self._evaluate, self._inputs, ci, ti, pad)
+                            cols = run(True, self._inputs, ci, ti, pad)
                             if self.recordings == n_rec:
                                 break
                     self.frozen_sizes.add(size)
                 except RuntimeError as e:
                     # Dr.Jit refused to record (e.g. a material call it cannot
                     # traverse): evaluate unfrozen from now on, and say why.
-                    self.freeze_error = str(e).splitlines()[0]
+                    # (Dr.Jit's own reason is the cause: "error encountered
+                    # while recording ... (see above)" says nothing)
+                    self.freeze_error = str(e.__cause__ or e).splitlines()[0][:300]
                     warnings.warn(f"chain reuse: evaluation not frozen ({self.freeze_error})",
                                   RuntimeWarning, stacklevel=2)
                     frozen = False
             if not frozen:
-                cols = run(core.evaluate_chains, _fresh, chain_idx, tgt_idx)
+                cols = run(False, _fresh, chain_idx, tgt_idx)
             dr.eval(*cols)
             out.groups.append((len(g), [c.numpy() for c in cols], tgt_o_all[g]))
         return out

@@ -28,10 +28,14 @@ one of the synchronous twin (tested).
 
 from __future__ import annotations
 
+import threading
 import weakref
 from concurrent.futures import Future, ThreadPoolExecutor
 
-__all__ = ["SensingWorker"]
+__all__ = ["SensingWorker", "wait_all"]
+
+#: Every SensingWorker not yet collected (for :func:`wait_all`).
+_LIVE: "weakref.WeakSet[SensingWorker]" = weakref.WeakSet()
 
 
 class SensingWorker:
@@ -51,6 +55,7 @@ class SensingWorker:
         self._pool: ThreadPoolExecutor | None = None
         #: (delivery step, future) of the frame out, or None
         self._pending: tuple[int, Future] | None = None
+        _LIVE.add(self)
 
     @property
     def pending(self) -> bool:
@@ -68,7 +73,7 @@ class SensingWorker:
             raise RuntimeError("SensingWorker.submit: collect the frame out first")
         if self._pool is None:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="isac-sensing")
-            weakref.finalize(self, self._pool.shutdown, wait=True)
+            weakref.finalize(self, _shutdown, self._pool)
         _new_scope()  # the job's arrays were made in this thread's current scope
         self._pending = (int(step) + self.latency, self._pool.submit(self._compute, job))
 
@@ -107,6 +112,22 @@ class SensingWorker:
         if self._pool is not None:
             self._pool.shutdown(wait=True)
             self._pool = None
+
+
+def wait_all() -> None:
+    """Wait until no worker of this process computes a frame: also the frames
+    of twins dropped with a frame out and not yet collected, whose thread
+    would go on using Dr.Jit beside whatever the process does next (a test
+    session runs this after every test)."""
+    for w in list(_LIVE):
+        w.wait()
+
+
+def _shutdown(pool: ThreadPoolExecutor) -> None:
+    """Stop ``pool`` (a collected worker's): wait for its thread, unless this
+    is that thread (the garbage collector ran there), which cannot join itself
+    and ends on its own once its queue is shut."""
+    pool.shutdown(wait=threading.current_thread() not in getattr(pool, "_threads", ()))
 
 
 def _new_scope() -> None:

@@ -202,6 +202,41 @@ def test_scene_edit_and_moved_transmitter(tmp_path):
         np.testing.assert_array_equal(got[lk].tau, ref[lk].tau)
 
 
+def test_a_rebuilt_mitsuba_scene_drops_the_chains(tmp_path):
+    """Sionna rebuilds ``sc.mi_scene`` when an object is added outside the
+    twin's edits (the radar's sensing targets, at its first frame). The chains
+    belong to the old Mitsuba scene: the next trace enumerates them anew and
+    equals a fresh tracer's on the new scene (before the fix the old chains were
+    kept, and Dr.Jit refused the next recording of the frozen evaluation: the old
+    scene's shapes were instances the new scene's traversal does not reach; the
+    tracer then ran unfrozen for good)."""
+    from sionna.rt.rcs import ConstantRCSSensingTarget
+
+    scene = load_scene(furnished_room(tmp_path))
+    cfg = scene.config.tracer
+    poses = device_poses(scene.config)
+    tr = SionnaTracer(cfg)
+    before = tr(scene, poses)
+    store = tr.chains.store
+    sc = scene.sionna
+    old = sc.mi_scene
+    sc.add(ConstantRCSSensingTarget(name="target:box", sigma=1.0, length=0.6, width=0.6,
+                                    height=0.6, position=[2.9, 2.0, 1.2]))
+    assert sc.mi_scene is not old  # (Sionna's behaviour the tracer must follow)
+    after = tr(scene, poses)
+    assert tr.chains.store is not store and tr.chains.sources_shot == 2  # enumerated anew
+    fresh = SionnaTracer(cfg)(scene, poses)
+    changed = False
+    for lk in fresh:
+        np.testing.assert_array_equal(after[lk].tau, fresh[lk].tau)
+        np.testing.assert_array_equal(after[lk].a, fresh[lk].a)
+        changed |= not np.array_equal(np.sort(after[lk].tau), np.sort(before[lk].tau))
+    assert changed  # the box made paths (else the test shows nothing)
+    for _ in range(3):  # a new size records and is primed; then it replays
+        tr(scene, poses)
+    assert tr.chains.freeze_error is None and tr.chains.recordings > 0
+
+
 def test_grid_point_equals_live_chain_trace(room_grid, room_scene):
     """Grid and live tracer enumerate the same chains: the same paths at a grid point."""
     g = room_grid

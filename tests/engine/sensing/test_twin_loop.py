@@ -84,20 +84,24 @@ def test_recorded_detections_decode_with_rosbags_and_mcap_ros2(recording):
                                [d.path_length_m for d in want.detections["AP2->AP1"]])
 
 
-def test_monostatic_table_runs_in_the_twin(tmp_path):
-    """A monostatic [[sensing]] table (AP1 -> AP1, full duplex) replaces the lab's:
-    the twin's radar measures the robot's round-trip path length."""
+def _monostatic_lab(folder: Path) -> Path:
+    """The lab with a monostatic [[sensing]] table (AP1 -> AP1, full duplex, every step)."""
     import shutil
 
-    from engine.twin import Twin
-
-    folder = tmp_path / "lab"
     shutil.copytree(LAB, folder)
     p = folder / "twin.toml"
     text = p.read_text()
     i = text.index("[[sensing]]")
     p.write_text(text[:i] + '[[sensing]]\ntx = "AP1"\nrx = "AP1"\nrho = 0.25\n')
-    tw = Twin.from_scene(folder, dt=0.5, phy=False)
+    return folder
+
+
+def test_monostatic_table_runs_in_the_twin(tmp_path):
+    """A monostatic [[sensing]] table (AP1 -> AP1, full duplex) replaces the lab's:
+    the twin's radar measures the robot's round-trip path length."""
+    from engine.twin import Twin
+
+    tw = Twin.from_scene(_monostatic_lab(tmp_path / "lab"), dt=0.5, phy=False)
     assert [(s.name, s.every) for s in tw.radar.links] == [("AP1->AP1", 1)]
     found = []
     results = [tw.step() for _ in range(5)]
@@ -110,6 +114,37 @@ def test_monostatic_table_runs_in_the_twin(tmp_path):
         found += [abs(d.path_length_m - d_true) for d in r.sensing.detections["AP1->AP1"]]
     # EMA background: the first frame is the background; later ones see the robot
     assert found and min(found) < 0.3
+
+
+_FREEZE_CHECK = """
+import sys
+from engine.twin import Twin
+tw = Twin.from_scene(sys.argv[1], dt=0.5, phy=False)
+for _ in range(5):
+    tw.step()
+tw.flush_sensing()
+ch = tw.tracer.chains
+print(ch.freeze_error, ch.recordings, len(tw.scene.sionna.sensing_targets))
+"""
+
+
+def test_the_radars_first_frame_leaves_the_twins_trace_frozen(tmp_path):
+    """The radar's first frame adds the robot's target to the Sionna scene, which
+    Sionna rebuilds (a new ``mi_scene``): the twin's trace enumerates its chains
+    anew and still records and replays its frozen evaluation. Before, it kept
+    the old scene's chains, Dr.Jit refused the next recording and the trace ran
+    unfrozen for good. In its own process, as the twin runs (in this session
+    the module's recorded twin, alive, makes Dr.Jit refuse to record)."""
+    import subprocess
+    import sys
+
+    folder = _monostatic_lab(tmp_path / "lab")
+    out = subprocess.run([sys.executable, "-c", _FREEZE_CHECK, str(folder)],
+                         capture_output=True, text=True, timeout=300,
+                         cwd=Path(__file__).resolve().parents[3])
+    assert out.returncode == 0, out.stderr[-3000:]
+    error, recordings, targets = out.stdout.split()[-3:]
+    assert (error, int(targets)) == ("None", 1) and int(recordings) > 0, out.stdout
 
 
 def test_run_command_prints_the_frame_still_out_at_the_end(capsys):

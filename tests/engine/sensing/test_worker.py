@@ -5,6 +5,7 @@ own links untouched by the frame traced beside them."""
 from pathlib import Path
 
 import gc
+import sys
 import warnings
 
 import numpy as np
@@ -45,6 +46,11 @@ def test_worker_delivers_after_latency_and_raises_on_the_caller():
 def _run(sync: bool, steps: int):
     from engine.twin import Twin
 
+    # Another twin's Mitsuba objects, while registered, make Dr.Jit refuse to
+    # record this twin's frozen trace (a registry limit): the previous test
+    # module's twin may sit uncollected in a reference cycle (the CI run failed
+    # here), so collect it first.
+    gc.collect()
     tw = Twin.from_scene(LAB, dt=0.05, phy=False, sync_sensing=sync)
     msgs = []
     tw.bus.node("test").subscribe(DETECTIONS_TOPIC, Detections, msgs.append)
@@ -152,3 +158,53 @@ def test_worker_reads_arrays_the_stepping_thread_made_in_a_newer_scope():
     w.submit(mi.Float([1.0, 2.0]) + 1, 1)  # made in the newer scope, not evaluated
     assert w.collect() == [4.0, 7.0]
     w.close()
+
+
+class _Slow:
+    def __init__(self):
+        import threading
+        self.go = threading.Event()
+
+    def compute(self, job):
+        self.go.wait(10)
+        return job
+
+
+def test_wait_all_waits_for_a_dropped_workers_frame():
+    """A worker dropped with a frame out still computes it; ``wait_all`` (run
+    after every test) waits for it, and collecting a worker on its own thread
+    (the garbage collector may run there) does not try to join that thread."""
+    import threading
+
+    from engine.sensing import worker as mod
+
+    radar = _Slow()
+    w = SensingWorker(radar, latency=1)
+    w.submit("frame", 0)
+    fut = w._pending[1]
+    del w
+    assert not fut.done()
+    threading.Timer(0.2, radar.go.set).start()
+    mod.wait_all()
+    assert fut.done() and fut.result() == "frame"
+
+    errors = []
+    old_hook, sys.unraisablehook = sys.unraisablehook, lambda u: errors.append(u.exc_value)
+    try:
+        w2 = SensingWorker(_Frames(), latency=1)
+        w2.submit("x", 0)
+        w2.wait()
+        pool = w2._pool
+
+        def drop_on_worker_thread():
+            nonlocal w2
+            del w2  # the last reference: finalized here, on the pool's thread
+            gc.collect()
+
+        w2._pending = None
+        pool.submit(drop_on_worker_thread).result(10)
+        for t in list(pool._threads):
+            t.join(5)
+    finally:
+        sys.unraisablehook = old_hook
+    assert errors == []
