@@ -284,7 +284,10 @@ class ChainTracer:
         self._evaluate = self._frozen() if self.freeze else None
         #: The (sources, targets, padded pairs) sizes of the frozen calls since
         #: the reset: each is recorded once (:attr:`recordings`), then replayed.
-        self.frozen_sizes: set[tuple[int, int, int]] = set()
+        #: The most recently used last: at most ``FROZEN_RECORDINGS``, as Dr.Jit
+        #: keeps (it evicts the least recently used recording; a size
+        #: evicted there must be primed again when it returns).
+        self.frozen_sizes: dict[tuple[int, int, int], None] = {}
         self._inputs = _InputSlots()
 
     def _frozen(self):
@@ -358,6 +361,7 @@ class ChainTracer:
                              f"{len(sources)} sources were given")
         self.reset()
         self._context = (context, np.round(sources, 6).tobytes())
+        self._mi_scene = sc.mi_scene
         self.store = ChainStore(self.core.config.max_depth,
                                 planes if planes is not None else PlaneIndex(sc.mi_scene))
         self.store.add_columns({k: np.array(v) for k, v in columns.items()})
@@ -499,7 +503,10 @@ class ChainTracer:
                             cols = run(True, self._inputs, ci, ti, pad)
                             if self.recordings == n_rec:
                                 break
-                    self.frozen_sizes.add(size)
+                    self.frozen_sizes.pop(size, None)
+                    self.frozen_sizes[size] = None
+                    while len(self.frozen_sizes) > FROZEN_RECORDINGS:
+                        del self.frozen_sizes[next(iter(self.frozen_sizes))]
                 except RuntimeError as e:
                     # Dr.Jit refused to record (e.g. a material call it cannot
                     # traverse): evaluate unfrozen from now on, and say why.

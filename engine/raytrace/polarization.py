@@ -22,8 +22,8 @@ with ``c = (C_theta, C_phi)`` the element's field pattern evaluated at the
 direction in the array's local frame (``R^T k``) and ``Q`` (:func:`local_to_world`)
 the 2 x 2 rotation from the local spherical basis (rotated into the world by
 ``R``) to the world spherical basis at ``k``. A vertically polarized
-isotropic element has ``c = (1, 0)``: :func:`v_coefficients` gives the
-coefficient the tracer records in ``a``.
+isotropic element has ``c = (1, 0)``: with :func:`v_world` at both ends this
+gives the coefficient the tracer records in ``a``.
 
 Reciprocity: the reversed link (``rx -> tx``) has ``T^T`` (the channel
 between two given antennas is symmetric).
@@ -35,7 +35,7 @@ import numpy as np
 
 from engine.pose import rotation_matrix
 
-__all__ = ["local_to_world", "rotations", "v_coefficients", "v_world", "world_basis"]
+__all__ = ["local_to_world", "v_world", "world_basis"]
 
 
 def world_basis(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -49,17 +49,6 @@ def world_basis(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     t_hat = np.stack([ct * cp, ct * sp, -st], -1)
     p_hat = np.stack([-sp, cp, np.zeros_like(ph)], -1)
     return t_hat, p_hat
-
-
-def rotations(orientations) -> np.ndarray:
-    """Rotation matrices ``[N, 3, 3]`` (local -> world) of Sionna orientations
-    ``[N, 3]`` (``[yaw, pitch, roll]`` rad), one :func:`~engine.pose.rotation_matrix`
-    per distinct orientation."""
-    o = np.asarray(orientations, np.float64).reshape(-1, 3)
-    uniq, inv = np.unique(o, axis=0, return_inverse=True)
-    mats = (np.stack([rotation_matrix(u[2], u[1], u[0]) for u in uniq]) if len(uniq)
-            else np.zeros((0, 3, 3)))
-    return mats[np.asarray(inv).reshape(-1)]
 
 
 def local_to_world(k: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -91,23 +80,6 @@ def local_to_world(k: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return th, ph, q
 
 
-def v_coefficients(pol: np.ndarray, k_t: np.ndarray, k_r: np.ndarray, rot_t: np.ndarray,
-                   rot_r: np.ndarray) -> np.ndarray:
-    """Path coefficients ``[L]`` of isotropic, vertically polarized elements in
-    the given orientations from transfer matrices ``pol [L, 2, 2]``.
-
-    Args:
-        k_t, k_r: departure / arrival unit directions ``[L, 3]``.
-        rot_t, rot_r: ``[3, 3]`` or ``[L, 3, 3]`` array rotations.
-    """
-    pol = np.asarray(pol)
-    if len(pol) == 0:
-        return np.zeros(0, np.complex128)
-    qt = local_to_world(k_t, rot_t)[2][:, :, 0]  # the V unit vector, world components
-    qr = local_to_world(k_r, rot_r)[2][:, :, 0]
-    return np.einsum("li,lij,lj->l", qr, pol, qt)
-
-
 #: Up to this many paths :func:`v_world` gathers one rotation per path and makes
 #: one pass (a live step's few hundred paths: per-call overhead dominates);
 #: more are computed once per distinct orientation (a grid chunk: no ``[L, 3,
@@ -121,8 +93,8 @@ def v_world(k: np.ndarray, orientations: np.ndarray, index: np.ndarray) -> np.nd
     ``orientations[index]`` (``[N, 3]`` ``[yaw, pitch, roll]`` rad; ``index
     [L]``), seen from world unit directions ``k [L, 3]``.
 
-    The same as ``local_to_world(k, rotations(orientations)[index])[2][:, :, 0]``
-    but for an orientation of zero, which is the world frame itself: exactly
+    The same as ``local_to_world(k, R[index])[2][:, :, 0]`` with ``R [N, 3, 3]``
+    the orientations' rotations (:func:`~engine.pose.rotation_matrix`), but for an orientation of zero, which is the world frame itself: exactly
     ``(1, 0)``."""
     k = np.asarray(k, np.float64).reshape(-1, 3)
     o = np.asarray(orientations, np.float64).reshape(-1, 3)

@@ -7,6 +7,7 @@ import pytest
 
 import engine.raytrace.polarization as pol
 from engine.phy.arrays import r_hat
+from engine.pose import rotation_matrix
 
 
 @pytest.mark.parametrize("gather", [0, 10 ** 9])
@@ -20,7 +21,8 @@ def test_v_world_equals_per_path_rotation(monkeypatch, gather):
     ori = np.array([[0.3, -0.2, 0.1], [1.2, 0.0, 0.0], [0.0, 0.0, 0.0], [0.5, 0.0, 0.2],
                     [1.2, 0.0, 0.0]])
     idx = rng.integers(0, len(ori), n)
-    ref = pol.local_to_world(k, pol.rotations(ori)[idx])[2][:, :, 0]
+    mats = np.stack([rotation_matrix(o[2], o[1], o[0]) for o in ori])  # Sionna [yaw, pitch, roll]
+    ref = pol.local_to_world(k, mats[idx])[2][:, :, 0]
     monkeypatch.setattr(pol, "V_WORLD_GATHER", gather)
     got = pol.v_world(k, ori, idx)
     zero = idx == 2
