@@ -35,6 +35,7 @@ enabled, use the direct solver (``tracer.method = "sbr"``).
 
 from __future__ import annotations
 
+import gc
 import warnings
 from dataclasses import dataclass, field
 
@@ -420,9 +421,15 @@ class ChainTracer:
         # Dr.Jit refused every later recording (instances of the old scene
         # that the new one's traversal does not reach).
         if ctx != self._context or sc.mi_scene is not self._mi_scene:
+            old_scene = self._mi_scene
             self.reset()
             self._context = ctx
             self._mi_scene = sc.mi_scene
+            if old_scene is not None and old_scene is not sc.mi_scene:
+                # free the old scene now, not whenever the collector next runs
+                # (its shapes stay in Dr.Jit's registry until then)
+                del old_scene
+                gc.collect()
         core = self.core
         ns, nt = len(sources), len(targets)
         tgt_o_all = np.zeros((nt, 3)) if target_orientations is None else \
@@ -469,15 +476,26 @@ class ChainTracer:
             frozen = self.freeze and self.freeze_error is None and len(chain_idx) > 0
 
             def run(frozen_call, inputs, ci, ti, pad=None):
-                evaluate = self._evaluate if frozen_call else core.evaluate_chains
-                return evaluate(sc.mi_scene, chains, inputs("chain", ci, mi.UInt),
-                                inputs("target", ti, mi.UInt),
-                                inputs("src", sources, mi.Point3f),
-                                inputs("tgt", targets[g], mi.Point3f),
-                                inputs("v_tx", v_tx_np, mi.Vector3f),
-                                inputs("v_rx", v_rx_all[g], mi.Vector3f),
-                                sc.wavelength, bool(core.config.los),
-                                None if pad is None else inputs("pad", pad, mi.UInt))
+                args = (sc.mi_scene, chains, inputs("chain", ci, mi.UInt),
+                        inputs("target", ti, mi.UInt), inputs("src", sources, mi.Point3f),
+                        inputs("tgt", targets[g], mi.Point3f),
+                        inputs("v_tx", v_tx_np, mi.Vector3f),
+                        inputs("v_rx", v_rx_all[g], mi.Vector3f),
+                        sc.wavelength, bool(core.config.los),
+                        None if pad is None else inputs("pad", pad, mi.UInt))
+                if not frozen_call:
+                    return core.evaluate_chains(*args)
+                # No garbage collection inside a frozen call: Mitsuba objects
+                # collected while Dr.Jit records (e.g. the Mitsuba scene the
+                # chains were dropped with, in a reference cycle) abort the
+                # process (seen in the test session).
+                gc_was_on = gc.isenabled()
+                gc.disable()
+                try:
+                    return self._evaluate(*args)
+                finally:
+                    if gc_was_on:
+                        gc.enable()
 
             if frozen:
                 # Padded to a bucket of sizes (pad_pairs), so that the varying
