@@ -283,7 +283,6 @@ class Twin:
 
         self.radar = RadarEstimator(parse_sensing(self.config), seed=self.seed)
         self.radar.attach(self.bus)
-        self.radar.place_targets(self)  # before the first trace (see place_targets)
         if not self.sync_sensing:
             latency = min(max(int(s.every), 1) for s in self.radar.links)
             self.sensing_worker = SensingWorker(self.radar, latency)

@@ -194,34 +194,13 @@ class RadarEstimator:
             st["orientation"] = ori
         return st["radar"]
 
-    def place_targets(self, twin) -> None:
-        """Put the robot targets into the Sionna scene now, at the robots' current
-        poses (the twin calls this when it builds the radar). Sionna rebuilds its
-        Mitsuba scene when an object is added; done here, the twin's first trace
-        already sees the scene every later step sees (else the radar's first
-        frame rebuilt it after step 0's trace: the scene's geometry changed
-        between steps 0 and 1, and step 1's trace enumerated its chains anew,
-        1.5 s in a 4-robot paced run)."""
-        from engine.state import RobotState
-
-        if self.tracer is None or self._scene is not twin.scene:
-            self._setup(twin)
-        self._pose_targets({name: RobotState(name=name, pose=a.state.pose.copy(),
-                                             velocity=np.array([a.state.v, a.state.w]))
-                            for name, a in twin.agents.items()})
-
     def update_targets(self, twin, result) -> dict:
         """Pose every robot target from the step's truth; returns name -> centre."""
-        return self._pose_targets(result.robots)
-
-    def _pose_targets(self, robots) -> dict:
-        """Pose the targets of ``robots`` (name -> :class:`~engine.state.RobotState`);
-        returns name -> centre [3] m."""
         truth = {}
         if not self.robot_targets:
             return truth
         h = self.target_size[2]
-        for name, rs in robots.items():
+        for name, rs in result.robots.items():
             x, y, z, _, _, yaw = (float(v) for v in rs.pose[:6])
             v = float(rs.velocity[0])
             centre = np.array([x, y, z + h / 2])

@@ -157,24 +157,3 @@ def test_run_command_prints_the_frame_still_out_at_the_end(capsys):
     assert [ln.split()[1] for ln in lines[:2]] == ["0", "1"]
     assert "radar" not in lines[0] and "radar" not in lines[1]  # not delivered yet
     assert lines[2].startswith("radar (step 0) ") and lines[2].endswith(" tracks")
-
-
-def test_the_robots_targets_are_in_the_scene_before_the_first_trace():
-    """The radar's robot targets enter the Sionna scene when the twin is built,
-    at the robots' start poses: the Mitsuba scene Sionna rebuilds for them is
-    the one every step traces, so step 1 keeps step 0's chains (the radar's
-    first frame rebuilt it after step 0's trace, and step 1 shot them again)."""
-    from engine.twin import Twin
-
-    tw = Twin.from_scene(LAB, dt=0.05, phy=False, sync_sensing=True)
-    sc = tw.scene.sionna
-    assert list(sc.sensing_targets) == ["target:robot1"]
-    start = tw.agents["robot1"].state.pose
-    centre = np.asarray(sc.sensing_targets["target:robot1"].position.numpy()).ravel()
-    np.testing.assert_allclose(centre[:2], start[:2], atol=1e-5)
-    mi_scene = sc.mi_scene
-    tw.step()
-    store = tw.tracer.chains.store
-    tw.step()
-    assert sc.mi_scene is mi_scene and tw.tracer.chains.store is store
-    assert [f.step for f in tw.radar.history] == [0]
