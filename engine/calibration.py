@@ -656,10 +656,21 @@ class Calibrator:
         loss = dr.mean(diff * diff)
         g = np.zeros(len(values))
         if grad:
-            # at some bounds (conductivity 0) Sionna's graph no longer depends on a
-            # parameter: its gradient is then 0, not an error
-            dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
-            g = np.array([float(dr.grad(x)[0]) for x in vars_])
+            dr.eval(loss)  # the forward pass on every thread
+            # The backward pass on one thread: it accumulates the gradients with
+            # float32 atomic adds, which on two threads land in timing order, so
+            # the gradient at the same values differed in its last bits between
+            # calls; L-BFGS-B amplified that into different fits of the same lap
+            # (the tables' permittivity 3.1 %, 6.0 % and 20.6 % off in three runs).
+            threads = dr.thread_count()
+            dr.set_thread_count(1)
+            try:
+                # at some bounds (conductivity 0) Sionna's graph no longer depends
+                # on a parameter: its gradient is then 0, not an error
+                dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+                g = np.array([float(dr.grad(x)[0]) for x in vars_])
+            finally:
+                dr.set_thread_count(threads)
         n, k, nr, nt = self.meas.csi.shape
         model = np.array(dr.detach(model_db).numpy(), float).reshape(n, nr, nt, k)
         out = float(loss[0]), g, model.transpose(0, 3, 1, 2)

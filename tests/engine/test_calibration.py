@@ -237,16 +237,18 @@ def _determinism_case(folder, calibrator=Calibrator):
 
 @pytest.mark.slow
 def test_repeated_evaluations_are_identical(tmp_path):
-    """Fresh candidates at the same values give the same mismatch to the last bit and
-    the same gradient (but for float32 atomics in the backward pass): the generator runs
-    on one thread, the channel is summed in float64. Before, the kept triangle of a
-    coplanar face depended on thread timing and the line search drifted apart."""
+    """Fresh candidates at the same values give the same mismatch and the same
+    gradient, to the last bit: the generator and the backward pass run on one thread,
+    the channel is summed in float64. Before, the kept triangle of a coplanar face
+    depended on thread timing and the line search drifted apart; then the backward
+    pass's float32 atomics still moved the gradient's last bits, and fits of the same
+    lap ended in different places."""
     cal = _determinism_case(tmp_path / "twin")
     x = cal.initial + np.array([0.0, 0.004, np.radians(0.7)])
-    runs = [cal.evaluate(x) for _ in range(4)]
+    runs = [cal.evaluate(x) for _ in range(6)]
     assert len({r[0] for r in runs}) == 1, [r[0] for r in runs]
     g = np.array([r[1] for r in runs])
-    assert np.all(np.ptp(g, axis=0) <= 1e-5 * np.abs(g).max(axis=0) + 1e-12), g
+    assert np.all(g == g[0]), g
 
 
 @pytest.mark.slow
