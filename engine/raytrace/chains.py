@@ -417,9 +417,9 @@ class ChainTracer:
         # A new Mitsuba scene is new geometry even when the context says
         # nothing changed: Sionna rebuilds ``sc.mi_scene`` when an object is
         # added (the radar's sensing targets, at its first frame). The chains
-        # hold the old scene's shapes; kept, they missed the new objects and
-        # Dr.Jit refused every later recording (instances of the old scene
-        # that the new one's traversal does not reach).
+        # hold the old scene's shapes; kept, Dr.Jit refused the next recording
+        # (instances of the old scene that the new one's traversal does not
+        # reach) and the trace ran unfrozen from then on.
         if ctx != self._context or sc.mi_scene is not self._mi_scene:
             old_scene = self._mi_scene
             self.reset()

@@ -94,8 +94,8 @@ def v_world(k: np.ndarray, orientations: np.ndarray, index: np.ndarray) -> np.nd
     [L]``), seen from world unit directions ``k [L, 3]``.
 
     The same as ``local_to_world(k, R[index])[2][:, :, 0]`` with ``R [N, 3, 3]``
-    the orientations' rotations (:func:`~engine.pose.rotation_matrix`), but for an orientation of zero, which is the world frame itself: exactly
-    ``(1, 0)``."""
+    the orientations' rotations (:func:`~engine.pose.rotation_matrix`), but for
+    an orientation of zero, which is the world frame itself: exactly ``(1, 0)``."""
     k = np.asarray(k, np.float64).reshape(-1, 3)
     o = np.asarray(orientations, np.float64).reshape(-1, 3)
     index = np.asarray(index).reshape(-1)
