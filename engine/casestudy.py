@@ -35,10 +35,10 @@ from engine.scene import load_scene
 
 log = logging.getLogger(__name__)
 
-#: The paper's reported numbers (section IV-B), m.
 #: The case study's MCA options (:func:`run_case_study`'s default ``mca``).
 CASE_STUDY_MCA = {"eps": 0.5, "k": 4, "num_paths": 9}
 
+#: The paper's reported numbers (section IV-B), m.
 PAPER_MAX_POSITIONING_M = 0.16
 PAPER_MAX_MODELLING_M = 0.08
 

@@ -323,6 +323,12 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--timing", action="store_true", help="print the per-stage timing table")
 
 
+def _radar_line(frame) -> str:
+    """``radar (step k) N det M tracks`` of a delivered radar frame (a ``SensingStep``)."""
+    n = sum(len(v) for v in frame.detections.values())
+    return f"radar (step {frame.step}) {n} det {len(frame.tracks)} tracks"
+
+
 @command("run", "run the twin (Algorithm 1) for N steps and print a per-step line", _run_args)
 def cmd_run(args) -> int:
     from engine.twin import Twin
@@ -344,13 +350,12 @@ def cmd_run(args) -> int:
                          + ("" if args.no_phy else f" {ls.rate_bps / 1e6:.0f} Mbit/s"
                             f" (MCS {ls.mcs_rate_bps / 1e6:.0f})"))
         if r.sensing is not None:  # a [[sensing]] radar frame was delivered this step
-            n = sum(len(v) for v in r.sensing.detections.values())
-            parts.append(f"radar (step {r.sensing.step}) {n} det {len(r.sensing.tracks)} tracks")
+            parts.append(_radar_line(r.sensing))
         print("  ".join(parts), flush=True)
     last = twin.flush_sensing()  # a frame still computed off the stepping thread
+    twin.close()
     if last is not None:
-        n = sum(len(v) for v in last.detections.values())
-        print(f"radar (step {last.step}) {n} det {len(last.tracks)} tracks", flush=True)
+        print(_radar_line(last), flush=True)
     if args.rate is not None:
         st = twin.stats
         print(f"paced at {args.rate:g} Hz: {st.steps} steps in {st.wall_s:.2f} s, "
