@@ -321,6 +321,11 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of every random stream")
     p.add_argument("--no-phy", action="store_true", help="skip channels and rates")
     p.add_argument("--timing", action="store_true", help="print the per-stage timing table")
+    p.add_argument("--radar", choices=("auto", "thread", "process", "sync"), default="auto",
+                   help="where the [[sensing]] radar computes its frames: a worker thread, "
+                        "a child process (the twin's steps do not wait behind a frame), "
+                        "or the stepping thread (each frame on its own step); auto "
+                        "(default): process with --rate, thread otherwise")
 
 
 def _radar_line(frame) -> str:
@@ -340,7 +345,9 @@ def cmd_run(args) -> int:
         print(f"isac-twin: error: --rate {args.rate}: expected a positive rate in Hz",
               file=sys.stderr)
         return 2
-    twin = Twin.from_scene(scene_path(args), seed=args.seed, dt=args.dt, phy=not args.no_phy)
+    radar = args.radar if args.radar != "auto" else ("process" if args.rate else "thread")
+    twin = Twin.from_scene(scene_path(args), seed=args.seed, dt=args.dt, phy=not args.no_phy,
+                           sync_sensing=radar == "sync", sensing_process=radar == "process")
     for r in twin.run(args.steps, rate_hz=args.rate):
         parts = [f"step {r.step:4d} t={r.time_s:6.2f}s"]
         for name, rb in r.robots.items():

@@ -100,6 +100,10 @@ class TwinScene:
     revision: int = 0
     _hash: tuple[int, str] | None = field(default=None, repr=False)
     custom_materials: dict[str, dict[str, float]] = field(default_factory=dict)
+    #: every edit applied since load, in order, as ``(method name, args)``: a
+    #: replica of the scene loaded from the same folder replays them
+    #: (:meth:`replay`; the radar's process, ``engine.sensing.process``)
+    edits: list[tuple[str, tuple]] = field(default_factory=list)
 
     @property
     def sionna(self):
@@ -177,6 +181,7 @@ class TwinScene:
             obj.position = mi.Point3f(*map(float, new[:3]))
         self.object_poses[name] = new
         self.revision += 1
+        self.edits.append(("move_object", (name, _plain(position), _plain(orientation))))
 
     def define_material(self, name: str, values: dict) -> None:
         """Add custom radio material ``name`` (``{"relative_permittivity",
@@ -194,6 +199,7 @@ class TwinScene:
             raise ValueError(f"define_material: custom material {name!r} exists")
         self.custom_materials[name] = {k: float(values[k])
                                        for k in schema.CUSTOM_MATERIAL_PROPERTIES}
+        self.edits.append(("define_material", (name, dict(self.custom_materials[name]))))
 
     def check_material(self, material: str, thickness: float | None, what: str) -> float:
         """Validate ``material`` (an ITU type defined at the carrier, or one of
@@ -253,6 +259,7 @@ class TwinScene:
         obj.radio_material = self._radio_material(material, thickness)
         self.objects[name] = replace(info, material=material, thickness=thickness)
         self.revision += 1
+        self.edits.append(("set_material", (name, material, thickness)))
 
     def remove_object(self, name: str) -> None:
         """Remove an object from the scene (the next trace no longer sees it)."""
@@ -261,6 +268,7 @@ class TwinScene:
         del self.objects[name]
         self.object_poses.pop(name, None)
         self.revision += 1
+        self.edits.append(("remove_object", (name,)))
 
     def add_object(self, name: str, mesh_file: str | Path, material: str,
                    thickness: float | None = None) -> None:
@@ -289,11 +297,37 @@ class TwinScene:
             bounds_min=tuple(lo.tolist()), bounds_max=tuple(hi.tolist()),
             mesh_sha256=mesh.sha256)
         self.revision += 1
+        self.edits.append(("add_object", (name, str(mesh_file), material, float(thickness))))
+
+    def replay(self, edits) -> None:
+        """Apply ``edits`` (entries of another scene's :attr:`edits`, made on a
+        scene loaded from the same folder) in order, so this scene becomes that
+        one's replica.
+
+        Raises:
+            ValueError: an entry that is not one of the edit methods.
+        """
+        for i, entry in enumerate(edits):
+            name, args = entry
+            if name not in _EDIT_METHODS:
+                raise ValueError(f"replay: edits[{i}]: {name!r} is not an edit "
+                                 f"(expected one of {', '.join(_EDIT_METHODS)})")
+            getattr(self, name)(*args)
 
     def contains(self, point, tol: float = BOUNDS_TOLERANCE_M) -> bool:
         """Whether ``point`` ``[3]`` (m) lies inside the room's bounding box."""
         p = np.asarray(point, dtype=float)
         return bool(np.all(p >= self.bounds_min - tol) and np.all(p <= self.bounds_max + tol))
+
+
+#: The :class:`TwinScene` methods that change the scene (logged in ``TwinScene.edits``).
+_EDIT_METHODS = ("move_object", "define_material", "set_material", "remove_object",
+                 "add_object")
+
+
+def _plain(v):
+    """``None`` or a list of floats (an edit's vector, as logged)."""
+    return None if v is None else [float(x) for x in np.asarray(v, np.float64).reshape(-1)]
 
 
 #: What the exporter writes inside a ``<bsdf>`` and a ``<shape>`` (tag, name); anything

@@ -38,6 +38,7 @@ from engine.meshes import MeshError, confine, parse_ply, read_ply
 from engine.msgs import Clock, Csi, Header, TFMessage, quaternion_to_yaw
 from engine.phy.network import NetworkPHY
 from engine.phy.patterns import AntennaPatterns
+from engine.phy.threads import one_blas_thread
 from engine.pose import DevicePose, antenna_pose
 from engine.raytrace import make_tracer
 from engine.robots import SensorOptions, build_robots, cast_scans
@@ -79,9 +80,10 @@ class RunStats:
             ``stage_s``: on a shared machine a stage whose wall time far exceeds
             its CPU time waited for a core; Dr.Jit's kernel threads and BLAS
             threads are not counted, so for ``trace`` it is the Python side).
-        startup_s: the start-up step of a paced run, s: the twin's first step
-            (chain enumeration, kernel recording and compilation), which the
-            schedule starts after and which is no overrun.
+        startup_s: the start-up of a paced run, s: the twin's first step
+            (chain enumeration, kernel recording and compilation; with a radar
+            also its first frame and the second step, see :meth:`Twin.run`),
+            which the schedule starts after and which is no overrun.
     """
 
     steps: int = 0
@@ -95,8 +97,8 @@ class RunStats:
 
     def overrun_summary(self) -> str:
         """``"N overruns"`` with their causes, e.g. ``"2 overruns (trace 2; 3.1 ms late)"``,
-        and the start-up step's time when a paced run had one."""
-        start = f" after a {self.startup_s:.2f} s start-up step" if self.startup_s else ""
+        and the start-up's time when a paced run had one."""
+        start = f" after a {self.startup_s:.2f} s start-up" if self.startup_s else ""
         if not self.overruns:
             return f"0 overruns{start}"
         causes = ", ".join(f"{k} {v}" for k, v in sorted(self.overrun_stages.items(),
@@ -154,6 +156,11 @@ class Twin:
             thread while the next steps run, delivered a fixed number of steps
             later (:class:`~engine.sensing.worker.SensingWorker`; the same frames,
             stamped with the step they sensed).
+        sensing_process: compute the radar frames in a child process instead of
+            a thread (:class:`~engine.sensing.process.SensingProcess`: the same
+            frames on the same steps; the twin's steps no longer wait behind a
+            frame for the interpreter or Dr.Jit's threads, which a paced run
+            needs). Not with ``sync_sensing``.
         asset_dirs: folders an ``add`` edit may name a mesh in by absolute path
             (besides the scene folder, where paths are relative).
         localize: run the config's ``[localization]`` (a
@@ -186,9 +193,13 @@ class Twin:
                  sensors: SensorOptions | None = None, tracer=None, phy: bool = True,
                  estimators: list[Estimator] | None = None, sensing: bool = True,
                  asset_dirs: list[str | Path] | tuple = (),
-                 localize: bool = True, sync_sensing: bool = False) -> None:
+                 localize: bool = True, sync_sensing: bool = False,
+                 sensing_process: bool = False) -> None:
         if not dt > 0:
             raise ValueError(f"dt: expected a positive step in s, got {dt}")
+        if sync_sensing and sensing_process:
+            raise ValueError("sync_sensing and sensing_process: choose one (the radar "
+                             "frames on the stepping thread or in a child process)")
         self.scene = scene
         self.config = scene.config
         self.seed, self.dt = int(seed), float(dt)
@@ -203,10 +214,11 @@ class Twin:
         self.localizer = None
         self.sensing_enabled = bool(sensing) and bool(self.config.sensing)
         self.sync_sensing = bool(sync_sensing)
+        self.sensing_process = bool(sensing_process)
         #: the ``[[sensing]]`` radar (a RadarEstimator), rebuilt by reset(); None without
         self.radar = None
-        #: the radar's worker thread (a SensingWorker; None without a radar or
-        #: with ``sync_sensing``)
+        #: the radar's worker thread (a SensingWorker) or process (a
+        #: SensingProcess); None without a radar or with ``sync_sensing``
         self.sensing_worker = None
         #: ``schedule(step_index) -> bool``: trace on this step (None: every step)
         self.trace_schedule: Callable[[int], bool] | None = None
@@ -272,20 +284,29 @@ class Twin:
         """One :class:`~engine.sensing.estimator.RadarEstimator` for every
         ``[[sensing]]`` table (fresh tracker after a reset); its detections
         topic is advertised on the new bus at once."""
-        if self.sensing_worker is not None:  # a reset: the old radar's frame is dropped
-            self.sensing_worker.close()
-            self.sensing_worker = None
+        old = self.sensing_worker
+        if old is not None and not self.sensing_process:  # a reset: the old frame is dropped
+            old.close()
+            self.sensing_worker = old = None
         if not self.sensing_enabled:
             return
         from engine.sensing.config import parse_sensing
         from engine.sensing.estimator import RadarEstimator
+        from engine.sensing.process import SensingProcess
         from engine.sensing.worker import SensingWorker
 
         self.radar = RadarEstimator(parse_sensing(self.config), seed=self.seed)
         self.radar.attach(self.bus)
-        if not self.sync_sensing:
-            latency = min(max(int(s.every), 1) for s in self.radar.links)
+        if self.sync_sensing:
+            return
+        latency = min(max(int(s.every), 1) for s in self.radar.links)
+        if not self.sensing_process:
             self.sensing_worker = SensingWorker(self.radar, latency)
+        elif old is not None:  # a reset: the child drops its frame and starts a new radar
+            old.reset(self.radar.links, self.seed)
+        else:
+            self.sensing_worker = SensingProcess(self.scene, self.radar.links, self.seed,
+                                                 latency)
 
     def _build_localizer(self) -> None:
         """The ``[localization]`` estimator, appended to :attr:`estimators` once
@@ -449,7 +470,7 @@ class Twin:
 
     def _apply_pending(self) -> None:
         edits, self._pending_edits = self._pending_edits, []
-        if edits and self.sensing_worker is not None:
+        if edits and self.sensing_worker is not None and self.sensing_worker.shares_scene:
             self.sensing_worker.wait()  # the radar frame out traces this scene
         for e in edits:
             try:
@@ -634,7 +655,12 @@ class Twin:
 
     def step(self) -> StepResult:
         """Run one step of Algorithm 1 and return what it produced (takes one of the
-        :attr:`pending_steps`, if any)."""
+        :attr:`pending_steps`, if any). BLAS runs on one thread meanwhile
+        (:func:`~engine.phy.threads.one_blas_thread`: the PHY's matrices are small)."""
+        with one_blas_thread():
+            return self._step()
+
+    def _step(self) -> StepResult:
         self.pending_steps = max(0, self.pending_steps - 1)
         self._apply_pending()
         clock = _StageClock()
@@ -770,10 +796,21 @@ class Twin:
         :attr:`RunStats.overrun_stages`) and logged, and the schedule restarts
         from now (no burst of catch-up steps).
 
+        Paced with the radar in a child process (``sensing_process``), the twin's
+        own Dr.Jit runs on one thread for the run (restored after it): its
+        kernels are small, and the idle thread of a two-thread pool spins
+        between them, taking the CPU the radar's process needs (the lab with 4
+        robots: 20.1 ms wall and 40.1 ms CPU per step on two threads, 22.9 and
+        22.8 ms on one).
+
         Paced, the twin's first step is its start-up (the tracer enumerates its
         chains and Dr.Jit records and compiles its kernels: ~1.2 s for the lab
         with 4 robots): the schedule starts when it ends
-        (:attr:`RunStats.startup_s`). Then the objects alive are moved out of
+        (:attr:`RunStats.startup_s`). With a radar, the start-up also waits for
+        its first frame (Sionna compiles the radar's solvers) and takes the
+        second step too: the first frame put the robots' targets into the
+        scene, so that step's trace enumerates its chains again (~1.5 s on the
+        lab with 4 robots). Then the objects alive are moved out of
         Python's cyclic garbage collector (``gc.freeze``: they are kept for the
         process's life), so that its full collections, which walked them all
         (~30 ms on the lab, an overrun at 20 Hz), stay short.
@@ -783,23 +820,38 @@ class Twin:
         if rate_hz is not None and not rate_hz > 0:
             raise ValueError(f"rate_hz: expected a positive rate, got {rate_hz}")
         period = 1.0 / rate_hz if rate_hz else 0.0
+        jit_threads = None
+        if period and self.sensing_process and self.radar is not None:
+            import drjit as dr
+
+            jit_threads = dr.thread_count()
+            dr.set_thread_count(1)
+        try:
+            yield from self._run(steps, period, rate_hz, on_step)
+        finally:
+            if jit_threads is not None:
+                dr.set_thread_count(jit_threads)
+
+    def _run(self, steps: int, period: float, rate_hz, on_step) -> Iterator[StepResult]:
         start = time.perf_counter()
         deadline = start + period
         for _ in range(steps):
-            startup = bool(period) and self.step_index == 0
+            startup = bool(period) and self.step_index < (2 if self.radar is not None else 1)
             res = self.step()
             t_done = time.perf_counter()
             if on_step is not None:
                 on_step(res)
             yield res
             if startup:
+                if self.sensing_worker is not None:
+                    self.sensing_worker.wait()
                 now = time.perf_counter()
                 self.stats.startup_s = now - start
                 gc.collect()
                 gc.freeze()
                 deadline = time.perf_counter() + period
-                log.info("start-up step took %.2f s; pacing at %.1f Hz from now",
-                         now - start, rate_hz)
+                log.info("start-up (step %d) took %.2f s; pacing at %.1f Hz after it",
+                         res.step, now - start, rate_hz)
             elif period:
                 now = time.perf_counter()
                 if now > deadline:

@@ -69,6 +69,7 @@ from engine.phy.link import (AchievableRate, EqualPower, Interferer, SVDPrecoder
                              WaterFilling, channel_gains, rate_per_re, svd_streams,
                              water_levels, wideband_streams)
 from engine.phy.ofdm import ResourceGrid, ResourceSet
+from engine.phy.threads import one_blas_thread
 from engine.phy.units import dbm_to_watt, thermal_noise_power
 
 __all__ = ["LinkSignal", "METHODS", "NetworkPHY"]
@@ -174,7 +175,8 @@ class _PerRE:
         fn = self.fns.get(name)
         if fn is None:
             raise KeyError(f"per_re: expected one of {', '.join(self.fns)}, got {name!r}")
-        return fn()
+        with one_blas_thread():  # as in the step: the same bits wherever it is read
+            return fn()
 
 
 class _Once:
@@ -269,9 +271,10 @@ class NetworkPHY:
         """Args: ``{(tx, rx): LinkPaths}`` (iso-traced, or with the devices'
         patterns already applied). Returns ``{(tx, rx): LinkSignal}``."""
         link_paths = self.patterns(link_paths)
-        if self.method == "reference":
-            return self._reference(link_paths)
-        return self._fast(link_paths, batched=self.method == "batched")
+        with one_blas_thread():  # small matrices; and the same bits however it is called
+            if self.method == "reference":
+                return self._reference(link_paths)
+            return self._fast(link_paths, batched=self.method == "batched")
 
     def _steering(self, name: str, theta, phi, orientation) -> np.ndarray:
         """Steering vectors ``[L, Nant]`` of device ``name``'s array; the rotated

@@ -16,6 +16,7 @@ tracks are published on ``/sensing/detections``
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -62,6 +63,7 @@ class SensingStep:
     truth: dict = field(default_factory=dict)
     step: int | None = None
     time_s: float | None = None
+    compute_s: float | None = None
 
 
 @dataclass
@@ -78,6 +80,8 @@ class SensingJob:
         truth: target name -> ``[3]`` centre (m).
         grid: the OFDM grid.
         contains: ``contains(point, tol=) -> bool``, inside the room.
+        targets: the robot targets (:class:`TargetSpec`) posed in the scene for
+            this frame.
     """
 
     step: int
@@ -88,6 +92,7 @@ class SensingJob:
     truth: dict
     grid: ResourceGrid
     contains: object
+    targets: list = field(default_factory=list)
 
 
 class RadarEstimator:
@@ -151,32 +156,36 @@ class RadarEstimator:
 
     # ------------------------------------------------------------------ setup
 
-    def _setup(self, twin) -> None:
+    def setup(self, scene) -> None:
+        """Trace on ``scene`` (a :class:`~engine.scene.TwinScene`; its config
+        names the devices and the grid): a new tracer, receivers and
+        background per link (called by the first :meth:`prepare` with the
+        twin's scene, and by the radar's process with its replica)."""
         if self.links is None:
             from engine.sensing.config import parse_sensing
 
-            self.links = parse_sensing(twin.config)
+            self.links = parse_sensing(scene.config)
         if not self.links:
             raise SensingError("RadarEstimator: no sensing links (pass links= or add "
                                "[[sensing]] tables to twin.toml)")
-        names = {d.name for d in twin.config.devices}
+        names = {d.name for d in scene.config.devices}
         for s in self.links:
             for n in (s.tx, s.rx):
                 if n not in names:
                     raise SensingError(f"sensing link {s.name!r}: unknown device {n!r}")
-        self._scene = twin.scene
-        self.tracer = SensingTracer(twin.scene, **self.tracer_kw)
-        grid = grid_from_config(twin.config)
+        self._scene = scene
+        self.tracer = SensingTracer(scene, **self.tracer_kw)
+        grid = grid_from_config(scene.config)
         for i, s in enumerate(self.links):
             rx = SensingReceiver(s, grid, seed=self.seed + 7919 * i)
             self._state[s.name] = {
                 "spec": s, "rx": rx, "radar": None, "orientation": None,
                 "bg": BackgroundSubtractor(self.background, self.beta, s.name)}
         for name in self.object_targets:
-            if name not in twin.scene.objects:
+            if name not in scene.objects:
                 raise SensingError(f"RadarEstimator: object_targets: no object {name!r} "
                                    f"in the scene")
-            o = twin.scene.objects[name]
+            o = scene.objects[name]
             lo, hi = np.asarray(o.bounds_min), np.asarray(o.bounds_max)
             self.tracer.set_target(TargetSpec(name=name, size=tuple(hi - lo),
                                               sigma=self.sigma, position=(lo + hi) / 2))
@@ -194,21 +203,27 @@ class RadarEstimator:
             st["orientation"] = ori
         return st["radar"]
 
-    def update_targets(self, twin, result) -> dict:
-        """Pose every robot target from the step's truth; returns name -> centre."""
-        truth = {}
+    def update_targets(self, twin, result) -> list[TargetSpec]:
+        """Pose every robot target from the step's truth; returns their specs."""
+        specs = []
         if not self.robot_targets:
-            return truth
+            return specs
         h = self.target_size[2]
         for name, rs in result.robots.items():
             x, y, z, _, _, yaw = (float(v) for v in rs.pose[:6])
             v = float(rs.velocity[0])
-            centre = np.array([x, y, z + h / 2])
-            self.tracer.set_target(TargetSpec(
-                name=name, size=self.target_size, sigma=self.sigma, position=centre, yaw=yaw,
+            specs.append(TargetSpec(
+                name=name, size=self.target_size, sigma=self.sigma,
+                position=np.array([x, y, z + h / 2]), yaw=yaw,
                 velocity=np.array([v * np.cos(yaw), v * np.sin(yaw), 0.0])))
-            truth[name] = centre
-        return truth
+        self.pose_targets(specs)
+        return specs
+
+    def pose_targets(self, specs) -> None:
+        """Put the targets ``specs`` (:class:`TargetSpec`) into this radar's scene
+        (the radar's process poses its replica's from a job's ``targets``)."""
+        for spec in specs:
+            self.tracer.set_target(spec)
 
     # ------------------------------------------------------------------ step
 
@@ -237,22 +252,25 @@ class RadarEstimator:
         scene from the step's truth, a snapshot of the device poses. None when no
         link is due (the call still counts for ``every``)."""
         if self.tracer is None or self._scene is not twin.scene:
-            self._setup(twin)
+            self.setup(twin.scene)
         call, self._calls = self._calls, self._calls + 1
         due = [s for s in self.links if call % max(int(s.every), 1) == 0]
         if not due:
             return None
-        truth = self.update_targets(twin, result)
+        targets = self.update_targets(twin, result)
         dt = twin.dt if self._last_t is None else max(result.time_s - self._last_t, 1e-9)
         self._last_t = result.time_s
         return SensingJob(step=result.step, time_s=result.time_s, dt=dt, links=due,
-                          poses=twin.device_poses(), truth=truth,
-                          grid=grid_from_config(twin.config), contains=twin.scene.contains)
+                          poses=twin.device_poses(),
+                          truth={t.name: t.position for t in targets},
+                          grid=grid_from_config(twin.config), contains=twin.scene.contains,
+                          targets=targets)
 
     def compute(self, job: SensingJob) -> SensingStep:
         """Trace, receive, process and track one frame (any thread; it touches
         neither the twin nor its bus, only this estimator's own state: tracer,
         noise streams, background, tracker, in frame order)."""
+        t0 = time.perf_counter()
         poses, grid = job.poses, job.grid
         traced = self.tracer(poses, [(s.tx, s.rx) for s in job.links])
         out = SensingStep(truth=job.truth, step=job.step, time_s=job.time_s)
@@ -287,6 +305,7 @@ class RadarEstimator:
                 out.maps[s.name] = rd
         out.tracks = [_copy_track(t)
                       for t in self.tracker.update(np.array(measurements), job.dt)]
+        out.compute_s = time.perf_counter() - t0
         return out
 
     def deliver(self, twin, out: SensingStep) -> None:

@@ -47,6 +47,9 @@ class SensingWorker:
         latency: steps between the sensed step and the step that delivers it (>= 1).
     """
 
+    #: frames trace the twin's own scene: edits wait for the frame out
+    shares_scene = True
+
     def __init__(self, radar, latency: int) -> None:
         if int(latency) < 1:
             raise ValueError(f"latency: expected >= 1 step, got {latency!r}")

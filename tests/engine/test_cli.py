@@ -39,7 +39,7 @@ def test_run_prints_a_line_per_step_and_timing(lab, capsys):
     out = capsys.readouterr().out
     assert re.search(r"paced at 1000 Hz: 3 steps in [\d.]+ s, 2 overruns \("
                      r"(agents|trace|phy|sense|estimate|control|caller) [12].*"
-                     r"after a [\d.]+ s start-up step", out), out
+                     r"after a [\d.]+ s start-up", out), out
 
 
 @pytest.mark.slow

@@ -6,7 +6,8 @@ import pytest
 from engine.config import ConfigError
 from engine.meshes import read_ply
 from engine.scene import itu_defined_at, load_scene
-from engine.synthetic import SyntheticDevice, SyntheticObject, box_mesh, box_room, write_scene_folder
+from engine.synthetic import (SyntheticDevice, SyntheticObject, box_mesh, box_room,
+                              write_ply, write_scene_folder)
 
 
 @pytest.fixture()
@@ -113,6 +114,35 @@ def test_content_hash_is_cached_until_an_edit(tmp_path):
     assert h1 != h0
     scene.set_material("floor", "brick")
     assert scene.content_hash() not in (h0, h1)
+
+
+def test_a_replica_replaying_the_edits_is_the_same_scene(tmp_path):
+    """``TwinScene.edits`` logs every edit method; a scene loaded from the same
+    folder that replays them (the radar's process does) hashes and traces the same."""
+    folder = box_room(tmp_path / "r")
+    scene = load_scene(folder)
+    box = tmp_path / "box.ply"
+    v, f = box_mesh((1.0, 1.0, 0.0), (1.5, 1.4, 0.8))
+    write_ply(box, v, f)
+    scene.move_object("floor", position=(3.0, 2.0, -0.04), orientation=(0.0, 0.0, 0.1))
+    scene.define_material("wet", {"relative_permittivity": 9.0, "conductivity": 0.2,
+                                  "thickness": 0.12})
+    scene.set_material("ceiling", "wet")
+    scene.add_object("crate", box, "wood")
+    scene.remove_object("wall_xmin")
+    with pytest.raises(KeyError):
+        scene.remove_object("wall_xmin")  # a refused edit is not logged
+    assert [e[0] for e in scene.edits] == ["move_object", "define_material", "set_material",
+                                           "add_object", "remove_object"]
+    replica = load_scene(folder)
+    assert replica.content_hash() != scene.content_hash()
+    replica.replay(scene.edits)
+    assert replica.content_hash() == scene.content_hash()
+    assert set(replica.sionna.objects) == set(scene.sionna.objects)
+    np.testing.assert_allclose(replica.sionna.objects["floor"].position.numpy(),
+                               scene.sionna.objects["floor"].position.numpy())
+    with pytest.raises(ValueError, match=r"edits\[1\]: 'contains' is not an edit"):
+        load_scene(folder, load_sionna=False).replay([scene.edits[1], ("contains", ((0, 0, 0),))])
 
 
 def _fifo(folder):

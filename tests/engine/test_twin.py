@@ -301,7 +301,7 @@ def test_paced_run_starts_its_schedule_after_the_start_up_step(lab):
     list(tw.run(3, rate_hz=4.0))
     st = tw.stats
     assert st.startup_s >= 0.4 and st.overruns == 0, st.overrun_summary()
-    assert "start-up step" in st.overrun_summary() and gc.get_freeze_count() > 0
+    assert "start-up" in st.overrun_summary() and gc.get_freeze_count() > 0
     tw.estimators.append(lambda twin, res: time.sleep(0.4))
     list(tw.run(1, rate_hz=4.0))  # a later run has no start-up step: an overrun
     assert tw.stats.overruns == 1 and tw.stats.overrun_stages == {"estimate": 1}
