@@ -72,8 +72,11 @@ def overlap_config(cfg):
 
 def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
                 overlap: bool = False, sensing: bool = False, folder: Path | None = None,
-                sync_sensing: bool = False, rate_hz: float | None = None) -> dict:
+                sync_sensing: bool = False, rate_hz: float | None = None,
+                sensing_process: bool = False) -> dict:
     kw = {"sync_sensing": True} if sync_sensing else {}  # (an older engine lacks the option)
+    if sensing_process:
+        kw["sensing_process"] = True
     tw = Twin.from_scene(folder or engine.bundled_scene_dir(), seed=seed, tracer=tracer,
                          sensors=SensorOptions(lidar=True, imu=True, odometry=True,
                                                camera=False), sensing=sensing, **kw)
@@ -301,9 +304,10 @@ def run_robots_variant(counts, steps: int, warmup: int, split: bool = False) -> 
 def run_sensing_variant(steps: int, warmup: int, robots: int = 1,
                         rate_hz: float | None = None) -> dict:
     """The lab (with ``robots`` robots) and its ``[[sensing]]`` radar (AP2 -> AP1,
-    every 10th step) three ways, same seed, default (batched) PHY: without sensing,
-    the radar on the stepping thread (``sync_sensing=True``) and on the twin's
-    sensing worker (the default). Prints the stage tables (the sense stage's wall
+    every 10th step) four ways, same seed, default (batched) PHY: without sensing,
+    the radar on the stepping thread (``sync_sensing=True``), on the twin's
+    sensing worker thread (the default) and in its own process
+    (``sensing_process=True``). Prints the stage tables (the sense stage's wall
     and stepping-thread CPU), steps/s, overruns when paced at ``rate_hz``, and
     each against the twin without sensing."""
     import gc
@@ -313,12 +317,14 @@ def run_sensing_variant(steps: int, warmup: int, robots: int = 1,
     with tempfile.TemporaryDirectory() as tmp:
         folder = (engine.bundled_scene_dir() if robots == 1
                   else lab_with_robots(robots, Path(tmp) / f"lab{robots}"))
-        for label, on, sync in (("without sensing", False, False),
-                                ("radar on the stepping thread", True, True),
-                                ("radar on the sensing worker", True, False)):
+        for label, on, mode in (("without sensing", False, "thread"),
+                                ("radar on the stepping thread", True, "sync"),
+                                ("radar on the sensing worker", True, "thread"),
+                                ("radar in its own process", True, "process")):
             gc.collect()  # a dead twin's sensing targets would keep this one's trace unfrozen
             r = run_variant("batched", steps, warmup, sensing=on, folder=folder,
-                            sync_sensing=sync, rate_hz=rate_hz)
+                            sync_sensing=mode == "sync", rate_hz=rate_hz,
+                            sensing_process=mode == "process")
             out[label] = r
             print(f"== {robots} robot(s), {label} ({steps} steps"
                   + (f", paced at {rate_hz:g} Hz" if rate_hz else "") + f")\n{r['table']}")
@@ -386,7 +392,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--allocations", default="bundled,overlap")
     ap.add_argument("--sensing", action="store_true",
                     help="only the sensing variant (run_sensing_variant): without sensing, "
-                         "radar on the stepping thread, radar on the sensing worker; with "
+                         "radar on the stepping thread, on the sensing worker, in its own "
+                         "process; with "
                          "--robots N (one count) the lab with N robots, with --rate HZ paced")
     ap.add_argument("--rate", type=float, default=None,
                     help="with --sensing: pace the steps at this rate and count overruns")

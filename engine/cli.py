@@ -321,11 +321,21 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of every random stream")
     p.add_argument("--no-phy", action="store_true", help="skip channels and rates")
     p.add_argument("--timing", action="store_true", help="print the per-stage timing table")
+    _radar_arg(p)
+
+
+def _radar_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--radar", choices=("auto", "thread", "process", "sync"), default="auto",
                    help="where the [[sensing]] radar computes its frames: a worker thread, "
                         "a child process (the twin's steps do not wait behind a frame), "
                         "or the stepping thread (each frame on its own step); auto "
                         "(default): process with --rate, thread otherwise")
+
+
+def _radar_kw(args) -> dict:
+    """The Twin keywords of ``--radar`` (and ``--rate``)."""
+    radar = args.radar if args.radar != "auto" else ("process" if args.rate else "thread")
+    return {"sync_sensing": radar == "sync", "sensing_process": radar == "process"}
 
 
 def _radar_line(frame) -> str:
@@ -345,9 +355,8 @@ def cmd_run(args) -> int:
         print(f"isac-twin: error: --rate {args.rate}: expected a positive rate in Hz",
               file=sys.stderr)
         return 2
-    radar = args.radar if args.radar != "auto" else ("process" if args.rate else "thread")
     twin = Twin.from_scene(scene_path(args), seed=args.seed, dt=args.dt, phy=not args.no_phy,
-                           sync_sensing=radar == "sync", sensing_process=radar == "process")
+                           **_radar_kw(args))
     for r in twin.run(args.steps, rate_hz=args.rate):
         parts = [f"step {r.step:4d} t={r.time_s:6.2f}s"]
         for name, rb in r.robots.items():
@@ -824,6 +833,7 @@ def _record_args(p: argparse.ArgumentParser) -> None:
                         "wall-clock stamps) for ROS 2 nodes; needs --connect")
     p.add_argument("--share-prefix", default="/twin",
                    help="prefix of shared topic names (default /twin; '' keeps the names)")
+    _radar_arg(p)
 
 
 @command("record", "run the twin and record all its topics, link metrics and paths to MCAP",
@@ -844,7 +854,7 @@ def cmd_record(args) -> int:
     except ValueError as exc:
         print(f"isac-twin: error: --csi-snr: {exc}", file=sys.stderr)
         return 2
-    twin = Twin.from_scene(scene_path(args), seed=args.seed)
+    twin = Twin.from_scene(scene_path(args), seed=args.seed, **_radar_kw(args))
     bridge = None
     if args.connect:
         from engine.transport.bridge import TwinBridge
@@ -866,6 +876,7 @@ def cmd_record(args) -> int:
     finally:
         if bridge is not None:
             bridge.close()
+        twin.close()  # (record_twin kept the last radar frame)
     print(f"recorded {rec.messages} messages of {args.steps} steps to {args.out}")
     return 0
 

@@ -655,12 +655,9 @@ class Twin:
 
     def step(self) -> StepResult:
         """Run one step of Algorithm 1 and return what it produced (takes one of the
-        :attr:`pending_steps`, if any). BLAS runs on one thread meanwhile
+        :attr:`pending_steps`, if any). BLAS runs on one thread
         (:func:`~engine.phy.threads.one_blas_thread`: the PHY's matrices are small)."""
-        with one_blas_thread():
-            return self._step()
-
-    def _step(self) -> StepResult:
+        one_blas_thread()
         self.pending_steps = max(0, self.pending_steps - 1)
         self._apply_pending()
         clock = _StageClock()

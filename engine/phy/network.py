@@ -175,8 +175,8 @@ class _PerRE:
         fn = self.fns.get(name)
         if fn is None:
             raise KeyError(f"per_re: expected one of {', '.join(self.fns)}, got {name!r}")
-        with one_blas_thread():  # as in the step: the same bits wherever it is read
-            return fn()
+        one_blas_thread()  # (in case it is read in a process that never stepped)
+        return fn()
 
 
 class _Once:
@@ -271,10 +271,10 @@ class NetworkPHY:
         """Args: ``{(tx, rx): LinkPaths}`` (iso-traced, or with the devices'
         patterns already applied). Returns ``{(tx, rx): LinkSignal}``."""
         link_paths = self.patterns(link_paths)
-        with one_blas_thread():  # small matrices; and the same bits however it is called
-            if self.method == "reference":
-                return self._reference(link_paths)
-            return self._fast(link_paths, batched=self.method == "batched")
+        one_blas_thread()  # small matrices (engine.phy.threads)
+        if self.method == "reference":
+            return self._reference(link_paths)
+        return self._fast(link_paths, batched=self.method == "batched")
 
     def _steering(self, name: str, theta, phi, orientation) -> np.ndarray:
         """Steering vectors ``[L, Nant]`` of device ``name``'s array; the rotated

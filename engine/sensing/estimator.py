@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from engine.phy.ofdm import ResourceGrid
+from engine.phy.threads import one_blas_thread
 from engine.pose import DevicePose, sionna_orientation
 from engine.sensing.clutter import BackgroundSubtractor
 from engine.sensing.geometry import locate
@@ -271,6 +272,7 @@ class RadarEstimator:
         neither the twin nor its bus, only this estimator's own state: tracer,
         noise streams, background, tracker, in frame order)."""
         t0 = time.perf_counter()
+        one_blas_thread()  # as the twin's steps: the same bits on any thread
         poses, grid = job.poses, job.grid
         traced = self.tracer(poses, [(s.tx, s.rx) for s in job.links])
         out = SensingStep(truth=job.truth, step=job.step, time_s=job.time_s)

@@ -203,7 +203,6 @@ def _child_main(conn) -> None:
     os.nice(max(0, nice - os.nice(0)))  # before Dr.Jit starts its threads: they inherit it
     try:
         import engine  # noqa: F401  (the LLVM library Dr.Jit needs, before Dr.Jit loads)
-        from engine.phy.threads import one_blas_thread
         from engine.scene import load_scene
         from engine.sensing.estimator import RadarEstimator
 
@@ -239,8 +238,7 @@ def _child_main(conn) -> None:
                     f"{scene.content_hash()[:12]}, the twin's scene {scene_hash[:12]}: the twin's "
                     f"scene was changed other than by TwinScene's edit methods")
             radar.pose_targets(job.targets)
-            with one_blas_thread():
-                out = radar.compute(dataclasses.replace(job, contains=scene.contains))
+            out = radar.compute(dataclasses.replace(job, contains=scene.contains))
             conn.send(("frame", out))
         except Exception as exc:  # noqa: BLE001
             conn.send(("error", _portable(exc)))

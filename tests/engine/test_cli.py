@@ -287,3 +287,22 @@ def test_fingerprints_on_two_workers_equal_the_single_process_database(lab, tmp_
     np.testing.assert_array_equal(db.arrays["num_paths"], da.arrays["num_paths"])
     for k, v in da.arrays.items():  # same paths, to float32 rounding (see tests/engine/scaleout)
         np.testing.assert_allclose(db.arrays[k], v, rtol=1e-5, equal_nan=True, err_msg=k)
+
+
+@pytest.mark.slow
+def test_run_radar_in_a_process_prints_the_synchronous_frames(capsys):
+    """``--radar process``: the same radar lines as ``--radar sync``, each frame
+    printed on the step that delivers it (step 0's on step 10; the last flushed)."""
+    import engine
+
+    lines = {}
+    for mode in ("sync", "process"):
+        assert main(["run", str(engine.bundled_scene_dir()), "--steps", "11", "--no-phy",
+                     "--radar", mode]) == 0
+        out = capsys.readouterr().out.splitlines()
+        lines[mode] = [re.search(r"radar \(step \d+\).*", ln).group(0) for ln in out
+                       if "radar (step" in ln]
+        if mode == "process":
+            assert "radar (step 0)" in next(ln for ln in out if ln.startswith("step   10"))
+    assert [ln.split(")")[0] for ln in lines["sync"]] == ["radar (step 0", "radar (step 10"]
+    assert lines["process"] == lines["sync"]

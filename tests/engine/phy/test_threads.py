@@ -1,36 +1,38 @@
-"""engine/phy/threads.py: the twin steps with BLAS on one thread."""
+"""engine/phy/threads.py: a process that runs the twin runs BLAS on one thread."""
 
+import subprocess
+import sys
+import textwrap
 from pathlib import Path
 
-import numpy as np
-import pytest
-from threadpoolctl import threadpool_info
+ROOT = Path(__file__).resolve().parents[3]
 
-from engine.phy.threads import one_blas_thread
+# In a fresh process: numpy's OpenBLAS starts on every core (2 on CI), the
+# twin's first step (or a PHY call) puts every loaded BLAS on one thread for
+# good, also a library loaded later (scipy's own OpenBLAS).
+_SCRIPT = textwrap.dedent("""
+    import numpy as np
+    from threadpoolctl import threadpool_info
+    from engine.phy.threads import one_blas_thread
 
-LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"
+    def blas():
+        return sorted(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+    before = blas()
+    one_blas_thread()
+    after = blas()
+    import scipy.linalg  # brings its own BLAS
+    loaded = blas()
+    one_blas_thread()
+    print(before, after, loaded, blas())
+""")
 
 
-def _blas_threads():
-    np.ones((4, 4)) @ np.ones((4, 4))  # (numpy's BLAS is loaded)
-    return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
-
-
-def test_one_blas_thread_inside_and_the_old_count_after():
-    before = _blas_threads()
-    assert before
-    with one_blas_thread():
-        assert set(_blas_threads()) == {1}
-    assert _blas_threads() == before
-
-
-@pytest.mark.slow
-def test_the_twin_steps_with_one_blas_thread():
-    from engine.twin import Twin
-
-    seen = []
-    tw = Twin.from_scene(LAB, dt=0.05, sensing=False, localize=False,
-                         estimators=[lambda twin, result: seen.append(_blas_threads())])
-    tw.step()  # (its first step may import a library with a BLAS of its own)
-    tw.step()
-    assert len(seen) == 2 and set(seen[1]) == {1}
+def test_one_blas_thread_for_every_loaded_library_and_later_ones():
+    r = subprocess.run([sys.executable, "-c", _SCRIPT], cwd=ROOT, capture_output=True,
+                       text=True, timeout=120,
+                       env={"PATH": "/usr/bin:/bin", "OPENBLAS_NUM_THREADS": "2"})
+    assert r.returncode == 0, r.stderr
+    before, after, loaded, final = (eval(x + "]") for x in r.stdout.strip()[:-1].split("] "))
+    assert before == [2] and after == [1]
+    assert len(loaded) == 2 and max(loaded) == 2 and final == [1, 1]
