@@ -68,6 +68,16 @@ FROZEN_RECORDINGS = 8
 PRIME_CALLS = 3
 
 
+def neighbour_buckets(b: int) -> list[int]:
+    """The :func:`pad_pairs` buckets just below (if any: none below 1024) and
+    just above the bucket ``b``."""
+    out = []
+    if b > 1024:
+        out.append(b - (1 << (int(b - 1).bit_length() - 4)))
+    out.append(pad_pairs(b + 1))
+    return out
+
+
 def pad_pairs(n: int) -> int:
     """The padded size of ``n`` (chain, target) pairs in a frozen evaluation:
     at least 1024, else ``n`` rounded up to a multiple of an eighth of its
@@ -515,16 +525,26 @@ class ChainTracer:
                         # Dr.Jit records a new size again on its next call or
                         # two; do it now, in the call that records anyway,
                         # not in the steps after (a paced run's overruns).
-                        for _ in range(PRIME_CALLS):
-                            dr.eval(*cols)
-                            n_rec = self.recordings
-                            cols = run(True, self._inputs, ci, ti, pad)
-                            if self.recordings == n_rec:
-                                break
-                    self.frozen_sizes.pop(size, None)
-                    self.frozen_sizes[size] = None
-                    while len(self.frozen_sizes) > FROZEN_RECORDINGS:
-                        del self.frozen_sizes[next(iter(self.frozen_sizes))]
+                        cols = self._prime(run, cols, ci, ti, pad)
+                        # and the buckets either side: a pair count near a
+                        # bucket's edge crosses it back and forth (the 4-robot
+                        # lab: 2560 from step 1, 2304 at step 7, a 30 ms trace)
+                        dr.eval(*cols)
+                        for m in neighbour_buckets(b):
+                            if (ns, len(g), m) in self.frozen_sizes:
+                                continue
+                            if m > n:  # more padding
+                                cm = np.concatenate([chain_idx,
+                                                     np.full(m - n, empty, chain_idx.dtype)])
+                                tm = np.concatenate([tgt_idx, np.zeros(m - n, tgt_idx.dtype)])
+                                pm = np.concatenate([np.zeros(n, np.uint32),
+                                                     np.ones(m - n, np.uint32)])
+                            else:  # the first m pairs (the values are not kept)
+                                cm, tm, pm = chain_idx[:m], tgt_idx[:m], np.zeros(m, np.uint32)
+                            dr.eval(*self._prime(run, run(True, self._inputs, cm, tm, pm),
+                                                 cm, tm, pm))
+                            self._remember((ns, len(g), m))
+                    self._remember(size)
                 except RuntimeError as e:
                     # Dr.Jit refused to record (e.g. a material call it cannot
                     # traverse): evaluate unfrozen from now on, and say why.
@@ -539,6 +559,26 @@ class ChainTracer:
             dr.eval(*cols)
             out.groups.append((len(g), [c.numpy() for c in cols], tgt_o_all[g]))
         return out
+
+    def _prime(self, run, cols, ci, ti, pad):
+        """Call the frozen evaluation again (at most :data:`PRIME_CALLS` times)
+        until a call replays; returns the last call's columns."""
+        import drjit as dr
+
+        for _ in range(PRIME_CALLS):
+            dr.eval(*cols)
+            n_rec = self.recordings
+            cols = run(True, self._inputs, ci, ti, pad)
+            if self.recordings == n_rec:
+                break
+        return cols
+
+    def _remember(self, size: tuple) -> None:
+        """``size`` was used last (Dr.Jit's recordings are least-recently-used)."""
+        self.frozen_sizes.pop(size, None)
+        self.frozen_sizes[size] = None
+        while len(self.frozen_sizes) > FROZEN_RECORDINGS:
+            del self.frozen_sizes[next(iter(self.frozen_sizes))]
 
     @staticmethod
     def assemble(ev: "Evaluated") -> RawPaths:

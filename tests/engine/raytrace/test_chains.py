@@ -447,14 +447,20 @@ for i in range(8):
         np.testing.assert_allclose(a[lk].doppler, b[lk].doppler, rtol=2.5e-7, atol=1e-9)
 assert live.chains.freeze_error is None, live.chains.freeze_error
 # the mirror filter's pair counts are padded to a few sizes, each recorded
-# once (and Dr.Jit records the first call's size a second time, as before)
+# once with the buckets either side (and Dr.Jit records the first call's size a
+# second time, as before)
+from engine.raytrace.chains import neighbour_buckets
 sizes = live.chains.frozen_sizes
 assert len(sizes) <= live.chains.recordings <= len(sizes) + 1, (live.chains.recordings, sizes)
-assert len(sizes) < 4, sizes
+assert len(sizes) < 4 * 3, sizes
+for ns, nt, b in sizes:  # a size's neighbours were primed with it
+    assert any((ns, nt, m) in sizes for m in neighbour_buckets(b)), (b, sizes)
 assert plain.chains.recordings == 0
 room_scene.move_object("table", position=(0.0, -1.2, 0.0))  # an edit drops the recording
 live(room_scene, p)
-assert live.chains.recordings == 1, live.chains.recordings
+ns, nt, b = list(live.chains.frozen_sizes)[-1]  # (the call's size, used last)
+assert set(live.chains.frozen_sizes) == {(ns, nt, m) for m in [b] + neighbour_buckets(b)}
+assert live.chains.recordings == len(live.chains.frozen_sizes), live.chains.recordings
 print("ok")
 """
 
