@@ -338,6 +338,15 @@ def _radar_kw(args) -> dict:
     return {"sync_sensing": radar == "sync", "sensing_process": radar == "process"}
 
 
+def _radar_refused(args, twin) -> bool:
+    """``--radar`` named for a scene without a radar: say so (exit 2), not ignore it."""
+    if args.radar != "auto" and twin.radar is None:
+        print(f"isac-twin: error: --radar {args.radar}: {twin.config.path} has no "
+              f"[[sensing]] radar", file=sys.stderr)
+        return True
+    return False
+
+
 def _radar_line(frame) -> str:
     """``radar (step k) N det M tracks`` of a delivered radar frame (a ``SensingStep``)."""
     n = sum(len(v) for v in frame.detections.values())
@@ -357,6 +366,8 @@ def cmd_run(args) -> int:
         return 2
     twin = Twin.from_scene(scene_path(args), seed=args.seed, dt=args.dt, phy=not args.no_phy,
                            **_radar_kw(args))
+    if _radar_refused(args, twin):
+        return 2
     for r in twin.run(args.steps, rate_hz=args.rate):
         parts = [f"step {r.step:4d} t={r.time_s:6.2f}s"]
         for name, rb in r.robots.items():
@@ -855,6 +866,8 @@ def cmd_record(args) -> int:
         print(f"isac-twin: error: --csi-snr: {exc}", file=sys.stderr)
         return 2
     twin = Twin.from_scene(scene_path(args), seed=args.seed, **_radar_kw(args))
+    if _radar_refused(args, twin):
+        return 2
     bridge = None
     if args.connect:
         from engine.transport.bridge import TwinBridge

@@ -747,9 +747,11 @@ class Twin:
             w.submit(job, result.step)
 
     def close(self) -> None:
-        """Stop the radar's worker thread (dropping a frame still out; call
-        :meth:`flush_sensing` first to keep it). The twin may step again
-        afterwards (a frame then starts a new thread). Idempotent."""
+        """Stop the radar's worker thread or process (dropping a frame still out;
+        call :meth:`flush_sensing` first to keep it). Idempotent. A twin with a
+        worker thread may step again afterwards (a frame then starts a new
+        thread); with ``sensing_process`` its radar's state ended with the child,
+        and the next frame raises."""
         if self.sensing_worker is not None:
             self.sensing_worker.close()
 

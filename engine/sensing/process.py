@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -96,7 +97,7 @@ class SensingProcess:
         self._conn = Connection(ours.detach())
         self._conn.send(("init", str(scene.config.path), list(scene.edits), list(links),
                          int(seed), int(nice)))
-        self._ready = False
+        self._ready = self._closed = False
         self._finalizer = weakref.finalize(self, _stop, self._conn, self._proc)
 
     @property
@@ -147,13 +148,18 @@ class SensingProcess:
         self._send(("reset", list(links), int(seed)))
 
     def close(self) -> None:
-        """Drop the frame out and end the child. Idempotent."""
+        """Drop the frame out and end the child (with it the radar's state: a
+        later :meth:`submit` raises). Idempotent."""
         self._pending = None
+        self._closed = True
         self._finalizer()
 
     # ------------------------------------------------------------------ pipe
 
     def _send(self, msg) -> None:
+        if self._closed:
+            raise RuntimeError("sensing process: closed (Twin.close()); the radar's state "
+                               "ended with its child")
         try:
             self._conn.send(msg)
         except OSError:
@@ -199,6 +205,7 @@ def _stop(conn, proc) -> None:
 
 def _child_main(conn) -> None:
     """The child: load the replica, then compute the frames it is sent, in order."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is for the twin, which ends us
     _, scene_path, edits, links, seed, nice = conn.recv()
     os.nice(max(0, nice - os.nice(0)))  # before Dr.Jit starts its threads: they inherit it
     try:

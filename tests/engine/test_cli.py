@@ -306,3 +306,9 @@ def test_run_radar_in_a_process_prints_the_synchronous_frames(capsys):
             assert "radar (step 0)" in next(ln for ln in out if ln.startswith("step   10"))
     assert [ln.split(")")[0] for ln in lines["sync"]] == ["radar (step 0", "radar (step 10"]
     assert lines["process"] == lines["sync"]
+
+
+def test_run_refuses_radar_for_a_scene_without_one(lab, capsys):
+    assert main(["run", str(lab), "--steps", "1", "--radar", "process"]) == 2
+    err = capsys.readouterr().err
+    assert "--radar process" in err and "has no [[sensing]] radar" in err

@@ -97,6 +97,8 @@ def test_a_child_that_cannot_start_says_why(tmp_path):
         p.collect()
     p.close()
     p.close()  # idempotent
+    with pytest.raises(RuntimeError, match="closed"):
+        p.submit(_job(), 1)
     with pytest.raises(ValueError, match="latency"):
         SensingProcess(scene, [], seed=0, latency=0)
     with pytest.raises(ValueError, match="nice"):
