@@ -78,8 +78,8 @@ def _flat_tail(history: list[float]) -> bool:
 
 
 #: :meth:`Calibrator.polish`: first and last step of each parameter, in its ``scale``
-#: (x/y 0.5 -> 0.125 cm, yaw 0.5 -> 0.125 deg, a material 5 % -> 1.25 %).
-POLISH_STEPS = (0.5, 0.125)
+#: (x/y 0.5 -> 0.0625 cm, yaw 0.5 -> 0.0625 deg, a material 5 % -> 0.625 %).
+POLISH_STEPS = (0.5, 0.0625)
 
 #: ``max_num_paths_per_src`` of the candidate generator (Sionna's default).
 MAX_CANDIDATES = 1_000_000

@@ -254,7 +254,7 @@ def test_repeated_evaluations_are_identical(tmp_path):
 @pytest.mark.slow
 def test_polish_recovers_yaw_where_the_mismatch_jumps(tmp_path):
     """The pattern search on traced values reaches the cabinet's true yaw (3 deg) from
-    1.2 deg off, stepping 0.5 -> 0.125 deg (to within its last step)."""
+    1.2 deg off, stepping 0.5 -> 0.0625 deg (to within its last step)."""
     yaw = np.radians(3.0)
     meas = measure(room(tmp_path / "real", cabinet_yaw=yaw))
     cal = Calibrator(load_scene(room(tmp_path / "twin")), meas,
@@ -263,7 +263,7 @@ def test_polish_recovers_yaw_where_the_mismatch_jumps(tmp_path):
     f0 = cal.evaluate(start, grad=False)[0]
     x, f, n = cal.polish(start, [1])
     assert x[0] == 0.0  # not free
-    assert abs(np.degrees(x[1] - yaw)) <= 0.125 + 1e-9, np.degrees(x[1])
+    assert abs(np.degrees(x[1] - yaw)) <= 0.0625 + 1e-9, np.degrees(x[1])
     assert f < 0.5 * f0 and n <= 400
     assert cal.polish_trials["Cabinet.yaw"]  # the first step's trials, for the report
     with pytest.raises(CalibrationError, match="free"):
