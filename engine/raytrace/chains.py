@@ -514,9 +514,18 @@ class ChainTracer:
                 n = len(chain_idx)
                 b = pad_pairs(n)
                 empty = dr.width(chains["_src_indices"]) - 1
-                ci = np.concatenate([chain_idx, np.full(b - n, empty, chain_idx.dtype)])
-                ti = np.concatenate([tgt_idx, np.zeros(b - n, tgt_idx.dtype)])
-                pad = np.concatenate([np.zeros(n, np.uint32), np.ones(b - n, np.uint32)])
+
+                def padded(m):
+                    """(chains, targets, pad flags) of ``m`` pairs: these ``n``
+                    padded with done pairs, or (priming a smaller size, values
+                    not kept) the first ``m``."""
+                    if m < n:
+                        return chain_idx[:m], tgt_idx[:m], np.zeros(m, np.uint32)
+                    return (np.concatenate([chain_idx, np.full(m - n, empty, chain_idx.dtype)]),
+                            np.concatenate([tgt_idx, np.zeros(m - n, tgt_idx.dtype)]),
+                            np.concatenate([np.zeros(n, np.uint32), np.ones(m - n, np.uint32)]))
+
+                ci, ti, pad = padded(b)
                 try:
                     size = (ns, len(g), b)
                     before = self.recordings
@@ -531,19 +540,10 @@ class ChainTracer:
                         # lab: 2560 from step 1, 2304 at step 7, a 30 ms trace)
                         dr.eval(*cols)
                         for m in neighbour_buckets(b):
-                            if (ns, len(g), m) in self.frozen_sizes:
-                                continue
-                            if m > n:  # more padding
-                                cm = np.concatenate([chain_idx,
-                                                     np.full(m - n, empty, chain_idx.dtype)])
-                                tm = np.concatenate([tgt_idx, np.zeros(m - n, tgt_idx.dtype)])
-                                pm = np.concatenate([np.zeros(n, np.uint32),
-                                                     np.ones(m - n, np.uint32)])
-                            else:  # the first m pairs (the values are not kept)
-                                cm, tm, pm = chain_idx[:m], tgt_idx[:m], np.zeros(m, np.uint32)
-                            dr.eval(*self._prime(run, run(True, self._inputs, cm, tm, pm),
-                                                 cm, tm, pm))
-                            self._remember((ns, len(g), m))
+                            if (ns, len(g), m) not in self.frozen_sizes:
+                                pm = padded(m)
+                                dr.eval(*self._prime(run, run(True, self._inputs, *pm), *pm))
+                                self._remember((ns, len(g), m))
                     self._remember(size)
                 except RuntimeError as e:
                     # Dr.Jit refused to record (e.g. a material call it cannot

@@ -16,7 +16,6 @@ tracks are published on ``/sensing/detections``
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,7 +63,6 @@ class SensingStep:
     truth: dict = field(default_factory=dict)
     step: int | None = None
     time_s: float | None = None
-    compute_s: float | None = None
 
 
 @dataclass
@@ -271,7 +269,6 @@ class RadarEstimator:
         """Trace, receive, process and track one frame (any thread; it touches
         neither the twin nor its bus, only this estimator's own state: tracer,
         noise streams, background, tracker, in frame order)."""
-        t0 = time.perf_counter()
         one_blas_thread()  # as the twin's steps: the same bits on any thread
         poses, grid = job.poses, job.grid
         traced = self.tracer(poses, [(s.tx, s.rx) for s in job.links])
@@ -307,7 +304,6 @@ class RadarEstimator:
                 out.maps[s.name] = rd
         out.tracks = [_copy_track(t)
                       for t in self.tracker.update(np.array(measurements), job.dt)]
-        out.compute_s = time.perf_counter() - t0
         return out
 
     def deliver(self, twin, out: SensingStep) -> None:
