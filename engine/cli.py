@@ -338,13 +338,19 @@ def _radar_kw(args) -> dict:
     return {"sync_sensing": radar == "sync", "sensing_process": radar == "process"}
 
 
-def _radar_refused(args, twin) -> bool:
-    """``--radar`` named for a scene without a radar: say so (exit 2), not ignore it."""
-    if args.radar != "auto" and twin.radar is None:
-        print(f"isac-twin: error: --radar {args.radar}: {twin.config.path} has no "
-              f"[[sensing]] radar", file=sys.stderr)
-        return True
-    return False
+def _radar_refused(args) -> bool:
+    """``--radar`` named for a scene without a radar: say so (exit 2), not ignore it;
+    read from the config, before a twin is built."""
+    if args.radar == "auto":
+        return False
+    from engine.config import load_config
+
+    cfg = load_config(scene_path(args))
+    if cfg.sensing:
+        return False
+    print(f"isac-twin: error: --radar {args.radar}: {cfg.path} has no [[sensing]] radar",
+          file=sys.stderr)
+    return True
 
 
 def _radar_line(frame) -> str:
@@ -364,10 +370,10 @@ def cmd_run(args) -> int:
         print(f"isac-twin: error: --rate {args.rate}: expected a positive rate in Hz",
               file=sys.stderr)
         return 2
+    if _radar_refused(args):
+        return 2
     twin = Twin.from_scene(scene_path(args), seed=args.seed, dt=args.dt, phy=not args.no_phy,
                            **_radar_kw(args))
-    if _radar_refused(args, twin):
-        return 2
     for r in twin.run(args.steps, rate_hz=args.rate):
         parts = [f"step {r.step:4d} t={r.time_s:6.2f}s"]
         for name, rb in r.robots.items():
@@ -865,9 +871,9 @@ def cmd_record(args) -> int:
     except ValueError as exc:
         print(f"isac-twin: error: --csi-snr: {exc}", file=sys.stderr)
         return 2
-    twin = Twin.from_scene(scene_path(args), seed=args.seed, **_radar_kw(args))
-    if _radar_refused(args, twin):
+    if _radar_refused(args):
         return 2
+    twin = Twin.from_scene(scene_path(args), seed=args.seed, **_radar_kw(args))
     bridge = None
     if args.connect:
         from engine.transport.bridge import TwinBridge

@@ -308,7 +308,11 @@ def test_run_radar_in_a_process_prints_the_synchronous_frames(capsys):
     assert lines["process"] == lines["sync"]
 
 
-def test_run_refuses_radar_for_a_scene_without_one(lab, capsys):
+def test_run_and_record_refuse_radar_for_a_scene_without_one(lab, tmp_path, capsys):
+    """Refused from the config, before a twin is built (and nothing recorded)."""
     assert main(["run", str(lab), "--steps", "1", "--radar", "process"]) == 2
     err = capsys.readouterr().err
     assert "--radar process" in err and "has no [[sensing]] radar" in err
+    out = tmp_path / "run.mcap"
+    assert main(["record", str(lab), "--steps", "1", "--out", str(out), "--radar", "sync"]) == 2
+    assert "--radar sync" in capsys.readouterr().err and not out.exists()
