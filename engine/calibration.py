@@ -373,7 +373,14 @@ class Calibrator:
                 key = obj.mi_mesh.id() + ".vertex_positions"
                 v = np.array(params_mi[key].numpy(), dtype=np.float64).reshape(-1, 3)
                 centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
-                self._objects[p.target] = (key, v, centre)
+                # the vertices about the centre as Dr.Jit arrays made once: arrays made
+                # afresh from NumPy at every evaluation landed at other alignments, and
+                # Dr.Jit compiled the vertex kernel anew for each (2 x 80 ms per
+                # evaluation on the lab, of 0.62 s)
+                rel = [mi.Float(v[:, 0] - centre[0]), mi.Float(v[:, 1] - centre[1]),
+                       mi.Float(v[:, 2])]
+                dr.eval(rel)
+                self._objects[p.target] = (key, v, centre, rel)
 
         self.initial = np.array([self._current(p) for p in self.params])
         for p, v in zip(self.params, self.initial):
@@ -472,14 +479,12 @@ class Calibrator:
         if offsets:
             params_mi = self.sc.mi_scene_params
             for obj, off in offsets.items():
-                key, v0, c = self._objects[obj]
+                key, _, c, (rx, ry, z) = self._objects[obj]
                 dx, dy = off.get("x", mi.Float(0.0)), off.get("y", mi.Float(0.0))
                 yaw = off.get("yaw", mi.Float(0.0))
                 cs, sn = dr.cos(yaw), dr.sin(yaw)
-                rx, ry = mi.Float(v0[:, 0] - c[0]), mi.Float(v0[:, 1] - c[1])
                 cx, cy = float(c[0]), float(c[1])  # a NumPy scalar on the left drops AD
-                pts = mi.Point3f(cx + cs * rx - sn * ry + dx, cy + sn * rx + cs * ry + dy,
-                                 mi.Float(v0[:, 2]))
+                pts = mi.Point3f(cx + cs * rx - sn * ry + dx, cy + sn * rx + cs * ry + dy, z)
                 params_mi[key] = dr.ravel(pts)
             params_mi.update()
             self.sc.scene_geometry_updated()
@@ -674,7 +679,8 @@ class Calibrator:
         n, k, nr, nt = self.meas.csi.shape
         model = np.array(dr.detach(model_db).numpy(), float).reshape(n, nr, nt, k)
         out = float(loss[0]), g, model.transpose(0, 3, 1, 2)
-        self._apply(values, False)  # leave the scene at values, detached from the graph
+        if grad:  # leave the scene at values, detached from the graph (a BVH rebuild)
+            self._apply(values, False)
         self.evaluations += 1
         (self.step_seconds if grad else self.forward_seconds).append(time.perf_counter() - t0)
         return out
