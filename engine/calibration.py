@@ -81,6 +81,28 @@ def _flat_tail(history: list[float]) -> bool:
 #: (x/y 0.5 -> 0.0625 cm, yaw 0.5 -> 0.0625 deg, a material 5 % -> 0.625 %).
 POLISH_STEPS = (0.5, 0.0625)
 
+#: :meth:`Calibrator.hop`: the scan of an x/y offset covers shifts between these many
+#: wavelengths to either side of its value, in steps of 1 / :data:`HOP_PER_WAVELENGTH`
+#: wavelength. The magnitude mismatch has a local minimum about every half wavelength
+#: of an object's shift normal to a face it reflects on (period lambda / (2 cos theta)
+#: >= lambda / 2), so the next basins lie beyond the current one's quarter period; a
+#: basin is about +-1 cm wide at 2.4 GHz (lab, Table_2's y: period ~7 cm, 0.40 dB^2 at
+#: 0.2 cm from the bottom of its true basin, 0.43-0.68 dB^2 at 0.6-1.7 cm).
+HOP_SPAN = (0.3, 0.6)
+HOP_PER_WAVELENGTH = 12
+#: A basin found by the scan is searched only when its best scan point is within this
+#: fraction above the current mismatch (the scan's points miss a basin's bottom by up
+#: to half a step; lab: 0.32 dB^2 at a grid point of a basin whose bottom is lower
+#: than the current 0.39, while the racks' other basins scanned 0.46-1.3 dB^2).
+HOP_SLACK = 0.25
+#: ... and a searched basin is kept only when it lowers the mismatch by more than this
+#: fraction (a shift along a face the lap does not see scans flat to ~1 %: lab, Table_2's
+#: x, 0.287-0.293 dB^2 over 16 cm).
+HOP_GAIN = 0.01
+#: ... and by more than this, dB^2 (0.03 dB RMS): at a noise-free fit's 1e-7 dB^2, 1 %
+#: is float noise, and a flat shift moved 4.7 cm for it.
+HOP_MIN_GAIN_DB2 = 1e-3
+
 #: ``max_num_paths_per_src`` of the candidate generator (Sionna's default).
 MAX_CANDIDATES = 1_000_000
 
@@ -209,6 +231,14 @@ def unobserved(scaled_gradient, names) -> list[str]:
     g = np.abs(np.asarray(scaled_gradient, float))
     top = g.max() if len(g) else 0.0
     return [n for n, v in zip(names, g) if top == 0.0 or v <= UNOBSERVED_RATIO * top]
+
+
+def local_minima(f: np.ndarray) -> np.ndarray:
+    """Indices of the local minima of ``f [S]`` (ends included), lowest first."""
+    f = np.asarray(f, float)
+    idx = [i for i in range(len(f)) if (i == 0 or f[i] <= f[i - 1])
+           and (i == len(f) - 1 or f[i] <= f[i + 1])]
+    return np.array(sorted(idx, key=lambda i: f[i]), int)
 
 
 def power_db(h: np.ndarray) -> np.ndarray:
@@ -431,6 +461,8 @@ class Calibrator:
         #: whether every step reached its last size (None before one ran).
         self.polish_trials: dict[str, list] = {}
         self.polish_converged: bool | None = None
+        #: The last :meth:`hop`: per scanned parameter name, its scan and what was kept.
+        self.hop_report: dict[str, dict] = {}
         self._freqs = mi.Float(measurements.subcarrier_offsets_hz)
         # Sionna's cfr order [N, Nr, (tx=1), Nt, (time=1), K]
         self._meas_db = mi.Float64(power_db(measurements.csi.transpose(0, 2, 3, 1))
@@ -757,6 +789,88 @@ class Calibrator:
                                         for i in free)
         self.evaluate(x, grad=False)  # leave the scene there
         log.info("calibrate: polish %d traces -> %.5g dB^2", n, f)
+        return x, f, n
+
+    def hop(self, start, free, *, span: tuple[float, float] = HOP_SPAN,
+            per_wavelength: int = HOP_PER_WAVELENGTH,
+            steps: tuple[float, float] = POLISH_STEPS) -> tuple[np.ndarray, float, int]:
+        """Move x/y offsets into a lower half-wavelength basin.
+
+        From ``start`` (physical units, ``[P]``), for each x or y parameter of ``free``
+        (indices; others are skipped) in turn: trace (fresh candidates, no
+        gradients) its value shifted by every multiple of ``wavelength /
+        per_wavelength`` between ``span[0]`` and ``span[1]`` wavelengths to either side
+        (inside its bounds); take the lowest local minimum of that scan other than the
+        current value's basin; if it is within :data:`HOP_SLACK` of the current
+        mismatch, search it (:meth:`polish` on that coordinate alone, from half a scan
+        step down to ``steps[1]``); keep it if it lowers the mismatch by more than
+        :data:`HOP_GAIN` of it and :data:`HOP_MIN_GAIN_DB2`.
+
+        A gradient fit and :meth:`polish` end in the basin they start in; the
+        magnitude mismatch repeats about every half wavelength of a shift normal to a
+        reflecting face, so an object that starts more than ~1/4 wavelength away (the
+        lab's Table_2: 6.9 cm at 12.5 cm wavelength) ends a period off, where the
+        truth's basin is lower (0.28 against 0.39 dB^2 there).
+
+        Returns:
+            ``(values [P], mismatch dB^2, traces)``; :attr:`hop_report` lists, per
+            scanned parameter name, the shifts (m), their mismatch, the basin tried and
+            whether it was kept.
+        """
+        x = np.asarray(start, float).reshape(-1).copy()
+        free = [int(i) for i in free]
+        if not all(0 <= i < len(x) for i in free):
+            raise CalibrationError(f"hop: free must name parameters 0..{len(x) - 1}, "
+                                   f"got {free!r}")
+        step = 299_792_458.0 / float(self.sc.frequency[0]) / per_wavelength
+        k = np.arange(int(math.ceil(span[0] * per_wavelength)),
+                      int(math.floor(span[1] * per_wavelength)) + 1)
+        k = np.concatenate([-k[::-1], [0], k])
+        f = self.evaluate(x, grad=False)[0]
+        n = 1
+        self.hop_report = {}
+        for i in free:
+            p = self.params[i]
+            if p.kind not in ("x", "y"):
+                continue
+            lo, hi = p.limits
+            grid = np.unique(np.clip(x[i] + step * k, lo, hi))
+            at = int(np.argmin(np.abs(grid - x[i])))
+            grid[at] = x[i]
+            fs = np.empty(len(grid))
+            for j, v in enumerate(grid):
+                if j == at:
+                    fs[j] = f
+                    continue
+                y = x.copy()
+                y[i] = v
+                fs[j] = self.evaluate(y, grad=False)[0]
+                n += 1
+            # the current basin: the points rising away from the current value (the
+            # scan skips the shifts within span[0])
+            own = {at}
+            for d in (-1, 1):
+                j = at
+                while 0 <= j + d < len(grid) and fs[j + d] >= fs[j]:
+                    j += d
+                    own.add(j)
+            others = [j for j in local_minima(fs) if j not in own]
+            entry = {"shifts_m": (grid - x[i]).tolist(), "mismatch_db2": fs.tolist(),
+                     "tried_m": None, "mismatch_after_db2": None, "kept": False}
+            if others and fs[others[0]] < (1.0 + HOP_SLACK) * f:
+                j = others[0]
+                y = x.copy()
+                y[i] = grid[j]
+                scale = self.scales[i]
+                z, fz, m = self.polish(y, [i], steps=(0.5 * step / scale, steps[1]))
+                n += m
+                entry.update(tried_m=float(z[i] - x[i]), mismatch_after_db2=float(fz))
+                if f - fz > max(HOP_GAIN * f, HOP_MIN_GAIN_DB2):
+                    x, f = z, fz
+                    entry["kept"] = True
+            self.hop_report[p.name] = entry
+        self.evaluate(x, grad=False)  # leave the scene there
+        log.info("calibrate: hop %d traces -> %.5g dB^2", n, f)
         return x, f, n
 
     def fit(self, *, max_steps: int = 30, ftol: float = 1e-7, gtol: float = 1e-6,

@@ -1007,6 +1007,10 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                         "1 deg within +-5 deg) before fitting, against local minima")
     p.add_argument("--no-scan", action="store_true",
                    help="start at the scene's permittivities (no scan, single start)")
+    p.add_argument("--no-hop", action="store_true",
+                   help="with poses: after the pose polish, do not scan the x/y offsets of "
+                        "the objects with a clear path across the next half-wavelength "
+                        "basins (shifts of 0.3-0.6 wavelength in wavelength/12 steps)")
 
 
 @command("calibrate", "fit materials and object poses of a scene to recorded CSI "
@@ -1034,6 +1038,7 @@ def cmd_calibrate(args) -> int:
                                   objects=objects, link=link, max_snapshots=args.snapshots,
                                   max_subcarriers=args.subcarriers, max_steps=args.max_steps,
                                   scan=not args.no_scan, pose_scan=args.pose_scan,
+                                  hop=not args.no_hop,
                                   materials=[m.strip() for m in args.materials.split(",")
                                              if m.strip()] or None)
     except CalibrationError as exc:

@@ -111,6 +111,17 @@ def test_cli_recovers_cabinet_offset_and_says_what_it_cannot_see(tmp_path, capsy
     assert abs(got["Cabinet.yaw"]) < np.radians(0.5)
     assert rep["unobserved"] == ["Cabinet.x"]
     assert rep["mismatch_db2"]["final"] < 1e-3 * rep["mismatch_db2"]["initial"]
+    # the hop scanned both offsets of the cabinet (it has a clear path) and, at the
+    # truth already, found no lower basin
+    hop = rep["hop"]
+    assert hop["parameters"] == ["Cabinet.x", "Cabinet.y"] and hop["moved"] == []
+    assert all(len(hop["scans"][k]["mismatch_db2"]) == len(hop["scans"][k]["shifts_m"]) > 4
+               for k in hop["parameters"])
+    assert main(["calibrate", str(twin), "--measurements", str(tmp_path / "run.mcap"),
+                 "--out", str(tmp_path / "out2"), "--params", "poses", "--objects", "Cabinet",
+                 "--snapshots", "8", "--subcarriers", "8", "--no-hop"]) == 0
+    rep2 = json.loads((tmp_path / "out2" / "calibration.json").read_text())
+    assert rep2["hop"] is None and rep2["parameters"] == rep["parameters"]
     v = read_ply(tmp_path / "out" / "scene" / "meshes" / "Cabinet.ply").vertices
     assert v[:, 1].min() == pytest.approx(2.5 - 0.02, abs=0.002)
 

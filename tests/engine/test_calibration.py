@@ -300,3 +300,28 @@ def test_polish_recovers_yaw_where_the_mismatch_jumps(tmp_path):
     assert cal.polish_trials["Cabinet.yaw"]  # the first step's trials, for the report
     with pytest.raises(CalibrationError, match="free"):
         cal.polish(start, [5])
+
+
+@pytest.mark.slow
+def test_hop_leaves_the_basin_the_polish_ends_in(tmp_path):
+    """The cabinet moved 7 cm in x. The magnitude mismatch repeats every ~10 cm of x
+    here (its face seen obliquely: period wavelength / (2 cos theta)), so the polish
+    from the twin's pose ends in the basin at -2.8 cm (4.8 dB^2), a period off. The hop
+    scans the next basins and searches the lower one, the truth's. (Out to one
+    wavelength here; the default ring, 0.3-0.6 wavelength, is for faces seen near
+    normal incidence, as the lab's tables.)"""
+    shift = 0.07
+    meas = measure(room(tmp_path / "real", (shift, 0.0)))
+    cal = Calibrator(load_scene(room(tmp_path / "twin")), meas,
+                     [Parameter("x", "Cabinet"), Parameter("yaw", "Cabinet")], SETTINGS)
+    x, f, _ = cal.polish(np.zeros(2), [0])
+    assert abs(x[0] - shift) > 0.05 and f > 1.0, (x, f)  # a period off
+    xh, fh, n = cal.hop(x, [0, 1], span=(0.3, 1.0))
+    # in the truth's basin; its bottom is ragged here (a path comes and goes between
+    # 7.05 and 7.2 cm: 0.6, 15.4, 2.2 dB^2), so the search ends 0.27 cm off
+    assert abs(xh[0] - shift) <= 0.005 and fh < 0.05 * f, (xh, fh)
+    assert xh[1] == x[1]  # a yaw is not scanned
+    assert list(cal.hop_report) == ["Cabinet.x"] and cal.hop_report["Cabinet.x"]["kept"]
+    assert n > len(cal.hop_report["Cabinet.x"]["shifts_m"])  # the scan, then the search
+    with pytest.raises(CalibrationError, match="free"):
+        cal.hop(x, [7])
