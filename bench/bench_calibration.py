@@ -41,7 +41,9 @@ from engine.scene import load_scene  # noqa: E402
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--positions", type=int, default=4)
-    ap.add_argument("--subcarriers", type=int, default=8)
+    ap.add_argument("--subcarriers", type=int, default=None,
+                    help="subcarriers (default 8; --lab: recorded subcarriers used, evenly "
+                         "spread, default 16)")
     ap.add_argument("--rays", type=int, default=20000)
     ap.add_argument("--depth", type=int, default=2)
     ap.add_argument("--repeat", type=int, default=3)
@@ -59,7 +61,9 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out/bench_calibration_lab"))
     a = ap.parse_args(argv)
     if a.lab:
+        a.subcarriers = a.subcarriers or 16
         return lab(a)
+    a.subcarriers = a.subcarriers or 8
     with tempfile.TemporaryDirectory() as tmp:
         objs = syn.room_objects((5.0, 4.0, 3.0), {"Cabinet": ((3.0, 2.5, 0.0), (3.6, 3.0, 1.5),
                                                               "metal", 0.002)})
@@ -100,8 +104,10 @@ def lab(a) -> int:
     folder = Path(__file__).resolve().parents[1] / "blend_scenes" / "aces_lab" / "scene"
     objects = [o.strip() for o in a.objects.split(",") if o.strip()] or None
     r = closing_the_loop(folder, a.out, snr_db=a.snr, snapshots=a.snapshots,
-                         max_steps=a.max_steps, objects=objects, dt=2.0)
-    print(f"lab, one lap ({r['steps']} steps of {r['dt']} s), CSI noise "
+                         subcarriers=a.subcarriers, max_steps=a.max_steps, objects=objects,
+                         dt=2.0)
+    print(f"lab, one lap ({r['steps']} steps of {r['dt']} s), {a.snapshots} snapshots x "
+          f"{a.subcarriers} subcarriers, CSI noise "
           f"{'none' if a.snr is None else f'{a.snr:g} dB SNR'}")
     print(f"{'object':14s} {'truth dx dy (cm) dyaw (deg)':>30s} {'fitted':>24s} "
           f"{'error':>24s}  clear path  unseen")
