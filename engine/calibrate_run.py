@@ -502,7 +502,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
             and better > (1.0 - REFIT_GAIN) * first_fit.mismatch_final):
         # the scans at the fitted poses found no better basin: no further fits (a
         # first fit stopped where a path appears is continued by the polish on
-        # traced values; lab: the refit from the scan's best gained 0.1 % in 14
+        # traced values, if an object has a clear path to the robot; lab: the refit from the scan's best gained 0.1 % in 14
         # gradient steps, and the calibration ended at 0.2587 dB^2 in 253 s with it,
         # 0.2386 dB^2 in 237 s without)
         fits, starts = [first_fit], [cal.initial.copy()]
@@ -566,7 +566,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
             seen["could_not_see"].append(
                 f"{name}: not seen at the start; the hop moved it {100 * e['tried_m']:+.2f} "
                 f"cm, where the mismatch is {e['mismatch_after_db2']:.4g} dB^2 against "
-                f"{hopped['mismatch_db2']['before']:.4g}; the start gradient did not see it, "
+                f"{e['mismatch_before_db2']:.4g}; the start gradient did not see it, "
                 "so no accuracy is claimed for it")
     for t, o in objects_seen.items():
         if not o["clear_path"]:

@@ -814,8 +814,9 @@ class Calibrator:
 
         Returns:
             ``(values [P], mismatch dB^2, traces)``; :attr:`hop_report` lists, per
-            scanned parameter name, the shifts (m), their mismatch, the basin tried and
-            whether it was kept.
+            scanned parameter name, the shifts (m), their mismatch, the mismatch before
+            its scan, the shift searched (m), where that search ended and whether it
+            was kept.
         """
         x = np.asarray(start, float).reshape(-1).copy()
         free = [int(i) for i in free]
@@ -856,7 +857,8 @@ class Calibrator:
                     own.add(j)
             others = [j for j in local_minima(fs) if j not in own]
             entry = {"shifts_m": (grid - x[i]).tolist(), "mismatch_db2": fs.tolist(),
-                     "tried_m": None, "mismatch_after_db2": None, "kept": False}
+                     "mismatch_before_db2": float(f), "tried_m": None,
+                     "mismatch_after_db2": None, "kept": False}
             if others and fs[others[0]] < (1.0 + HOP_SLACK) * f:
                 j = others[0]
                 y = x.copy()

@@ -322,6 +322,7 @@ def test_hop_leaves_the_basin_the_polish_ends_in(tmp_path):
     assert abs(xh[0] - shift) <= 0.005 and fh < 0.05 * f, (xh, fh)
     assert xh[1] == x[1]  # a yaw is not scanned
     assert list(cal.hop_report) == ["Cabinet.x"] and cal.hop_report["Cabinet.x"]["kept"]
+    assert cal.hop_report["Cabinet.x"]["mismatch_before_db2"] == pytest.approx(f)
     assert n > len(cal.hop_report["Cabinet.x"]["shifts_m"])  # the scan, then the search
     with pytest.raises(CalibrationError, match="free"):
         cal.hop(x, [7])
