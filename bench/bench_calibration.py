@@ -127,6 +127,16 @@ def lab(a) -> int:
     print(f"recording {r['record_s']:.0f} s, calibration {r['calibration_s']:.0f} s "
           f"(candidate buffer {r['candidate_buffer']['size']}, grown "
           f"{r['candidate_buffer']['regrows']} times)")
+    for label in ("polish", "hop"):
+        st = r[label]
+        if st:
+            mm = st["mismatch_db2"]
+            print(f"{label}: {st['traces']} traces, {len(st['parameters'])} coordinates, "
+                  f"mismatch {mm['before']:.4g} -> {mm['after']:.4g} dB^2"
+                  + (f", moved {', '.join(st['moved']) or 'nothing'}" if label == "hop" else "")
+                  + (f", then a second polish of {st['polish_after']['traces']} traces -> "
+                     f"{st['polish_after']['mismatch_db2']:.4g} dB^2"
+                     if label == "hop" and st["polish_after"] else ""))
     for target, o in r["observability"].items():
         share = np.asarray(o["power_share_per_snapshot"]) * 100
         print(f"{target}: paths per snapshot {o['paths_per_snapshot']}, power share max "

@@ -144,6 +144,7 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
             "message": rep["message"], "evaluations": rep["evaluations"],
             "seconds_per_step": rep["seconds_per_step"], "record_s": t_rec,
             "observability": rep["observability"], "could_not_see": rep["could_not_see"],
+            "polish": rep["polish"], "hop": rep["hop"],
             "candidate_buffer": rep["candidate_buffer"],
             "calibration_s": t_cal, "calibrated_scene": str(run.scene_dir),
             "recording": str(mcap),
