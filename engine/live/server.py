@@ -362,12 +362,14 @@ class LiveServer:
         self.last_result = res
         if res.scene_hash != self._scene_hash:  # an edit was applied in this step
             self._refresh_scene()
-        for build in (protocol.state_message, protocol.metrics_message):
-            self.publish(build(res))
-        self.publish_rays(res)
+        # the step's log line before its messages: a client that has a step's rays can
+        # read its line (after, the CI dry run once read the previous step 0's line)
         if self.step_log is not None:
             with self.step_log.open("a") as f:
                 f.write(json.dumps(protocol.step_summary(res)) + "\n")
+        for build in (protocol.state_message, protocol.metrics_message):
+            self.publish(build(res))
+        self.publish_rays(res)
         if self.on_step is not None:
             self.on_step(res)
         if self.max_steps is not None and self.steps_done >= self.max_steps:
