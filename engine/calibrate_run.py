@@ -42,6 +42,7 @@ from engine.calibration_figure import plot_report
 from engine.config import TwinConfig
 from engine.msgs import Csi
 from engine.phy.ofdm import ResourceGrid
+from engine.phy.units import SPEED_OF_LIGHT
 from engine.pose import antenna_pose, sionna_orientation
 from engine.raytrace import device_poses
 from engine.record import load_trajectories, read_messages, read_metadata
@@ -486,7 +487,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                 starts = new[:multistart]
     pose_scans = {}
     if pose_scan:
-        lam = 299_792_458.0 / scene.config.scene.frequency_hz
+        lam = SPEED_OF_LIGHT / scene.config.scene.frequency_hz
         for x in starts:  # each coordinate in turn, the others where the scans left them
             for i, p in enumerate(params):
                 if p.kind in ("x", "y", "yaw"):

@@ -823,7 +823,7 @@ class Calibrator:
         if not all(0 <= i < len(x) for i in free):
             raise CalibrationError(f"hop: free must name parameters 0..{len(x) - 1}, "
                                    f"got {free!r}")
-        step = 299_792_458.0 / float(self.sc.frequency[0]) / per_wavelength
+        step = float(self.sc.wavelength[0]) / per_wavelength
         k = np.arange(int(math.ceil(span[0] * per_wavelength)),
                       int(math.floor(span[1] * per_wavelength)) + 1)
         k = np.concatenate([-k[::-1], [0], k])
@@ -838,15 +838,8 @@ class Calibrator:
             grid = np.unique(np.clip(x[i] + step * k, lo, hi))
             at = int(np.argmin(np.abs(grid - x[i])))
             grid[at] = x[i]
-            fs = np.empty(len(grid))
-            for j, v in enumerate(grid):
-                if j == at:
-                    fs[j] = f
-                    continue
-                y = x.copy()
-                y[i] = v
-                fs[j] = self.evaluate(y, grad=False)[0]
-                n += 1
+            fs = np.insert(self.scan(i, np.delete(grid, at), x), at, f)
+            n += len(grid) - 1
             # the current basin: the points rising away from the current value (the
             # scan skips the shifts within span[0])
             own = {at}

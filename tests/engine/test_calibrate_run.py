@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from engine import synthetic as syn
-from engine.calibrate_run import (local_minima, measurements_from_recording,
-                                  write_calibrated_scene)
-from engine.calibration import CalibrationResult, Calibrator, Parameter, SolverSettings
+from engine.calibrate_run import measurements_from_recording, write_calibrated_scene
+from engine.calibration import (CalibrationResult, Calibrator, Parameter, SolverSettings,
+                                local_minima)
 from engine.cli import main
 from engine.meshes import read_ply
 from engine.scene import load_scene
