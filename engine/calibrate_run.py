@@ -1,7 +1,8 @@
 """Calibrate a scene folder from a recording (``isac-twin calibrate``).
 
 Reads the CSI a robot recorded on ``/<robot>/csi`` (an MCAP written by
-:func:`engine.record.record_twin`, compact or full CSI) and the robot's poses
+:func:`engine.record.record_twin`, compact or full CSI; every recorded link, each
+transmitter seeing the room from its side, unless ``links`` names some) and the robot's poses
 from ``/<robot>/ground_truth`` (interpolated at each CSI stamp; the array
 centre is :func:`engine.pose.antenna_pose` of it), fits the chosen
 parameters with :class:`engine.calibration.Calibrator`, and writes
@@ -64,25 +65,27 @@ def _array(config: TwinConfig, name: str, path: Path) -> tuple:
 
 
 def measurements_from_recording(path: str | Path, config: TwinConfig, *,
-                                link: tuple[str, str] | None = None, max_snapshots: int = 6,
-                                max_subcarriers: int = 16) -> tuple[tuple[str, str],
-                                                                    Measurements]:
-    """The recorded CSI of one link as :class:`~engine.calibration.Measurements`.
+                                links: list[tuple[str, str]] | None = None,
+                                max_snapshots: int = 6, max_subcarriers: int = 16
+                                ) -> list[tuple[tuple[str, str], Measurements]]:
+    """The recorded CSI of each link as :class:`~engine.calibration.Measurements`.
 
     Args:
         path: the ``.mcap``.
         config: the scene's config (OFDM grid, devices, arrays).
-        link: ``(tx, rx)`` (default: the first recorded link).
-        max_snapshots: at most this many CSI messages, evenly spread over the run.
+        links: ``[(tx, rx), ...]`` (default: every recorded link, in the order of
+            their first CSI message).
+        max_snapshots: at most this many CSI messages per link, evenly spread over the
+            run.
         max_subcarriers: at most this many of the recorded subcarriers, evenly spread.
 
     Returns:
-        ``((tx, rx), measurements)`` (first recorded OFDM symbol of each message).
+        ``[((tx, rx), measurements), ...]`` (first recorded OFDM symbol of each message).
 
     Raises:
-        CalibrationError: no ``isac_twin`` metadata or CSI decimation in it, no CSI,
-            no ground truth of the robot, a CSI shape that does not fit the grid;
-            naming the file.
+        CalibrationError: no ``isac_twin`` metadata or CSI decimation in it, no CSI (of a
+            link named), no ground truth of the robot, a CSI shape that does not fit the
+            grid; naming the file.
     """
     path = Path(path)
     meta = read_metadata(path)
@@ -91,19 +94,29 @@ def measurements_from_recording(path: str | Path, config: TwinConfig, *,
         raise CalibrationError(f"{path}: no 'csi' entry in the isac_twin metadata (how the CSI "
                                "was decimated); record with `isac-twin record`")
     step = int(m.group(1))
-    msgs = []
+    by_link: dict[tuple[str, str], list] = {}
     for rm in read_messages(path):
         if rm.type_name == Csi.ROS_TYPE:
             c = rm.decode()
-            if link is None:
-                link = (c.tx, c.rx)
-            if (c.tx, c.rx) == tuple(link):
-                msgs.append(c)
-    if not msgs:
-        raise CalibrationError(f"{path}: no isac_twin_msgs/Csi messages"
-                               + (f" of link {link[0]}->{link[1]}" if link else ""))
-    tx, rx = link
+            by_link.setdefault((c.tx, c.rx), []).append(c)
+    if not by_link:
+        raise CalibrationError(f"{path}: no isac_twin_msgs/Csi messages")
+    links = list(by_link) if links is None else [tuple(lk) for lk in links]
+    missing = [lk for lk in links if lk not in by_link]
+    if missing:
+        raise CalibrationError(f"{path}: no isac_twin_msgs/Csi messages of link "
+                               + ", ".join(f"{t}->{r}" for t, r in missing) + " (recorded: "
+                               + ", ".join(f"{t}->{r}" for t, r in by_link) + ")")
     trajs = load_trajectories(path)
+    return [(lk, _link_measurements(path, config, lk, by_link[lk], trajs, step,
+                                    max_snapshots, max_subcarriers)) for lk in links]
+
+
+def _link_measurements(path: Path, config: TwinConfig, link: tuple[str, str], msgs: list,
+                       trajs: dict, step: int, max_snapshots: int,
+                       max_subcarriers: int) -> Measurements:
+    """One link of :func:`measurements_from_recording`."""
+    tx, rx = link
     if rx not in trajs:
         raise CalibrationError(f"{path}: no /{rx}/ground_truth poses for the CSI of {tx}->{rx}")
     o = config.ofdm
@@ -129,12 +142,14 @@ def measurements_from_recording(path: str | Path, config: TwinConfig, *,
         pos.append(ap.position)
         ori.append(sionna_orientation(ap.orientation))
         csi.append(np.asarray(c.h)[0, sub])
-    txp = device_poses(config)[tx]
-    meas = Measurements(txp.position, np.array(pos), offsets[sub], np.array(csi),
+    txp = device_poses(config).get(tx)
+    if txp is None:
+        raise CalibrationError(f"{path}: the CSI's transmitter {tx!r} is not a device of the "
+                               "scene")
+    return Measurements(txp.position, np.array(pos), offsets[sub], np.array(csi),
                         tx_array=_array(config, tx, path), rx_array=_array(config, rx, path),
                         tx_orientation=sionna_orientation(txp.orientation),
                         rx_orientations=np.array(ori))
-    return (tx, rx), meas
 
 
 def material_users(scene, target: str) -> list:
@@ -257,7 +272,7 @@ def observability(cal: Calibrator, result) -> dict:
                          "mismatch_change_db2_at_minus_plus_10_percent": changes,
                          "mismatch_final_db2": float(result.mismatch_final)}
         curv = float(np.mean(changes))
-        n_k = cal.meas.csi.shape[0] * cal.meas.csi.shape[1]
+        n_k = sum(m.csi.shape[0] * m.csi.shape[1] for m in cal.links)
         sigma = (100.0 * SENSITIVITY_STEP * math.sqrt(result.mismatch_final / (n_k * curv))
                  if curv > 0 else math.inf)
         out[p.target]["uncertainty_percent"] = sigma
@@ -418,7 +433,7 @@ def write_calibrated_scene(scene, result, out_dir: Path) -> Path:
 
 def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str | Path, *,
                         what: tuple[str, ...] = ("materials",), objects: list[str] | None = None,
-                        link: tuple[str, str] | None = None, max_snapshots: int = 6,
+                        links: list[tuple[str, str]] | None = None, max_snapshots: int = 6,
                         max_subcarriers: int = 16, max_steps: int = 30,
                         solver: SolverSettings | None = None, scan: bool = True,
                         multistart: int = 3, materials: list[str] | None = None,
@@ -453,11 +468,12 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
 
     out = Path(out)
     scene = load_scene(scene_dir)
-    lk, meas = measurements_from_recording(recording, scene.config, link=link,
+    measured = measurements_from_recording(recording, scene.config, links=links,
                                            max_snapshots=max_snapshots,
                                            max_subcarriers=max_subcarriers)
     params = default_parameters(scene, tuple(what), list(objects or []), materials)
-    cal = Calibrator(scene, meas, params, solver or SolverSettings.from_tracer(scene.config.tracer))
+    cal = Calibrator(scene, [m for _, m in measured], params,
+                     solver or SolverSettings.from_tracer(scene.config.tracer))
     t_start = time.perf_counter()
     starts, scans = [cal.initial.copy()], {}
     poses = [i for i, p in enumerate(params) if p.kind in ("x", "y", "yaw")]
@@ -541,7 +557,8 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                 # both searches end in the half-wavelength basin they start in (lab:
                 # Table_2's y a period off, 6.9 cm); scan the next basins, then polish
                 # again from a better one, with what the hop moved
-                xh, fh, nh = cal.hop(x, shifts)
+                xh, fh, nh = cal.hop(x, shifts, unseen=[
+                    i for i in shifts if params[i].name in result.unobserved])
                 moved = [i for i in shifts if cal.hop_report[params[i].name]["kept"]]
                 hopped = {"parameters": [params[i].name for i in shifts], "traces": nh,
                           "mismatch_db2": {"before": f, "after": fh},
@@ -583,8 +600,9 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     scene_out = write_calibrated_scene(scene, result, out / "scene")
     materials, assign = calibrated_materials(scene, result)
     report = {"scene": str(Path(scene_dir)), "recording": str(Path(recording)),
-              "link": list(lk), "snapshots": int(len(meas.rx_positions)),
-              "subcarriers": int(len(meas.subcarrier_offsets_hz)),
+              "links": [list(lk) for lk, _ in measured],
+              "snapshots": [int(len(m.rx_positions)) for _, m in measured],
+              "subcarriers": int(len(measured[0][1].subcarrier_offsets_hz)),
               "permittivity_scans": scans, "pose_scans": pose_scans,
               "fits_from_starts": [{"start": [float(v) for v in x], "final": r.final.tolist(),
                                     "mismatch_db2": r.mismatch_final, "converged": r.converged,

@@ -102,9 +102,24 @@ HOP_GAIN = 0.01
 #: ... and by more than this, dB^2 (0.03 dB RMS): at a noise-free fit's 1e-7 dB^2, 1 %
 #: is float noise, and a flat shift moved 4.7 cm for it.
 HOP_MIN_GAIN_DB2 = 1e-3
+#: ... and, for a coordinate the start gradient did not see (``unseen``), by more than
+#: this fraction: along a face the lap does not see, the mismatch scans flat to ~2 %
+#: (lab: Table_2's x, 0.287-0.293 dB^2 over 16 cm), so 1 % moved SwitchBox_2's unseen
+#: y by 9.9 cm for a 1.1 % gain; where a path appears the gain is larger (Chair_2's x:
+#: 5.5 % and 7.4 % in two runs).
+HOP_GAIN_UNSEEN = 0.03
 
 #: ``max_num_paths_per_src`` of the candidate generator (Sionna's default).
 MAX_CANDIDATES = 1_000_000
+
+#: Sionna's deterministic candidate generator (``PathSolver(deterministic=True)``) keeps,
+#: per chain of planes, the ray of the lowest index instead of whichever thread wins a
+#: race on its hash table, so it runs on every thread and gives the same candidates on
+#: every call (lab, 2 cores: 0.14 s, against 0.33 s for the default generator, which had
+#: to run on one thread to be repeatable). Its memory grows with depth x rays x snapshots
+#: (one 64-bit hash per lane); above this many lanes the default generator runs instead,
+#: on one thread.
+DETERMINISTIC_LANES = 1 << 26
 
 #: Power floor added before taking dB, W (relative to 1 W transmit power): -200 dB.
 POWER_FLOOR = 1e-20
@@ -304,6 +319,24 @@ class CalibrationResult:
 
 
 @dataclass(frozen=True)
+class _LinkGroup:
+    """One link of a :class:`Calibrator`: its transmitter (``src``: Dr.Jit position,
+    orientation, array element offsets) and its snapshots' receivers (``tgt``), ``n``
+    snapshots, the antennas at either end, the arrays' patterns, the measured power
+    (dB, float64 ``[N * Nr * Nt * K]``) and the link's weight in the mismatch (its
+    share of all snapshots)."""
+
+    src: tuple
+    tgt: tuple
+    n: int
+    n_tx_ant: int
+    n_rx_ant: int
+    patterns: tuple
+    meas_db: object
+    weight: float
+
+
+@dataclass(frozen=True)
 class SolverSettings:
     """Path solver settings of the calibration's traces.
 
@@ -348,7 +381,9 @@ class Calibrator:
 
     Args:
         scene: the twin's scene (``engine.scene.load_scene``).
-        measurements: what was measured.
+        measurements: what was measured: one link's :class:`Measurements`, or a list
+            of them, one per link (transmitter), on the same subcarriers; each
+            snapshot counts the same in the mismatch, whichever its link.
         params: what to fit (at least one).
         solver: :class:`SolverSettings`.
 
@@ -356,7 +391,8 @@ class Calibrator:
         CalibrationError: unknown material/object, a parameter given twice.
     """
 
-    def __init__(self, scene, measurements: Measurements, params: list[Parameter],
+    def __init__(self, scene, measurements: Measurements | list[Measurements],
+                 params: list[Parameter],
                  solver: SolverSettings | None = None):
         import drjit as dr
         import mitsuba as mi
@@ -369,7 +405,17 @@ class Calibrator:
         if len(set(names)) != len(names):
             raise CalibrationError(f"calibrate: a parameter is given twice: {names}")
         self.params = list(params)
-        self.meas = measurements
+        #: The measurements, one :class:`Measurements` per link.
+        self.links = ([measurements] if isinstance(measurements, Measurements)
+                      else list(measurements))
+        self._one_link = isinstance(measurements, Measurements)
+        if not self.links or not all(isinstance(m, Measurements) for m in self.links):
+            raise CalibrationError("calibrate: measurements must be a Measurements or a "
+                                   "non-empty list of them (one per link)")
+        for j, m in enumerate(self.links[1:], 1):
+            if not np.array_equal(m.subcarrier_offsets_hz, self.links[0].subcarrier_offsets_hz):
+                raise CalibrationError(f"calibrate: link {j}'s subcarriers differ from link "
+                                       "0's; every link must be measured on the same ones")
         self.settings = solver or SolverSettings()
         self.sc = sc = scene.sionna
         self.evaluations = 0
@@ -427,20 +473,47 @@ class Calibrator:
                                   vertical_spacing=float(dv), horizontal_spacing=float(dh),
                                   pattern="iso", polarization="V")
 
-        sc.tx_array, sc.rx_array = array(measurements.tx_array), array(measurements.rx_array)
         for name in [n for n in list(sc.transmitters) + list(sc.receivers)]:
             sc.remove(name)
-        m = measurements
-        sc.add(rt.Transmitter("calib_tx", position=mi.Point3f(*map(float, m.tx_position)),
-                              orientation=mi.Point3f(*map(float, m.tx_orientation))))
-        for i, (pos, ori) in enumerate(zip(m.rx_positions, m.rx_orientations)):
-            sc.add(rt.Receiver(f"calib_rx{i:04d}", position=mi.Point3f(*map(float, pos)),
-                               orientation=mi.Point3f(*map(float, ori))))
-        self._solver = rt.PathSolver()
+        # one transmitter per link, one receiver per snapshot; each link is traced on its
+        # own (a trace of every transmitter to every receiver would trace pairs that were
+        # not measured)
+        self._groups = []
+        n_all = sum(len(m.rx_positions) for m in self.links)
+        for j, m in enumerate(self.links):
+            tx = rt.Transmitter(f"calib_tx{j}", position=mi.Point3f(*map(float, m.tx_position)),
+                                orientation=mi.Point3f(*map(float, m.tx_orientation)))
+            rxs = [rt.Receiver(f"calib_rx{j}_{i:04d}", position=mi.Point3f(*map(float, pos)),
+                               orientation=mi.Point3f(*map(float, ori)))
+                   for i, (pos, ori) in enumerate(zip(m.rx_positions, m.rx_orientations))]
+            sc.add(tx)
+            for r in rxs:
+                sc.add(r)
+            tx_arr, rx_arr = array(m.tx_array), array(m.rx_array)
+            src = sc._endpoints([tx], tx_arr, True, True)[:3]
+            tgt = sc._endpoints(rxs, rx_arr, True, True)[:3]
+            dr.make_opaque(*src, *tgt)
+            self._groups.append(_LinkGroup(
+                src=src, tgt=tgt, n=len(rxs), n_tx_ant=int(m.tx_array[0]) * int(m.tx_array[1]),
+                n_rx_ant=int(m.rx_array[0]) * int(m.rx_array[1]),
+                patterns=(tx_arr.antenna_pattern.patterns, rx_arr.antenna_pattern.patterns),
+                # Sionna's cfr order [N, Nr, (tx=1), Nt, (time=1), K]
+                meas_db=mi.Float64(power_db(m.csi.transpose(0, 2, 3, 1)).reshape(-1)),
+                weight=len(rxs) / n_all))
+        # the scene's arrays: those of the first link (Sionna's own traces, visibility)
+        sc.tx_array, sc.rx_array = array(self.links[0].tx_array), array(self.links[0].rx_array)
+        lanes = self.settings.max_depth * self.settings.samples_per_src * max(
+            g.n for g in self._groups)
+        #: True: Sionna's deterministic candidate generator on every thread; False: the
+        #: default one on one thread (see :data:`DETERMINISTIC_LANES`).
+        self.deterministic_candidates = lanes <= DETERMINISTIC_LANES
+        if not self.deterministic_candidates:
+            log.info("calibrate: %d x %d rays x %d snapshots is more than the deterministic "
+                     "candidate generator's %d lanes; the default generator runs on one "
+                     "thread", self.settings.max_depth, self.settings.samples_per_src,
+                     max(g.n for g in self._groups), DETERMINISTIC_LANES)
+        self._solver = rt.PathSolver(deterministic=self.deterministic_candidates)
         self._solver.loop_mode = "evaluated"  # symbolic loops do not backpropagate
-        self._n_meas = len(m.rx_positions)
-        self._n_tx_ant = int(m.tx_array[0]) * int(m.tx_array[1])
-        self._n_rx_ant = int(m.rx_array[0]) * int(m.rx_array[1])
         self._at_initial = None  # (mismatch, gradient, model) at the scene's values
         #: Keep the candidate chains of the next trace for the following ones (the
         #: image method and field calculator still run at the current geometry and
@@ -451,9 +524,9 @@ class Calibrator:
         #: a second-order approximation (1 cm / 1 deg later: median 0.01 dB, at most a
         #: few tenths of a dB in a fade); reported values are traced afresh.
         self.freeze_candidates = False
-        self._candidates = None
-        #: Candidate buffer entries of every evaluation (0: sized by the first).
-        self.buffer_size = 0
+        self._candidates: list | None = None
+        #: Candidate buffer entries of every evaluation, per link (0: sized by the first).
+        self.buffer_sizes = [0] * len(self._groups)
         #: Evaluations that found more candidates than the buffer held (it grew:
         #: Dr.Jit recompiled the evaluation's kernels once).
         self.buffer_regrows = 0
@@ -463,10 +536,12 @@ class Calibrator:
         self.polish_converged: bool | None = None
         #: The last :meth:`hop`: per scanned parameter name, its scan and what was kept.
         self.hop_report: dict[str, dict] = {}
-        self._freqs = mi.Float(measurements.subcarrier_offsets_hz)
-        # Sionna's cfr order [N, Nr, (tx=1), Nt, (time=1), K]
-        self._meas_db = mi.Float64(power_db(measurements.csi.transpose(0, 2, 3, 1))
-                                   .reshape(-1))
+        self._freqs = mi.Float(self.links[0].subcarrier_offsets_hz)
+
+    @property
+    def buffer_size(self) -> int:
+        """Candidate buffer entries of every evaluation, all links (0 before the first)."""
+        return sum(self.buffer_sizes)
 
     # ------------------------------------------------------------------ helpers
 
@@ -522,8 +597,9 @@ class Calibrator:
             self.sc.scene_geometry_updated()
         return vars_
 
-    def _trace_db(self):
-        """Model channel power in dB, a Dr.Jit float64 array ``[N * Nr * Nt * K]``.
+    def _trace_db(self) -> list:
+        """Model channel power in dB per link: Dr.Jit float64 arrays ``[N * Nr * Nt * K]``
+        (the link's snapshots, antennas and subcarriers), each link traced on its own.
 
         Sionna's ``PathSolver`` stages (candidate generator, image method, field
         calculator) on a candidate buffer of *fixed* size, and the frequency
@@ -532,28 +608,37 @@ class Calibrator:
         kernels bake that number in (as ``Paths`` does the paths per link), so an
         evaluation at new poses recompiled ~12 kernels (13-16 s of LLVM on the
         lab, against ~1 s of work). The candidates are padded to
-        :attr:`buffer_size` (grown by half when a trace finds more, counted in
+        :attr:`buffer_sizes` (grown by half when a trace finds more, counted in
         :attr:`buffer_regrows`); the padding is weighted out of the sum. The
         channel equals ``Paths.cfr`` of ``PathSolver`` with ``synthetic_array=True``
         (``tests/engine/test_calibration.py``).
         """
+        frozen = self._candidates if self.freeze_candidates else None
+        out, kept = [], []
+        for j, grp in enumerate(self._groups):
+            h_db, buf = self._trace_link_db(j, grp, None if frozen is None else frozen[j])
+            out.append(h_db)
+            kept.append(buf)
+        self._candidates = kept if self.freeze_candidates else None
+        return out
+
+    def _trace_link_db(self, j: int, grp, buf):
+        """One link of :meth:`_trace_db`: ``(power dB [N * Nr * Nt * K], candidates)``;
+        ``buf``: that link's kept candidates (None: trace new ones)."""
         from sionna.rt.utils import map_angle_to_canonical_range
 
         dr, mi = self._dr, self._mi
         s, sc, solver = self.settings, self.sc, self._solver
-        src, src_o, rel_tx, _ = sc.sources(True, True)
-        tgt, tgt_o, rel_rx, _ = sc.targets(True, True)
-        dr.make_opaque(src, tgt, src_o, tgt_o)
-        if self.freeze_candidates and self._candidates is not None:
-            buf = self._candidates
-        else:
-            # on one thread: the generator keeps one candidate per chain of planes,
-            # whichever ray's triangle wins a race on its hash table; with two
-            # threads the kept triangle (and so the float32 image of a coplanar
-            # face) varied between calls (lab: 3 different mismatches of 6 calls
-            # at the same values)
+        (src, src_o, rel_tx), (tgt, tgt_o, rel_rx) = grp.src, grp.tgt
+        if buf is None:
+            # the default generator keeps one candidate per chain of planes, whichever
+            # ray's triangle wins a race on its hash table; with two threads the kept
+            # triangle (and so the float32 image of a coplanar face) varied between
+            # calls (lab: 3 different mismatches of 6 calls at the same values), so it
+            # runs on one thread; the deterministic one runs on every thread
             threads = dr.thread_count()
-            dr.set_thread_count(1)
+            if not self.deterministic_candidates:
+                dr.set_thread_count(1)
             try:
                 buf = solver._candidate_generator(
                     mi_scene=sc.mi_scene, src_positions=src, tgt_positions=tgt,
@@ -566,13 +651,13 @@ class Calibrator:
             finally:
                 dr.set_thread_count(threads)
             buf.shrink()
-            self._candidates = buf if self.freeze_candidates else None
+        kept = buf
         n = int(buf.buffer_size)
-        if n > self.buffer_size:
-            if self.buffer_size:
+        if n > self.buffer_sizes[j]:
+            if self.buffer_sizes[j]:
                 self.buffer_regrows += 1
-            self.buffer_size = max(1024, int(1.5 * n))
-        size = self.buffer_size
+            self.buffer_sizes[j] = max(1024, int(1.5 * n))
+        size = self.buffer_sizes[j]
         buf = buf.gather(mi.UInt(np.concatenate([np.arange(n), np.zeros(size - n, int)])
                                  .astype(np.uint32)))
         weight = mi.Float(np.concatenate([np.ones(n), np.zeros(size - n)]).astype(np.float32))
@@ -581,11 +666,10 @@ class Calibrator:
 
         buf = image_and_field(solver, buf, sc.mi_scene, sc.wavelength, src, tgt,
                               samples_per_src=s.samples_per_src, src_o=src_o, tgt_o=tgt_o,
-                              patterns=(sc.tx_array.antenna_pattern.patterns,
-                                        sc.rx_array.antenna_pattern.patterns))
+                              patterns=grp.patterns)
         # H[t, r, s, k] = sum_p a_p exp(j 2pi/lambda (d_r . k_rx,p + d_s . k_tx,p))
         #                 exp(-j 2pi f_k tau_p), over the valid, unpadded p of target t
-        n_rx, n_tx, k = self._n_rx_ant, self._n_tx_ant, len(self.meas.subcarrier_offsets_hz)
+        n_rx, n_tx, k = grp.n_rx_ant, grp.n_tx_ant, len(self.links[0].subcarrier_offsets_hz)
         # (Paths.cir: the carrier's phase exp(-j 2pi f_c tau) first, as Sionna does)
         w = dr.select(buf.valid, weight, 0.0)
         a, tau, t = buf.a[0][0], buf.tau, buf.target_indices
@@ -611,12 +695,12 @@ class Calibrator:
         # summed in float64: the LLVM backend's atomic adds land in thread order, so a
         # float32 sum differed between calls at the same values (lab: 4 losses of 6
         # within 7e-7, gradients 0.3 % apart), which steered the line search apart
-        h_re = dr.zeros(mi.Float64, self._n_meas * per)
-        h_im = dr.zeros(mi.Float64, self._n_meas * per)
+        h_re = dr.zeros(mi.Float64, grp.n * per)
+        h_im = dr.zeros(mi.Float64, grp.n * per)
         dr.scatter_add(h_re, mi.Float64(are * cs - aim * sn), out)
         dr.scatter_add(h_im, mi.Float64(are * sn + aim * cs), out)
         pw = h_re * h_re + h_im * h_im
-        return 10.0 * dr.log(pw + POWER_FLOOR) / math.log(10.0)
+        return 10.0 * dr.log(pw + POWER_FLOOR) / math.log(10.0), kept
 
     def _trace(self):
         s = self.settings
@@ -646,13 +730,17 @@ class Calibrator:
         dr = self._dr
         self._apply(self.initial if values is None else np.asarray(values, float), False)
         paths = self._trace()
-        objs = np.asarray(paths.objects.numpy())  # [D, N, 1, P] (synthetic array)
+        objs = np.asarray(paths.objects.numpy())  # [D, N, T, P] (synthetic array)
         a_re, a_im = (np.asarray(dr.detach(t).numpy()) for t in paths.a)
-        pw = (a_re ** 2 + a_im ** 2)  # [N, Nr, 1, Nt, P]
-        pw = pw.reshape(pw.shape[0], -1, pw.shape[-1]).sum(axis=1)  # [N, P]
+        pw = (a_re ** 2 + a_im ** 2).sum(axis=(1, 3))  # [N, Nr, T, Nt, P] -> [N, T, P]
         valid = np.asarray(paths.valid.numpy()).reshape(pw.shape)
+        # every link's transmitter was traced to every snapshot: keep the measured pairs
+        # (the scene's arrays are the first link's: the same gain on every path of a pair)
+        snap = np.arange(pw.shape[0])
+        link = np.concatenate([np.full(g.n, j) for j, g in enumerate(self._groups)])
+        pw, valid = pw[snap, link], valid[snap, link]  # [N, P]
         pw = np.where(valid, pw, 0.0)
-        objs = objs.reshape(objs.shape[0], objs.shape[1], -1)  # [D, N, P]
+        objs = objs.reshape(objs.shape[0], len(snap), len(self._groups), -1)[:, snap, link]
         total = pw.sum(axis=1)
         top = pw.max(axis=1)
         ids: dict[str, set[int]] = {}
@@ -682,15 +770,21 @@ class Calibrator:
         """Mismatch at ``values`` (physical units, ``[P]``).
 
         Returns:
-            ``(mismatch dB^2, gradient [P] in dB^2 per unit, model power [N, K, Nr, Nt] dB)``.
+            ``(mismatch dB^2, gradient [P] in dB^2 per unit, model power [N, K, Nr, Nt]
+            dB)``; the model is a list of those, one per link, when the calibrator was
+            given a list of measurements.
         """
         dr = self._dr
         t0 = time.perf_counter()
         values = np.asarray(values, float).reshape(-1)
         vars_ = self._apply(values, grad)
-        model_db = self._trace_db()
-        diff = model_db - self._meas_db
-        loss = dr.mean(diff * diff)
+        models_db = self._trace_db()
+        loss = None
+        for grp, model_db in zip(self._groups, models_db):
+            diff = model_db - grp.meas_db
+            # each snapshot counts the same (one link: weight 1, the mean itself)
+            term = grp.weight * dr.mean(diff * diff)
+            loss = term if loss is None else loss + term
         g = np.zeros(len(values))
         if grad:
             dr.eval(loss)  # the forward pass on every thread
@@ -708,9 +802,11 @@ class Calibrator:
                 g = np.array([float(dr.grad(x)[0]) for x in vars_])
             finally:
                 dr.set_thread_count(threads)
-        n, k, nr, nt = self.meas.csi.shape
-        model = np.array(dr.detach(model_db).numpy(), float).reshape(n, nr, nt, k)
-        out = float(loss[0]), g, model.transpose(0, 3, 1, 2)
+        k = len(self._freqs)
+        models = [np.array(dr.detach(m).numpy(), float)
+                  .reshape(grp.n, grp.n_rx_ant, grp.n_tx_ant, k).transpose(0, 3, 1, 2)
+                  for grp, m in zip(self._groups, models_db)]
+        out = float(loss[0]), g, models[0] if self._one_link else models
         if grad:  # leave the scene at values, detached from the graph (a BVH rebuild)
             self._apply(values, False)
         self.evaluations += 1
@@ -791,7 +887,7 @@ class Calibrator:
         log.info("calibrate: polish %d traces -> %.5g dB^2", n, f)
         return x, f, n
 
-    def hop(self, start, free, *, span: tuple[float, float] = HOP_SPAN,
+    def hop(self, start, free, *, unseen=(), span: tuple[float, float] = HOP_SPAN,
             per_wavelength: int = HOP_PER_WAVELENGTH,
             steps: tuple[float, float] = POLISH_STEPS) -> tuple[np.ndarray, float, int]:
         """Move x/y offsets into a lower half-wavelength basin.
@@ -804,7 +900,8 @@ class Calibrator:
         current value's basin; if it is within :data:`HOP_SLACK` of the current
         mismatch, search it (:meth:`polish` on that coordinate alone, from half a scan
         step down to ``steps[1]``); keep it if it lowers the mismatch by more than
-        :data:`HOP_GAIN` of it and :data:`HOP_MIN_GAIN_DB2`.
+        :data:`HOP_GAIN` of it (:data:`HOP_GAIN_UNSEEN` for a parameter of ``unseen``,
+        indices the start gradient did not see) and :data:`HOP_MIN_GAIN_DB2`.
 
         A gradient fit and :meth:`polish` end in the basin they start in; the
         magnitude mismatch repeats about every half wavelength of a shift normal to a
@@ -820,9 +917,10 @@ class Calibrator:
         """
         x = np.asarray(start, float).reshape(-1).copy()
         free = [int(i) for i in free]
-        if not all(0 <= i < len(x) for i in free):
-            raise CalibrationError(f"hop: free must name parameters 0..{len(x) - 1}, "
-                                   f"got {free!r}")
+        unseen = {int(i) for i in unseen}
+        if not all(0 <= i < len(x) for i in [*free, *unseen]):
+            raise CalibrationError(f"hop: free and unseen must name parameters "
+                                   f"0..{len(x) - 1}, got {free!r} and {sorted(unseen)!r}")
         step = float(self.sc.wavelength[0]) / per_wavelength
         k = np.arange(int(math.ceil(span[0] * per_wavelength)),
                       int(math.floor(span[1] * per_wavelength)) + 1)
@@ -860,7 +958,8 @@ class Calibrator:
                 z, fz, m = self.polish(y, [i], steps=(0.5 * step / scale, steps[1]))
                 n += m
                 entry.update(tried_m=float(z[i] - x[i]), mismatch_after_db2=float(fz))
-                if f - fz > max(HOP_GAIN * f, HOP_MIN_GAIN_DB2):
+                gain = HOP_GAIN_UNSEEN if i in unseen else HOP_GAIN
+                if f - fz > max(gain * f, HOP_MIN_GAIN_DB2):
                     x, f = z, fz
                     entry["kept"] = True
             self.hop_report[p.name] = entry
@@ -968,9 +1067,13 @@ class Calibrator:
             self._at_initial = self.evaluate(self.initial)
         first = dict(zip(("f", "g", "model"), self._at_initial))
         f_final, _, model = self.evaluate(final, grad=False)  # leaves the scene there
-        meas_db = power_db(self.meas.csi)
-        residual = np.sqrt(np.mean((model - meas_db) ** 2, axis=(1, 2, 3)))
-        residual0 = np.sqrt(np.mean((first["model"] - meas_db) ** 2, axis=(1, 2, 3)))
+        def rms(models):  # per snapshot, the links' snapshots one after the other
+            models = [models] if self._one_link else models
+            return np.concatenate([np.sqrt(np.mean((mod - power_db(m.csi)) ** 2,
+                                                   axis=(1, 2, 3)))
+                                   for mod, m in zip(models, self.links)])
+
+        residual, residual0 = rms(model), rms(first["model"])
         names = [p.name for p in self.params]
         return CalibrationResult(
             names=names, initial=self.initial.copy(), final=final, gradient_initial=first["g"],

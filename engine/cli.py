@@ -996,9 +996,10 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                    help="comma-separated materials fitted with --params materials: ITU "
                         "type, custom name or TYPE-THICKNESS such as wood-0.03 (default: "
                         "every material but metal)")
-    p.add_argument("--link", default=None, metavar="TX,RX",
-                   help="the recorded link to use (default: the first one)")
-    p.add_argument("--snapshots", type=int, default=6, help="CSI messages used (default 6)")
+    p.add_argument("--links", default=None, metavar="TX,RX[;TX,RX...]",
+                   help="the recorded links to use (default: every recorded link)")
+    p.add_argument("--snapshots", type=int, default=6,
+                   help="CSI messages used per link (default 6)")
     p.add_argument("--subcarriers", type=int, default=16,
                    help="recorded subcarriers used (default 16)")
     p.add_argument("--max-steps", type=int, default=30, help="optimiser iterations per start")
@@ -1019,14 +1020,13 @@ def cmd_calibrate(args) -> int:
     from engine.calibrate_run import calibrate_recording
     from engine.calibration import CalibrationError
 
-    link = None
-    if args.link:
-        parts = args.link.split(",")
-        if len(parts) != 2 or not all(parts):
-            print(f"isac-twin: error: --link: expected TX,RX, got {args.link!r}",
+    links = None
+    if args.links is not None:
+        links = [tuple(p.strip() for p in lk.split(",")) for lk in args.links.split(";")]
+        if not links or any(len(lk) != 2 or not all(lk) for lk in links):
+            print(f"isac-twin: error: --links: expected TX,RX[;TX,RX...], got {args.links!r}",
                   file=sys.stderr)
             return 2
-        link = (parts[0], parts[1])
     what = tuple(w.strip() for w in args.params.split(",") if w.strip())
     objects = [o.strip() for o in args.objects.split(",") if o.strip()]
     if not args.measurements.is_file():
@@ -1035,7 +1035,7 @@ def cmd_calibrate(args) -> int:
         return 2
     try:
         run = calibrate_recording(scene_path(args), args.measurements, args.out, what=what,
-                                  objects=objects, link=link, max_snapshots=args.snapshots,
+                                  objects=objects, links=links, max_snapshots=args.snapshots,
                                   max_subcarriers=args.subcarriers, max_steps=args.max_steps,
                                   scan=not args.no_scan, pose_scan=args.pose_scan,
                                   hop=not args.no_hop,

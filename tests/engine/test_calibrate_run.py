@@ -10,8 +10,8 @@ import pytest
 
 from engine import synthetic as syn
 from engine.calibrate_run import measurements_from_recording, write_calibrated_scene
-from engine.calibration import (CalibrationResult, Calibrator, Parameter, SolverSettings,
-                                local_minima)
+from engine.calibration import (CalibrationError, CalibrationResult, Calibrator, Parameter,
+                                SolverSettings, local_minima)
 from engine.cli import main
 from engine.meshes import read_ply
 from engine.scene import load_scene
@@ -19,7 +19,7 @@ from engine.scene import load_scene
 FREQ = 2.4e9
 
 
-def room(folder, wall, cabinet_shift=(0.0, 0.0)):
+def room(folder, wall, cabinet_shift=(0.0, 0.0), second_ap=False):
     dx, dy = cabinet_shift
     objs = syn.room_objects((5.0, 4.0, 3.0),
                             {"Cabinet": ((3.0 + dx, 2.5 + dy, 0.0), (3.6 + dx, 3.0 + dy, 1.5),
@@ -30,7 +30,11 @@ def room(folder, wall, cabinet_shift=(0.0, 0.0)):
     devs = [syn.SyntheticDevice("AP1", "access_point", "tx", (0.5, 0.5, 2.0), rows=2, cols=2),
             syn.SyntheticDevice("robot1", "robot", "rx", (1.5, 2.0, 0.0), cols=2,
                                 extra={**syn.ROBOT_EXTRA, "path": path})]
-    return syn.write_scene_folder(folder, objs, devs, [("AP1", "robot1")], frequency_hz=FREQ,
+    links = [("AP1", "robot1")]
+    if second_ap:  # on the other side of the cabinet's x-facing faces
+        devs.append(syn.SyntheticDevice("AP2", "access_point", "tx", (2.0, 3.8, 2.5)))
+        links.append(("AP2", "robot1"))
+    return syn.write_scene_folder(folder, objs, devs, links, frequency_hz=FREQ,
                                   num_subcarriers=256, subcarrier_spacing_hz=312500.0,
                                   tracer={"samples_per_src": 20000, "max_depth": 2})
 
@@ -53,9 +57,11 @@ def test_recorded_csi_is_the_model_at_truth(recording):
     reproduce the recorded channel exactly in the calibrator's Sionna model."""
     _, real, run = recording
     scene = load_scene(real)
-    (tx, rx), meas = measurements_from_recording(run, scene.config, max_snapshots=4,
-                                                 max_subcarriers=8)
+    [((tx, rx), meas)] = measurements_from_recording(run, scene.config, max_snapshots=4,
+                                                     max_subcarriers=8)
     assert (tx, rx) == ("AP1", "robot1") and meas.csi.shape == (4, 8, 2, 4)
+    with pytest.raises(CalibrationError, match=r"of link AP2->robot1 \(recorded: AP1->robot1\)"):
+        measurements_from_recording(run, scene.config, links=[("AP2", "robot1")])
     cal = Calibrator(scene, meas, [Parameter("permittivity", "brick")],
                      SolverSettings.from_tracer(scene.config.tracer))
     f, g, _ = cal.evaluate(cal.initial)
@@ -126,6 +132,37 @@ def test_cli_recovers_cabinet_offset_and_says_what_it_cannot_see(tmp_path, capsy
     assert v[:, 1].min() == pytest.approx(2.5 - 0.02, abs=0.002)
 
 
+@pytest.mark.slow
+def test_a_second_access_point_sees_what_the_first_cannot(tmp_path, capsys):
+    """The same run with a second AP whose paths reflect off the cabinet's x-facing
+    side: calibrated from both recorded links (the default), x is seen and recovered;
+    from AP1's link alone (``--links AP1,robot1``) it is not. (With this AP at
+    (1.0, 3.6, 2.0) instead, x is seen too but the fit ends in a local minimum 1.7 cm
+    off in y, at 0.13 dB^2: a second link also adds paths that come and go.)"""
+    from engine.record import record_twin
+    from engine.twin import Twin
+
+    real = room(tmp_path / "real", "concrete", (0.03, -0.02), second_ap=True)
+    record_twin(Twin.from_scene(real), 60, tmp_path / "run.mcap")
+    twin = room(tmp_path / "twin", "concrete", second_ap=True)
+    args = ["calibrate", str(twin), "--measurements", str(tmp_path / "run.mcap"),
+            "--params", "poses", "--objects", "Cabinet", "--snapshots", "8",
+            "--subcarriers", "8", "--no-hop"]
+    assert main(args + ["--out", str(tmp_path / "both")]) == 0
+    assert "not seen" not in capsys.readouterr().out
+    rep = json.loads((tmp_path / "both" / "calibration.json").read_text())
+    assert rep["links"] == [["AP1", "robot1"], ["AP2", "robot1"]] and rep["snapshots"] == [8, 8]
+    assert len(rep["residual_db_per_measurement"]) == 16
+    got = {p["name"]: p["final"] for p in rep["parameters"]}
+    assert rep["unobserved"] == []
+    assert got["Cabinet.x"] == pytest.approx(0.03, abs=0.002)
+    assert got["Cabinet.y"] == pytest.approx(-0.02, abs=0.002)
+    assert main(args + ["--out", str(tmp_path / "one"), "--links", "AP1,robot1"]) == 0
+    assert "not seen by the measurements: Cabinet.x" in capsys.readouterr().out
+    assert json.loads((tmp_path / "one" / "calibration.json").read_text())["links"] == [
+        ["AP1", "robot1"]]
+
+
 def test_calibrated_scene_moves_the_fitted_object(tmp_path):
     twin = room(tmp_path / "twin", "concrete")
     scene = load_scene(twin, load_sionna=False)
@@ -171,7 +208,7 @@ def test_cli_refuses_bad_input(tmp_path, capsys):
     assert main(["calibrate", str(twin), "--measurements", str(tmp_path / "none.mcap"),
                  "--out", str(tmp_path / "o")]) == 2
     assert "no such file" in capsys.readouterr().err
-    assert main(["calibrate", str(twin), "--measurements", str(junk), "--link", "AP1",
+    assert main(["calibrate", str(twin), "--measurements", str(junk), "--links", "AP1",
                  "--out", str(tmp_path / "o")]) == 2
     assert "expected TX,RX" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
@@ -231,8 +268,8 @@ def test_calibrated_folder_gives_the_calibrators_channel_at_the_fitted_values(re
     _, _, run = recording
     twin = room(tmp_path / "twin", "concrete")
     scene = load_scene(twin)
-    _, meas = measurements_from_recording(run, scene.config, max_snapshots=4,
-                                          max_subcarriers=8)
+    [(_, meas)] = measurements_from_recording(run, scene.config, max_snapshots=4,
+                                              max_subcarriers=8)
     params = [Parameter("permittivity", "concrete"), Parameter("conductivity", "concrete"),
               Parameter("x", "Cabinet"), Parameter("y", "Cabinet"), Parameter("yaw", "Cabinet")]
     settings = SolverSettings.from_tracer(scene.config.tracer)

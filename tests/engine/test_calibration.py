@@ -172,6 +172,60 @@ def test_model_channel_is_sionnas_paths_cfr(tmp_path):
 
 
 @pytest.mark.slow
+def test_each_link_is_sionnas_paths_cfr_and_each_snapshot_counts_the_same(tmp_path):
+    """Two links (transmitters) with other arrays: a 2x2 AP turned, and a one-antenna
+    AP in the far corner seen at 3 of the positions. Each link's model is Sionna's own
+    PathSolver + Paths.cfr of that transmitter to those receivers, with that link's
+    arrays; the mismatch weighs every snapshot the same (the 2x2 link has 8 antenna
+    pairs per snapshot, the other 2)."""
+    import sionna.rt as rt
+
+    from engine.calibration import power_db
+
+    n, k = len(RX), len(OFFSETS)
+    ori = np.column_stack([np.linspace(0.3, 2.0, n), np.zeros(n), np.zeros(n)])
+    rng = np.random.default_rng(3)
+    a = Measurements(TX, RX, OFFSETS, rng.normal(size=(n, k, 2, 4)) * 1e-4,
+                     tx_array=(2, 2, 0.5, 0.5), rx_array=(1, 2, 0.5, 0.5),
+                     tx_orientation=(0.4, 0.1, 0.0), rx_orientations=ori)
+    b = Measurements((4.5, 3.5, 2.0), RX[1:], OFFSETS, rng.normal(size=(n - 1, k, 2, 1)) * 1e-4,
+                     rx_array=(1, 2, 0.5, 0.5), tx_orientation=(2.5, 0.0, 0.0),
+                     rx_orientations=ori[1:])
+    cal = Calibrator(load_scene(room(tmp_path / "twin")), [a, b],
+                     [Parameter("permittivity", "concrete"), Parameter("x", "Cabinet"),
+                      Parameter("yaw", "Cabinet")], SETTINGS)
+    f, _, models = cal.evaluate(cal.initial + np.array([0.3 * cal.initial[0], 0.02,
+                                                        np.radians(2.0)]), grad=False)
+    assert [m.shape for m in models] == [(n, k, 2, 4), (n - 1, k, 2, 1)]
+    per_snapshot = [np.mean((mod - power_db(m.csi)) ** 2, axis=(1, 2, 3))
+                    for mod, m in zip(models, (a, b))]
+    assert f == pytest.approx(np.mean(np.concatenate(per_snapshot)), rel=1e-9)
+    # Sionna traces every transmitter to every receiver with the scene's arrays: the
+    # measured pairs, one link's arrays at a time
+    rx_of = {0: np.arange(n), 1: n + np.arange(n - 1)}
+    for j, (m, arrays) in enumerate(zip((a, b), (((2, 2), (1, 2)), ((1, 1), (1, 2))))):
+        cal.sc.tx_array, cal.sc.rx_array = (
+            rt.PlanarArray(num_rows=r, num_cols=c, vertical_spacing=0.5,
+                           horizontal_spacing=0.5, pattern="iso", polarization="V")
+            for r, c in arrays)
+        paths = rt.PathSolver()(cal.sc, max_depth=SETTINGS.max_depth,
+                                samples_per_src=SETTINGS.samples_per_src, synthetic_array=True,
+                                los=True, specular_reflection=True, diffuse_reflection=False,
+                                refraction=True, diffraction=False, seed=SETTINGS.seed)
+        h = np.asarray(paths.cfr(frequencies=OFFSETS, normalize_delays=False,
+                                 out_type="numpy"))  # [Nrx, Nr, T, Nt, 1, K]
+        nt = arrays[0][0] * arrays[0][1]
+        h = h[rx_of[j], :, j, :, 0, :]  # [N, Nr, Nt, K]
+        ref = power_db(h.transpose(0, 3, 1, 2))
+        assert np.abs(models[j] - ref).max() < 1e-3, j  # dB
+        assert ref.shape == (len(m.rx_positions), k, 2, nt)
+    with pytest.raises(CalibrationError, match="link 1's subcarriers differ"):
+        Calibrator(load_scene(room(tmp_path / "twin")),
+                   [a, Measurements(TX, RX, OFFSETS + 1e6, np.ones((n, k)))],
+                   [Parameter("x", "Cabinet")], SETTINGS)
+
+
+@pytest.mark.slow
 def test_new_poses_do_not_recompile_the_evaluation(tmp_path):
     """A trace at new object poses finds another number of candidates; Sionna's kernels
     bake that number in, so the evaluation pads them to a fixed buffer: after the first
@@ -267,17 +321,48 @@ def _determinism_case(folder, calibrator=Calibrator):
                       SolverSettings(max_depth=3, samples_per_src=100000, seed=1))
 
 
+class _ThreadSpy:
+    """Wraps a candidate generator; records Dr.Jit's thread count at each call."""
+
+    def __init__(self, generator):
+        self.generator, self.threads = generator, []
+
+    def __call__(self, *args, **kwargs):
+        import drjit as dr
+
+        self.threads.append(dr.thread_count())
+        return self.generator(*args, **kwargs)
+
+
 @pytest.mark.slow
-def test_repeated_evaluations_are_identical(tmp_path):
+@pytest.mark.parametrize("deterministic", [True, False])
+def test_repeated_evaluations_are_identical(tmp_path, monkeypatch, deterministic):
     """Fresh candidates at the same values give the same mismatch and the same
-    gradient, to the last bit: the generator and the backward pass run on one thread,
-    the channel is summed in float64. Before, the kept triangle of a coplanar face
-    depended on thread timing and the line search drifted apart; then the backward
-    pass's float32 atomics still moved the gradient's last bits, and fits of the same
-    lap ended in different places."""
-    cal = _determinism_case(tmp_path / "twin")
-    x = cal.initial + np.array([0.0, 0.004, np.radians(0.7)])
-    runs = [cal.evaluate(x) for _ in range(6)]
+    gradient, to the last bit, with the candidate generator on every thread (Sionna's
+    deterministic generator; the default one, used above ``DETERMINISTIC_LANES``, on
+    one thread), the backward pass on one thread and the channel summed in float64.
+    Before, the kept triangle of a coplanar face depended on thread timing and the line
+    search drifted apart; then the backward pass's float32 atomics still moved the
+    gradient's last bits, and fits of the same lap ended in different places; the
+    generator then ran on one thread (0.33 s of a 0.42 s traced evaluation on the lab,
+    against 0.14 s on two)."""
+    import drjit as dr
+
+    import engine.calibration as calibration
+
+    if not deterministic:
+        monkeypatch.setattr(calibration, "DETERMINISTIC_LANES", 1000)
+    threads = dr.thread_count()
+    dr.set_thread_count(2)
+    try:
+        cal = _determinism_case(tmp_path / "twin")
+        assert cal.deterministic_candidates is deterministic
+        spy = cal._solver._candidate_generator = _ThreadSpy(cal._solver._candidate_generator)
+        x = cal.initial + np.array([0.0, 0.004, np.radians(0.7)])
+        runs = [cal.evaluate(x) for _ in range(6)]
+    finally:
+        dr.set_thread_count(threads)
+    assert spy.threads == [2 if deterministic else 1] * 6
     assert len({r[0] for r in runs}) == 1, [r[0] for r in runs]
     g = np.array([r[1] for r in runs])
     assert np.all(g == g[0]), g
@@ -303,7 +388,7 @@ def test_polish_recovers_yaw_where_the_mismatch_jumps(tmp_path):
 
 
 @pytest.mark.slow
-def test_hop_leaves_the_basin_the_polish_ends_in(tmp_path):
+def test_hop_leaves_the_basin_the_polish_ends_in(tmp_path, monkeypatch):
     """The cabinet moved 7 cm in x. The magnitude mismatch repeats every ~10 cm of x
     here (its face seen obliquely: period wavelength / (2 cos theta)), so the polish
     from the twin's pose ends in the basin at -2.8 cm (4.8 dB^2), a period off. The hop
@@ -326,3 +411,13 @@ def test_hop_leaves_the_basin_the_polish_ends_in(tmp_path):
     assert n > len(cal.hop_report["Cabinet.x"]["shifts_m"])  # the scan, then the search
     with pytest.raises(CalibrationError, match="free"):
         cal.hop(x, [7])
+    # a coordinate the start gradient did not see must gain HOP_GAIN_UNSEEN: the same
+    # search, not kept when that asks more than it gains
+    import engine.calibration as calibration
+
+    monkeypatch.setattr(calibration, "HOP_GAIN_UNSEEN", 1.0)
+    xu, fu, _ = cal.hop(x, [0, 1], unseen=[0], span=(0.3, 1.0))
+    assert not cal.hop_report["Cabinet.x"]["kept"] and np.array_equal(xu, x) and fu == f
+    assert cal.hop_report["Cabinet.x"]["mismatch_after_db2"] == pytest.approx(fh)
+    with pytest.raises(CalibrationError, match="unseen"):
+        cal.hop(x, [0], unseen=[5])
