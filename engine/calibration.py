@@ -388,7 +388,8 @@ class Calibrator:
         solver: :class:`SolverSettings`.
 
     Raises:
-        CalibrationError: unknown material/object, a parameter given twice.
+        CalibrationError: unknown material/object, a parameter given twice, no
+            measurements, links measured on other subcarriers.
     """
 
     def __init__(self, scene, measurements: Measurements | list[Measurements],
@@ -515,6 +516,7 @@ class Calibrator:
         self._solver = rt.PathSolver(deterministic=self.deterministic_candidates)
         self._solver.loop_mode = "evaluated"  # symbolic loops do not backpropagate
         self._at_initial = None  # (mismatch, gradient, model) at the scene's values
+        self._visibility = None  # (values, result) of the last visibility()
         #: Keep the candidate chains of the next trace for the following ones (the
         #: image method and field calculator still run at the current geometry and
         #: materials): the sampled candidates change with a sub-millimetre move
@@ -728,7 +730,12 @@ class Calibrator:
             object named by a parameter.
         """
         dr = self._dr
-        self._apply(self.initial if values is None else np.asarray(values, float), False)
+        values = np.array(self.initial if values is None else values, float).reshape(-1)
+        # the same values twice (calibrate_run: the objects' paths and the materials'
+        # observability at the fit): one trace
+        if self._visibility is not None and np.array_equal(self._visibility[0], values):
+            return self._visibility[1]
+        self._apply(values, False)
         paths = self._trace()
         objs = np.asarray(paths.objects.numpy())  # [D, N, T, P] (synthetic array)
         a_re, a_im = (np.asarray(dr.detach(t).numpy()) for t in paths.a)
@@ -764,6 +771,7 @@ class Calibrator:
                                -np.inf)
             out[target] = {"paths": hit.sum(axis=1).astype(int), "power_share": share,
                            "strongest_db": rel}
+        self._visibility = (values, out)
         return out
 
     def evaluate(self, values, grad: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
