@@ -255,8 +255,15 @@ def test_no_frame_before_or_after_auth_stops_the_server_for_others(twin, raw_vie
         assert good.until(lambda m: m["type"] == "state")["step"] == 0
         assert inside.until(lambda m: m["type"] == "state")["step"] == 0  # still served
         assert srv.stats["io_restarts"] == 0
-        info = next(i for i in srv.viewers() if i["rejected"])
-        assert sum(info["rejected"].values()) == 4
+        # the step of another connection may be served before the last of these four
+        # frames is read (CI dry run: 2 of 4 counted at that moment): wait for them
+        deadline = time.monotonic() + 10.0
+        while True:
+            counts = [sum(i["rejected"].values()) for i in srv.viewers() if i["rejected"]]
+            if counts[:1] == [4] or time.monotonic() > deadline:
+                break
+            time.sleep(0.02)
+        assert counts[:1] == [4], counts
 
 
 def test_connection_limit_pre_hello_cap_and_handshake_timeout(twin, raw_viewer, wire):
