@@ -309,11 +309,27 @@ def test_commands_are_validated_and_pause_cancels_pending_steps(server, raw_view
     v.send(wire.command("step", count=1000))
     assert _wait(lambda: server.twin.pending_steps > 0 or server.steps_done > 3)
     v.send(wire.command("pause"))
-    assert v.until(lambda m: m["type"] == "status" and not m["running"])
-    assert _wait(lambda: server.twin.pending_steps == 0)
+    _barrier(v, wire)  # the loop thread has applied the pause
+    assert not server.running and server.twin.pending_steps == 0
+    v.send(wire.command("pause"))  # a second pause: its status is the first one after
+    assert v.until(lambda m: m["type"] == "status")["running"] is False
     n = server.steps_done
     time.sleep(1.0)
-    assert server.steps_done <= n + 1  # at most the step under way when pause arrived
+    assert server.steps_done == n  # the loop steps only between commands: none after
+
+
+def _barrier(v, wire) -> None:
+    """Return once the server's loop thread has applied everything ``v`` sent so far.
+
+    The loop applies a viewer's commands in order and answers a rejected one at once, so
+    the answer to a deliberately bad command comes after the ones before it. Messages
+    read before that answer are dropped: ``until`` would otherwise find an old one (the
+    ``status`` sent when the viewer joined also says ``running: false``, and CI twice
+    matched it before the ``step`` command had been applied: 2 steps "after" the pause).
+    """
+    v.send(wire.command("step", count="barrier"))
+    v.until(lambda m: m["type"] == "error" and "barrier" in m["message"])
+    v.got.clear()
 
 
 def test_a_viewer_cannot_make_the_engine_read_host_files(server, raw_viewer, wire, tmp_path):
