@@ -611,62 +611,80 @@ class SolverCore:
             does for live traces). Same paths, in the same order, as
             Sionna's candidate buffer after its LoS test and ``discard_invalid``.
         """
-        import drjit as dr
-        import mitsuba as mi
-
-        from sionna.rt.constants import MIN_SEGMENT_LENGTH
-        from sionna.rt.path_solvers.sample_data import SampleData
-        from sionna.rt.utils import spawn_ray_to
-
-        ns, nt = dr.width(src), dr.width(tgt)
-        m = ns * nt if los else 0
-        npairs = dr.width(chain_idx)
-        n = npairs + m
-        idx = chain_idx
-        if m:  # LoS slots start as empty chains
-            empty = dr.width(chains["_src_indices"]) - 1
-            idx = dr.concat([chain_idx, dr.full(mi.UInt, empty, m)]) if npairs else \
-                dr.full(mi.UInt, empty, m)
-        b = _chain_buffer(chains, self.config.max_depth).gather(idx)
-        b._tgt_indices = dr.concat([target_idx, dr.zeros(mi.UInt, m)]) if (m and npairs) else \
-            (target_idx if npairs else dr.zeros(mi.UInt, m))
-        b._valid = dr.full(mi.Bool, False, n)
-        b._paths_counter = mi.UInt(n)
-        # Sizes as evaluated values, not literals: a kernel that bakes a size
-        # compiles again for every other size (grids call with varying counts;
-        # a stage scattering into these must not be split across kernels).
-        dr.make_opaque(b._valid, b._paths_counter, b._tgt_indices)
-        unused = dr.full(mi.Bool, False, n)
-        if m:
-            off = dr.opaque(mi.UInt, npairs)
-            # sb_deterministic._los (Sionna 2.2) without its compaction: lane
-            # (s, t) -> entry npairs + s T + t.
-            sd = SampleData(ns, nt, 0, diffraction=False)
-            o, t = dr.repeat(src, nt), dr.tile(tgt, ns)
-            visible = dr.norm(t - o) > MIN_SEGMENT_LENGTH
-            rays = spawn_ray_to(o, t)
-            visible &= ~mi_scene.ray_test(rays, active=visible)
-            lane = dr.arange(mi.UInt, m)
-            b.add_paths(mi.UInt(0), off + lane, sd, visible,
-                        dr.tile(dr.arange(mi.UInt, nt), ns), rays.d, -rays.d, visible)
-            # Hidden LoS slots are no candidates: marked valid, the image
-            # method skips them, and ``keep`` drops them.
-            i = dr.arange(mi.UInt, n)
-            in_los = i >= off
-            seen = dr.gather(mi.Bool, visible, dr.select(in_los, i - off, 0), in_los)
-            unused = in_los & ~seen
-            b._valid = b._valid | unused
-        if pad is not None:
-            padded = pad != 0
-            if m:
-                padded = dr.concat([padded, dr.zeros(mi.Bool, m)])
-            b._valid = b._valid | padded
-            unused = unused | padded
+        b, unused = chain_candidates(mi_scene, chains, chain_idx, target_idx, src, tgt,
+                                     self.config.max_depth, los, pad)
         pattern = self.basis_array.antenna_pattern.patterns
         b = image_and_field(self.solver, b, mi_scene, wavelength, src, tgt,
                             samples_per_src=self.config.samples_per_src,
                             diffraction=self.config.diffraction, patterns=(pattern, pattern))
         return [b.valid & ~unused, *buffer_arrays(b, v_tx, v_rx, wavelength)]
+
+
+def chain_candidates(mi_scene, chains: dict, chain_idx, target_idx, src, tgt, max_depth: int,
+                     los: bool, pad=None) -> tuple:
+    """The candidate buffer of (chain, target) pairs, for :func:`image_and_field`.
+
+    Arguments as :meth:`SolverCore.evaluate_chains` (``max_depth``: the solver's).
+
+    Returns:
+        ``(buffer, unused)``: Sionna's ``PathsBuffer`` of the pairs (then the ``S x T``
+        line-of-sight slots), none valid yet but the slots to skip; ``unused``
+        ``mi.Bool`` marks those slots (hidden line of sight, padding), which are no
+        paths whatever the image method says.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    from sionna.rt.constants import MIN_SEGMENT_LENGTH
+    from sionna.rt.path_solvers.sample_data import SampleData
+    from sionna.rt.utils import spawn_ray_to
+
+    ns, nt = dr.width(src), dr.width(tgt)
+    m = ns * nt if los else 0
+    npairs = dr.width(chain_idx)
+    n = npairs + m
+    idx = chain_idx
+    if m:  # LoS slots start as empty chains
+        empty = dr.width(chains["_src_indices"]) - 1
+        idx = dr.concat([chain_idx, dr.full(mi.UInt, empty, m)]) if npairs else \
+            dr.full(mi.UInt, empty, m)
+    b = _chain_buffer(chains, max_depth).gather(idx)
+    b._tgt_indices = dr.concat([target_idx, dr.zeros(mi.UInt, m)]) if (m and npairs) else \
+        (target_idx if npairs else dr.zeros(mi.UInt, m))
+    b._valid = dr.full(mi.Bool, False, n)
+    b._paths_counter = mi.UInt(n)
+    # Sizes as evaluated values, not literals: a kernel that bakes a size
+    # compiles again for every other size (grids call with varying counts;
+    # a stage scattering into these must not be split across kernels).
+    dr.make_opaque(b._valid, b._paths_counter, b._tgt_indices)
+    unused = dr.full(mi.Bool, False, n)
+    if m:
+        off = dr.opaque(mi.UInt, npairs)
+        # sb_deterministic._los (Sionna 2.2) without its compaction: lane
+        # (s, t) -> entry npairs + s T + t.
+        sd = SampleData(ns, nt, 0, diffraction=False)
+        o, t = dr.repeat(src, nt), dr.tile(tgt, ns)
+        visible = dr.norm(t - o) > MIN_SEGMENT_LENGTH
+        rays = spawn_ray_to(o, t)
+        visible &= ~mi_scene.ray_test(rays, active=visible)
+        lane = dr.arange(mi.UInt, m)
+        b.add_paths(mi.UInt(0), off + lane, sd, visible,
+                    dr.tile(dr.arange(mi.UInt, nt), ns), rays.d, -rays.d, visible)
+        # Hidden LoS slots are no candidates: marked valid, the image
+        # method skips them, and ``keep`` drops them.
+        i = dr.arange(mi.UInt, n)
+        in_los = i >= off
+        seen = dr.gather(mi.Bool, visible, dr.select(in_los, i - off, 0), in_los)
+        unused = in_los & ~seen
+        b._valid = b._valid | unused
+    if pad is not None:
+        padded = pad != 0
+        if m:
+            padded = dr.concat([padded, dr.zeros(mi.Bool, m)])
+        b._valid = b._valid | padded
+        unused = unused | padded
+    return b, unused
+
 
 def buffer_columns(buf) -> list[np.ndarray]:
     """The stored candidates of a generator ``PathsBuffer`` (after ``shrink``) as
