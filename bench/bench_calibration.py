@@ -127,6 +127,9 @@ def lab(a) -> int:
     print(f"recording {r['record_s']:.0f} s, calibration {r['calibration_s']:.0f} s "
           f"(candidate buffer {r['candidate_buffer']['size']}, grown "
           f"{r['candidate_buffer']['regrows']} times)")
+    print("stages: " + "; ".join(
+        f"{st['stage']} {st['seconds']:.0f} s ({st['evaluations']} evaluations, "
+        f"{st['gradient_steps']} with gradients)" for st in r["stages"]))
     for label in ("polish", "hop"):
         st = r[label]
         if st:

@@ -90,11 +90,13 @@ POLISH_STEPS = (0.5, 0.0625)
 #: 0.2 cm from the bottom of its true basin, 0.43-0.68 dB^2 at 0.6-1.7 cm).
 HOP_SPAN = (0.3, 0.6)
 HOP_PER_WAVELENGTH = 12
-#: A basin found by the scan is searched only when its best scan point is within this
-#: fraction above the current mismatch (the scan's points miss a basin's bottom by up
-#: to half a step; lab: 0.32 dB^2 at a grid point of a basin whose bottom is lower
-#: than the current 0.39, while the racks' other basins scanned 0.46-1.3 dB^2).
-HOP_SLACK = 0.25
+#: The lowest other basin of every scan is searched, whatever its scan points say: the
+#: points miss a basin's bottom by up to half a step, and with the chain model a
+#: basin is narrow (lab, 32 subcarriers: Table_2's y a period off, its true basin
+#: scanned 0.43 dB^2 at the nearest point, 2.1 x the current 0.204, and its bottom
+#: was 0.085; a limit of 1.25 x left it a period off). This many times the current
+#: mismatch is the limit (a basin scanned higher is not searched).
+HOP_SLACK = 4.0
 #: ... and a searched basin is kept only when it lowers the mismatch by more than this
 #: fraction (a shift along a face the lap does not see scans flat to ~1 %: lab, Table_2's
 #: x, 0.287-0.293 dB^2 over 16 cm).
@@ -120,6 +122,13 @@ MAX_CANDIDATES = 1_000_000
 #: (one 64-bit hash per lane); above this many lanes the default generator runs instead,
 #: on one thread.
 DETERMINISTIC_LANES = 1 << 26
+
+#: With ``SolverSettings.chains``: a receiver is given the chains that mirror geometry
+#: allows (:class:`~engine.raytrace.source_chains.MirrorFilter`) with this margin, m,
+#: around each reflecting plane's triangles: the objects move between enumerations
+#: (the calibration's offsets are a few cm), and a chain the filter drops is never
+#: traced. Lab: about 1/7 of the (chain, receiver) pairs at 1 mm.
+CHAIN_FILTER_MARGIN = 0.1
 
 #: Power floor added before taking dB, W (relative to 1 W transmit power): -200 dB.
 POWER_FLOOR = 1e-20
@@ -345,12 +354,19 @@ class SolverSettings:
         samples_per_src: rays shot per transmitter.
         seed: the ray sampler's seed (fixed: the mismatch must be deterministic).
         refraction: trace transmission through objects.
+        chains: the model's candidates are the chains of the transmitters (every
+            chain of ``samples_per_src`` branching rays, enumerated when the
+            calibrator refreshes them, each tried to every receiver by the image
+            method), as the twin's chain tracer finds paths
+            (:mod:`engine.raytrace.chains`); False: Sionna's candidate generator at
+            every trace (its sampled candidates, as ``PathSolver``'s).
     """
 
     max_depth: int = 2
     samples_per_src: int = 20000
     seed: int = 1
     refraction: bool = True
+    chains: bool = False
 
     @classmethod
     def from_tracer(cls, tracer) -> SolverSettings:
@@ -365,7 +381,7 @@ class SolverSettings:
                                    "diffraction or no line of sight; the calibration models "
                                    "line of sight, specular reflection and refraction only")
         return cls(max_depth=tracer.max_depth, samples_per_src=tracer.samples_per_src,
-                   seed=tracer.seed, refraction=tracer.refraction)
+                   seed=tracer.seed, refraction=tracer.refraction, chains=tracer.uses_chains)
 
 
 class Calibrator:
@@ -527,6 +543,12 @@ class Calibrator:
         #: few tenths of a dB in a fade); reported values are traced afresh.
         self.freeze_candidates = False
         self._candidates: list | None = None
+        #: with ``settings.chains``: per link, its transmitter's chains and the
+        #: (chain, receiver) pairs, enumerated at the first trace after
+        #: :meth:`refresh_chains` (fit rounds, polish, hop, result call it)
+        self._chains: list = [None] * len(self._groups)
+        #: chain enumerations so far (each: every link's transmitter)
+        self.chain_refreshes = 0
         #: Candidate buffer entries of every evaluation, per link (0: sized by the first).
         self.buffer_sizes = [0] * len(self._groups)
         #: Evaluations that found more candidates than the buffer held (it grew:
@@ -624,14 +646,69 @@ class Calibrator:
         self._candidates = kept if self.freeze_candidates else None
         return out
 
+    def refresh_chains(self) -> None:
+        """With ``settings.chains``: enumerate the transmitters' chains again at the next
+        trace, at the geometry then (the kept chains' reflection points stay where
+        their rays found them: second order in a move, as frozen candidates)."""
+        self._chains = [None] * len(self._groups)
+
+    def _link_chains(self, j: int, grp) -> tuple:
+        """Link ``j``'s chains (:func:`~engine.raytrace.solver_core.chain_arrays`) and its
+        (chain, receiver) pairs, padded to :attr:`buffer_sizes`: ``(chains, chain_idx,
+        target_idx, pad)``, enumerated at the current geometry when refreshed."""
+        from engine.raytrace.chains import ChainStore
+        from engine.raytrace.planes import PlaneIndex
+        from engine.raytrace.solver_core import chain_arrays
+        from engine.raytrace.source_chains import MirrorFilter, shoot_chains
+
+        if self._chains[j] is None:
+            mi, s, sc = self._mi, self.settings, self.sc
+
+            def points(p):
+                return np.stack([np.asarray(c.numpy(), np.float64) for c in p], 1)
+
+            src = points(grp.src[0])
+            planes = PlaneIndex(sc.mi_scene)
+            store = ChainStore(s.max_depth, planes)
+            store.add_columns(shoot_chains(sc.mi_scene, planes, src, s.samples_per_src,
+                                           s.max_depth, specular=True,
+                                           refraction=s.refraction))
+            per_target = MirrorFilter(planes, src, store.columns(),
+                                      margin=CHAIN_FILTER_MARGIN)(points(grp.tgt[0]))
+            n = sum(len(k) for k in per_target)
+            if n > self.buffer_sizes[j]:
+                if self.buffer_sizes[j]:
+                    self.buffer_regrows += 1
+                self.buffer_sizes[j] = max(1024, int(1.5 * n))
+            size = self.buffer_sizes[j]
+            ci = np.zeros(size, np.uint32)
+            ti = np.zeros(size, np.uint32)
+            if n:
+                ci[:n] = np.concatenate(per_target)
+                ti[:n] = np.repeat(np.arange(len(per_target), dtype=np.uint32),
+                                   [len(k) for k in per_target])
+            pad = np.ones(size, np.uint32)
+            pad[:n] = 0
+            arrays = [mi.UInt(ci), mi.UInt(ti), mi.UInt(pad)]
+            self._dr.make_opaque(*arrays)
+            self._chains[j] = (chain_arrays(store.columns(), s.max_depth), *arrays)
+            if j == 0:
+                self.chain_refreshes += 1
+        return self._chains[j]
+
     def _trace_link_db(self, j: int, grp, buf):
         """One link of :meth:`_trace_db`: ``(power dB [N * Nr * Nt * K], candidates)``;
         ``buf``: that link's kept candidates (None: trace new ones)."""
-        from sionna.rt.utils import map_angle_to_canonical_range
-
         dr, mi = self._dr, self._mi
         s, sc, solver = self.settings, self.sc, self._solver
         (src, src_o, rel_tx), (tgt, tgt_o, rel_rx) = grp.src, grp.tgt
+        if s.chains:
+            from engine.raytrace.solver_core import chain_candidates
+
+            chains, ci, ti, pad = self._link_chains(j, grp)
+            buf, unused = chain_candidates(sc.mi_scene, chains, ci, ti, src, tgt, s.max_depth,
+                                           True, pad)
+            return self._link_cfr_db(grp, buf, ~unused), None
         if buf is None:
             # the default generator keeps one candidate per chain of planes, whichever
             # ray's triangle wins a race on its hash table; with two threads the kept
@@ -662,18 +739,31 @@ class Calibrator:
         size = self.buffer_sizes[j]
         buf = buf.gather(mi.UInt(np.concatenate([np.arange(n), np.zeros(size - n, int)])
                                  .astype(np.uint32)))
-        weight = mi.Float(np.concatenate([np.ones(n), np.zeros(size - n)]).astype(np.float32))
-        dr.make_opaque(weight)
+        used = mi.Bool(np.arange(size) < n)
+        dr.make_opaque(used)
+        return self._link_cfr_db(grp, buf, used), kept
+
+    def _link_cfr_db(self, grp, buf, used):
+        """Image method and field calculator on a link's candidates ``buf`` (``used``
+        marks those that count: not padding, not a hidden line of sight), and
+        its power in dB per snapshot, antenna pair and subcarrier (``[N * Nr * Nt * K]``,
+        Dr.Jit float64)."""
+        from sionna.rt.utils import map_angle_to_canonical_range
+
         from engine.raytrace.solver_core import image_and_field
 
+        dr, mi = self._dr, self._mi
+        s, sc, solver = self.settings, self.sc, self._solver
+        (src, src_o, rel_tx), (tgt, tgt_o, rel_rx) = grp.src, grp.tgt
         buf = image_and_field(solver, buf, sc.mi_scene, sc.wavelength, src, tgt,
                               samples_per_src=s.samples_per_src, src_o=src_o, tgt_o=tgt_o,
                               patterns=grp.patterns)
+        size = dr.width(buf.valid)
         # H[t, r, s, k] = sum_p a_p exp(j 2pi/lambda (d_r . k_rx,p + d_s . k_tx,p))
         #                 exp(-j 2pi f_k tau_p), over the valid, unpadded p of target t
         n_rx, n_tx, k = grp.n_rx_ant, grp.n_tx_ant, len(self.links[0].subcarrier_offsets_hz)
         # (Paths.cir: the carrier's phase exp(-j 2pi f_c tau) first, as Sionna does)
-        w = dr.select(buf.valid, weight, 0.0)
+        w = dr.select(buf.valid & used, mi.Float(1.0), mi.Float(0.0))
         a, tau, t = buf.a[0][0], buf.tau, buf.target_indices
         sn_c, cs_c = dr.sincos(map_angle_to_canonical_range(-2.0 * math.pi * sc.frequency * tau))
         a_re = (dr.real(a) * cs_c - dr.imag(a) * sn_c) * w
@@ -702,7 +792,7 @@ class Calibrator:
         dr.scatter_add(h_re, mi.Float64(are * cs - aim * sn), out)
         dr.scatter_add(h_im, mi.Float64(are * sn + aim * cs), out)
         pw = h_re * h_re + h_im * h_im
-        return 10.0 * dr.log(pw + POWER_FLOOR) / math.log(10.0), kept
+        return 10.0 * dr.log(pw + POWER_FLOOR) / math.log(10.0)
 
     def _trace(self):
         s = self.settings
@@ -841,7 +931,8 @@ class Calibrator:
         return np.array(out)
 
     def polish(self, start, free, *, steps: tuple[float, float] = POLISH_STEPS,
-               max_evaluations: int = 400) -> tuple[np.ndarray, float, int]:
+               max_evaluations: int = 400,
+               refresh: bool = True) -> tuple[np.ndarray, float, int]:
         """Coordinate pattern search from ``start`` (physical units, ``[P]``) over the
         parameters ``free`` (indices), each trace with fresh candidates, no gradients.
 
@@ -864,12 +955,22 @@ class Calibrator:
             raise CalibrationError(f"polish: free must name parameters 0..{len(x) - 1}, "
                                    f"got {free!r}")
         step = {i: steps[0] * self.scales[i] for i in free}
+        if refresh:  # (else the chains kept so far: the hop's searches)
+            self.refresh_chains()
         f = self.evaluate(x, grad=False)[0]
         # name -> [[move (physical units), mismatch change dB^2], ...] of the first step
         self.polish_trials = {self.params[i].name: [] for i in free}
         n = 1
+        at = x.copy()  # where the chains were enumerated
         while n < max_evaluations and any(step[i] >= steps[1] * self.scales[i] * (1 - 1e-9)
                                           for i in free):
+            if refresh and self.settings.chains and not np.array_equal(x, at):
+                # a sweep moved something: the chains of where it ended (the kept
+                # chains' reflection points lag the moved objects; lab: the hop's
+                # fresh chains traced the polish's end at another mismatch)
+                self.refresh_chains()
+                f, at = self.evaluate(x, grad=False)[0], x.copy()
+                n += 1
             for i in free:
                 if step[i] < steps[1] * self.scales[i] * (1 - 1e-9) or n >= max_evaluations:
                     continue
@@ -898,18 +999,22 @@ class Calibrator:
     def hop(self, start, free, *, unseen=(), span: tuple[float, float] = HOP_SPAN,
             per_wavelength: int = HOP_PER_WAVELENGTH,
             steps: tuple[float, float] = POLISH_STEPS) -> tuple[np.ndarray, float, int]:
-        """Move x/y offsets into a lower half-wavelength basin.
+        """Move x/y offsets and yaws into a lower half-wavelength basin.
 
-        From ``start`` (physical units, ``[P]``), for each x or y parameter of ``free``
-        (indices; others are skipped) in turn: trace (fresh candidates, no
-        gradients) its value shifted by every multiple of ``wavelength /
-        per_wavelength`` between ``span[0]`` and ``span[1]`` wavelengths to either side
-        (inside its bounds); take the lowest local minimum of that scan other than the
-        current value's basin; if it is within :data:`HOP_SLACK` of the current
-        mismatch, search it (:meth:`polish` on that coordinate alone, from half a scan
-        step down to ``steps[1]``); keep it if it lowers the mismatch by more than
-        :data:`HOP_GAIN` of it (:data:`HOP_GAIN_UNSEEN` for a parameter of ``unseen``,
-        indices the start gradient did not see) and :data:`HOP_MIN_GAIN_DB2`.
+        From ``start`` (physical units, ``[P]``), for each x, y or yaw parameter of
+        ``free`` (indices; others are skipped) in turn: trace (no gradients; the chains
+        of the start, with ``settings.chains``, else fresh candidates) its value shifted
+        by every multiple of ``wavelength / per_wavelength`` between ``span[0]`` and
+        ``span[1]`` wavelengths to either side (a yaw: turns that move the object's
+        farthest vertex so far, from one step on) inside its bounds; take the lowest
+        local minimum of that scan other than the current value's basin; if it is
+        below :data:`HOP_SLACK` times the current mismatch, search it (:meth:`polish`
+        on that coordinate alone, from half a scan step down to ``steps[1]``). Then,
+        the best first, a searched basin that gains more than :data:`HOP_GAIN` of the
+        mismatch (:data:`HOP_GAIN_UNSEEN` for a parameter of ``unseen``, indices the
+        start gradient did not see) and :data:`HOP_MIN_GAIN_DB2` is traced with its own
+        chains and kept if it still does (searched again from the values so far once
+        another was kept).
 
         A gradient fit and :meth:`polish` end in the basin they start in; the
         magnitude mismatch repeats about every half wavelength of a shift normal to a
@@ -919,9 +1024,9 @@ class Calibrator:
 
         Returns:
             ``(values [P], mismatch dB^2, traces)``; :attr:`hop_report` lists, per
-            scanned parameter name, the shifts (m), their mismatch, the mismatch before
-            its scan, the shift searched (m), where that search ended and whether it
-            was kept.
+            scanned parameter name, the shifts (m; rad for a yaw), their mismatch, the
+            mismatch before its scan, the shift searched, where that search ended and
+            whether it was kept.
         """
         x = np.asarray(start, float).reshape(-1).copy()
         free = [int(i) for i in free]
@@ -930,18 +1035,33 @@ class Calibrator:
             raise CalibrationError(f"hop: free and unseen must name parameters "
                                    f"0..{len(x) - 1}, got {free!r} and {sorted(unseen)!r}")
         step = float(self.sc.wavelength[0]) / per_wavelength
+        found = []  # (mismatch, index, value) of the searched basins that gained
         k = np.arange(int(math.ceil(span[0] * per_wavelength)),
                       int(math.floor(span[1] * per_wavelength)) + 1)
         k = np.concatenate([-k[::-1], [0], k])
+        # a yaw's ring starts at one step: a turn has nearer basins too (lab: Chair_2
+        # at -0.87 deg where the truth is +0.89, 1.76 deg or ~1 cm at its corners away)
+        k_yaw = np.arange(1, int(math.floor(span[1] * per_wavelength)) + 1)
+        k_yaw = np.concatenate([-k_yaw[::-1], [0], k_yaw])
+        self.refresh_chains()
         f = self.evaluate(x, grad=False)[0]
         n = 1
         self.hop_report = {}
+        steps_of = {}
         for i in free:
             p = self.params[i]
-            if p.kind not in ("x", "y"):
+            if p.kind in ("x", "y"):
+                steps_of[i] = step
+            elif p.kind == "yaw":
+                # a turn moves the object's farthest vertex by radius x angle: the same
+                # shifts there (lab: Table_1's yaw 3.6-3.9 deg off, a basin away)
+                _, v, c, _ = self._objects[p.target]
+                steps_of[i] = step / float(np.hypot(v[:, 0] - c[0], v[:, 1] - c[1]).max())
+            else:
                 continue
             lo, hi = p.limits
-            grid = np.unique(np.clip(x[i] + step * k, lo, hi))
+            ring = k_yaw if p.kind == "yaw" else k
+            grid = np.unique(np.clip(x[i] + steps_of[i] * ring, lo, hi))
             at = int(np.argmin(np.abs(grid - x[i])))
             grid[at] = x[i]
             fs = np.insert(self.scan(i, np.delete(grid, at), x), at, f)
@@ -958,22 +1078,44 @@ class Calibrator:
             entry = {"shifts_m": (grid - x[i]).tolist(), "mismatch_db2": fs.tolist(),
                      "mismatch_before_db2": float(f), "tried_m": None,
                      "mismatch_after_db2": None, "kept": False}
-            if others and fs[others[0]] < (1.0 + HOP_SLACK) * f:
+            if others and fs[others[0]] < HOP_SLACK * f:
                 j = others[0]
                 y = x.copy()
                 y[i] = grid[j]
-                scale = self.scales[i]
-                z, fz, m = self.polish(y, [i], steps=(0.5 * step / scale, steps[1]))
+                z, fz, m = self.polish(y, [i], steps=(0.5 * steps_of[i] / self.scales[i],
+                                                      steps[1]), refresh=False)
                 n += m
                 entry.update(tried_m=float(z[i] - x[i]), mismatch_after_db2=float(fz))
-                gain = HOP_GAIN_UNSEEN if i in unseen else HOP_GAIN
-                if f - fz > max(gain * f, HOP_MIN_GAIN_DB2):
-                    x, f = z, fz
-                    entry["kept"] = True
+                if f - fz > max(self._hop_gain(i, unseen) * f, HOP_MIN_GAIN_DB2):
+                    found.append((fz, i, float(z[i])))
             self.hop_report[p.name] = entry
+        # the best first: the searches all started from the same values, and a hop kept
+        # early took the gain of a later, larger one (lab: Rack_2's y moved 8.9 cm
+        # while Table_2's y was a period off, then Table_2's hop could not undo it)
+        f0, x0 = f, x.copy()
+        for fz, i, zi in sorted(found):
+            y = x.copy()
+            y[i] = zi
+            if not np.array_equal(x, x0):  # another hop was kept: search again from it
+                y, fz, m = self.polish(y, [i], steps=(0.25 * steps_of[i] / self.scales[i],
+                                                      steps[1]), refresh=False)
+                n += m
+            self.refresh_chains()  # its own chains there
+            fz = self.evaluate(y, grad=False)[0]
+            n += 1
+            entry = self.hop_report[self.params[i].name]
+            entry.update(tried_m=float(y[i] - x0[i]), mismatch_after_db2=float(fz))
+            if f - fz > max(self._hop_gain(i, unseen) * f, HOP_MIN_GAIN_DB2):
+                x, f = y, fz
+                entry["kept"] = True
+            self.refresh_chains()
         self.evaluate(x, grad=False)  # leave the scene there
         log.info("calibrate: hop %d traces -> %.5g dB^2", n, f)
         return x, f, n
+
+    @staticmethod
+    def _hop_gain(i: int, unseen) -> float:
+        return HOP_GAIN_UNSEEN if i in unseen else HOP_GAIN
 
     def fit(self, *, max_steps: int = 30, ftol: float = 1e-7, gtol: float = 1e-6,
             start=None, free=None, trust: float | None = None) -> CalibrationResult:
@@ -1042,6 +1184,7 @@ class Calibrator:
             u, steps_left, rounds, best = np.zeros(len(idx)), max_steps, 0, np.inf
             while steps_left > 0:
                 self.freeze_candidates, self._candidates = True, None  # this round's
+                self.refresh_chains()
                 res = minimize(fun, u, jac=True, method="L-BFGS-B",
                                bounds=list(zip(np.maximum(lo, u - trust),
                                                np.minimum(hi, u + trust))),
@@ -1074,6 +1217,7 @@ class Calibrator:
         if self._at_initial is None:  # report against the scene's values
             self._at_initial = self.evaluate(self.initial)
         first = dict(zip(("f", "g", "model"), self._at_initial))
+        self.refresh_chains()  # the final values' own chains
         f_final, _, model = self.evaluate(final, grad=False)  # leaves the scene there
         def rms(models):  # per snapshot, the links' snapshots one after the other
             models = [models] if self._one_link else models
