@@ -934,7 +934,9 @@ class Calibrator:
                max_evaluations: int = 400,
                refresh: bool = True) -> tuple[np.ndarray, float, int]:
         """Coordinate pattern search from ``start`` (physical units, ``[P]``) over the
-        parameters ``free`` (indices), each trace with fresh candidates, no gradients.
+        parameters ``free`` (indices), no gradients: each trace with fresh candidates,
+        or with ``settings.chains`` the chains enumerated at the start and again after
+        every sweep that moved something (``refresh=False``: the chains kept so far).
 
         For each free parameter in turn: try ``+-step`` (in its ``scale``); keep a move
         that lowers the mismatch, else halve its step; until every step is below
