@@ -223,9 +223,6 @@ def pose_grid(p: Parameter, wavelength: float, per_wavelength: int = 8) -> np.nd
 #: After a first joint fit, the fits from the permittivity scans' minima run only when a
 #: scan point beats the first fit's mismatch by more than this fraction (a better basin).
 REFIT_GAIN = 0.01
-#: ... and, with the polish on, before the polish (False: the polish starts from the
-#: scans' best point, and the fits run only when nothing is polished).
-REFIT_BEFORE_POLISH = False
 
 #: :meth:`~engine.calibration.Calibrator.polish` steps after a :meth:`hop` moved an
 #: offset (in each parameter's ``scale``): the other poses are near their minimum.
@@ -296,8 +293,9 @@ def observability(cal: Calibrator, result) -> dict:
 #: paths: lab, both links, 32 subcarriers: SwitchBox_2 1.4 % at the start, 0.92 % at a
 #: fit 1.8 deg off in yaw, left out of the polish; at its true pose the mismatch fell
 #: from 0.486 to 0.300 dB^2): only then does the issue's target (1 cm, 0.5 deg)
-#: apply. (Every object with a path to the robot is polished and hopped.) Lab: racks 3.8 / 7.8 %, a switch box 1.4 %, the
-#: chairs and tables out of the robot's sight 0-0.4 %.
+#: apply (every object with a path to the robot is polished and hopped). Lab: racks
+#: 3.8 / 7.8 %, a switch box 1.4 %, the chairs and tables out of the robot's sight
+#: 0-0.4 %.
 CLEAR_PATH_SHARE = 0.01
 
 
@@ -473,7 +471,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     have a clear path (:data:`CLEAR_PATH_SHARE`: the accuracy claimed), ``polish`` what
     the search did, ``could_not_see`` names the objects without a clear path with
     their numbers. ``hop``: after the polish, scan
-    those objects' x/y offsets across the next half-wavelength basins
+    those objects' x/y offsets and yaws across the next half-wavelength basins
     (:meth:`~engine.calibration.Calibrator.hop`) and polish again (from
     :data:`POLISH_STEPS_AFTER_HOP`) when that lowered the mismatch; the report's ``hop``
     gives the scans."""
@@ -558,10 +556,10 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
         # gradient steps, and the calibration ended at 0.2587 dB^2 in 253 s with it,
         # 0.2386 dB^2 in 237 s without)
         fits, starts = [first_fit], [cal.initial.copy()]
-    elif first_fit is not None and polish and not pose_scans and not REFIT_BEFORE_POLISH:
+    elif first_fit is not None and polish and not pose_scans:
         # a better basin at the first fit's poses: the polish goes on from the scans'
         # best (every scan's best minimum) instead of a gradient fit from each; the
-        # fits run below only when the polish does not (no object has a clear path).
+        # fits run below only when the polish does not (no object has a path).
         # Lab, both links: the refit took 45 gradient steps (38 s of 388) for 1.1 %
         # (0.397 -> 0.3926 dB^2); the polish then went on to 0.3331
         deferred = starts

@@ -647,10 +647,12 @@ class Calibrator:
         return out
 
     def refresh_chains(self) -> None:
-        """With ``settings.chains``: enumerate the transmitters' chains again at the next
-        trace, at the geometry then (the kept chains' reflection points stay where
-        their rays found them: second order in a move, as frozen candidates)."""
+        """New candidates at the next trace, at the geometry then: with
+        ``settings.chains`` the transmitters' chains are enumerated again (the kept
+        chains' reflection points stay where their rays found them: second order in a
+        move), else the kept candidates of :attr:`freeze_candidates` are dropped."""
         self._chains = [None] * len(self._groups)
+        self._candidates = None
 
     def _link_chains(self, j: int, grp) -> tuple:
         """Link ``j``'s chains (:func:`~engine.raytrace.solver_core.chain_arrays`) and its
@@ -1111,7 +1113,7 @@ class Calibrator:
                 x, f = y, fz
                 entry["kept"] = True
             self.refresh_chains()
-        self.evaluate(x, grad=False)  # leave the scene there
+        self._apply(x, False)  # leave the scene there (no trace: fresh chains follow)
         log.info("calibrate: hop %d traces -> %.5g dB^2", n, f)
         return x, f, n
 
@@ -1185,7 +1187,7 @@ class Calibrator:
             # 7.6, then a stall at 7.56 after 52 evaluations)
             u, steps_left, rounds, best = np.zeros(len(idx)), max_steps, 0, np.inf
             while steps_left > 0:
-                self.freeze_candidates, self._candidates = True, None  # this round's
+                self.freeze_candidates = True  # this round's candidates or chains
                 self.refresh_chains()
                 res = minimize(fun, u, jac=True, method="L-BFGS-B",
                                bounds=list(zip(np.maximum(lo, u - trust),
