@@ -32,7 +32,7 @@ from engine.phy.ofdm import ResourceSet
 from engine.phy.units import SPEED_OF_LIGHT
 
 __all__ = ["PilotPattern", "LSChannelEstimator", "MultipathDelayProfile",
-           "ideal_mdp", "MdpEstimator"]
+           "ideal_mdp", "MdpEstimator", "noise_power_from_delay_tail"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -210,6 +210,62 @@ def ideal_mdp(tau, b, max_paths: int | None = None,
         raise ValueError(f"b must have L={tau.size} entries on axis 0, got {list(b.shape)}")
     power = np.mean(np.abs(b.reshape(tau.size, -1)) ** 2, axis=1) if tau.size else np.zeros(0)
     return _sorted_mdp(SPEED_OF_LIGHT * tau, power, max_paths, min_relative_power_db)
+
+
+#: :func:`noise_power_from_delay_tail`: delays further than this from the strongest
+#: tap are taken to carry no path (indoor: 60 m of excess path; the lab's longest
+#: depth-3 path is ~30 m)
+MAX_EXCESS_DELAY_S = 200e-9
+
+
+def noise_power_from_delay_tail(h, subcarrier_offsets_hz, *,
+                                max_excess_delay_s: float = MAX_EXCESS_DELAY_S) -> float:
+    """Noise variance of a channel estimate from its delay-domain tail.
+
+    A real receiver's trick (channel sounders threshold their delay profiles the
+    same way): over ``K`` evenly spaced subcarriers the channel is a few paths
+    within ``max_excess_delay_s`` of each other, so after a Hann-windowed inverse
+    DFT the taps further than that (circularly) from the strongest tap of the
+    delay profile hold noise only. Their mean power over the window's energy is
+    the noise variance per subcarrier sample. What leaks from the paths (the
+    window's sidelobes fall 18 dB per octave) sets the floor of a noise-free
+    channel (~-80 dB of its power with a path 16 taps away).
+
+    Args:
+        h: ``[..., K]`` complex CSI (any leading axes: antenna pairs, snapshots;
+            they share the delay profile's peak and average the estimate).
+        subcarrier_offsets_hz: ``[K]`` evenly spaced subcarrier frequencies, Hz.
+        max_excess_delay_s: delays around the peak holding paths, s.
+
+    Returns:
+        The noise variance per complex sample, ``E|n|^2``, in the units of ``|h|^2``.
+
+    Raises:
+        ValueError: uneven subcarriers, or too few for a tail (the inverse DFT's
+            period ``1/spacing`` must exceed ``2 * max_excess_delay_s`` by two taps).
+    """
+    f = real_array("subcarrier_offsets_hz", subcarrier_offsets_hz, ndim=1)
+    h = complex_array("h", h)
+    k = f.size
+    if h.ndim < 1 or h.shape[-1] != k:
+        raise ValueError(f"h must be [..., K={k}] (the subcarriers last), got {list(h.shape)}")
+    df = np.diff(f)
+    if k < 8 or not np.allclose(df, df[0], rtol=1e-6, atol=0.0) or df[0] <= 0:
+        raise ValueError(f"noise_power_from_delay_tail: needs >= 8 evenly spaced, increasing "
+                         f"subcarriers, got {k} with spacings {np.unique(df)[:4]} Hz")
+    tap_s = 1.0 / (k * df[0])
+    guard = int(np.ceil(max_excess_delay_s / tap_s))
+    if k - 2 * guard - 1 < 2:
+        raise ValueError(f"noise_power_from_delay_tail: {k} subcarriers {df[0]:g} Hz apart "
+                         f"resolve {tap_s * 1e9:.3g} ns over {1e9 / df[0]:.4g} ns, no tail "
+                         f"beyond +-{max_excess_delay_s * 1e9:g} ns of the peak")
+    w = np.hanning(k + 2)[1:-1]  # no zero ends: every subcarrier counts
+    taps = np.fft.ifft(h.reshape(-1, k) * w, axis=-1) * k  # sum_k w_k h_k e^{+j...}
+    profile = np.mean(np.abs(taps) ** 2, axis=0)
+    peak = int(np.argmax(profile))
+    dist = np.abs((np.arange(k) - peak + k // 2) % k - k // 2)  # circular tap distance
+    tail = dist > guard
+    return float(np.mean(profile[tail]) / np.sum(w ** 2))
 
 
 #: smoothing windows up to this size get a full ``eigh`` of their covariance

@@ -5,7 +5,8 @@ import pytest
 
 from engine.phy.arrays import PlanarArray
 from engine.phy.channel import OFDMChannel
-from engine.phy.estimation import (LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp)
+from engine.phy.estimation import (LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp,
+                                   noise_power_from_delay_tail)
 from engine.phy.link import receive
 from engine.phy.ofdm import ResourceGrid, ResourceSet
 from engine.phy.units import SPEED_OF_LIGHT as C
@@ -368,3 +369,31 @@ def test_mdp_refinement_is_a_least_squares_optimum_by_scipy(seed):
     # a flat valley (MINPACK's own stopping rule, ftol 1e-8, stops as far off):
     # a millimetre, against a 3.75 m cell and centimetres of noise
     np.testing.assert_allclose(sol.x[:order], d, atol=1e-3)
+
+
+def test_noise_power_from_delay_tail_is_the_noise_added():
+    """The noise variance read off the delay-domain tail of a multipath channel (the
+    lab's recorded grid: 64 subcarriers 1.25 MHz apart, 4 x 8 antenna pairs) is the
+    variance of the white noise added, at any SNR; a noise-free channel reads as its
+    window leakage, far below."""
+    rng = np.random.default_rng(5)
+    f = F[::16]
+    d = np.array([5.7, 9.1, 14.0, 22.5, 31.0])  # path lengths, m (depth-3 room paths)
+    amps = np.array([1.0, 0.6, 0.4, 0.2, 0.1])[:, None] * _crandn(rng, 5, 32)
+    h = (np.exp(-2j * np.pi * np.outer(f, d / C)) @ amps).T  # [32 pairs, 64]
+    p = np.mean(np.abs(h) ** 2)
+    assert noise_power_from_delay_tail(h, f) < p * 1e-6
+    for snr_db in (0.0, 10.0, 20.0, 30.0):
+        n0 = p / 10 ** (snr_db / 10)
+        got = noise_power_from_delay_tail(h + np.sqrt(n0) * _crandn(rng, *h.shape), f)
+        assert got == pytest.approx(n0, rel=0.1), snr_db
+
+
+def test_noise_power_from_delay_tail_refuses_a_grid_without_a_tail():
+    h = np.ones((2, 16), complex)
+    with pytest.raises(ValueError, match="no tail beyond"):  # 16 x 5 MHz: 200 ns period
+        noise_power_from_delay_tail(h, F[::64])
+    with pytest.raises(ValueError, match="evenly spaced"):
+        noise_power_from_delay_tail(h, np.r_[F[:8], F[100:108]])
+    with pytest.raises(ValueError, match=r"h must be \[\.\.\., K=64\]"):
+        noise_power_from_delay_tail(h, F[::16])
