@@ -42,6 +42,7 @@ from engine.calibration import (MATERIAL_KINDS, CalibrationError, Calibrator, Me
 from engine.calibration_figure import plot_report
 from engine.config import TwinConfig
 from engine.msgs import Csi
+from engine.phy.estimation import noise_power_from_delay_tail
 from engine.phy.ofdm import ResourceGrid
 from engine.phy.units import SPEED_OF_LIGHT
 from engine.pose import antenna_pose, sionna_orientation
@@ -64,9 +65,18 @@ def _array(config: TwinConfig, name: str, path: Path) -> tuple:
     return (a.rows, a.cols, a.vertical_spacing, a.horizontal_spacing)
 
 
+#: A link whose noise estimate (median over its snapshots) is this far below its
+#: channel power is taken as exact: the delay-tail estimate of a noise-free channel is
+#: its Hann window's leakage (lab: 75.6-79.4 dB below), and adding that floor changed
+#: the noise-free lab's fit (the tables' permittivity 0.8 -> 11.4 % off; the fits are
+#: that sensitive to the route, docs/calibration.md)
+NOISELESS_SNR_DB = 60.0
+
+
 def measurements_from_recording(path: str | Path, config: TwinConfig, *,
                                 links: list[tuple[str, str]] | None = None,
-                                max_snapshots: int = 6, max_subcarriers: int = 16
+                                max_snapshots: int = 6, max_subcarriers: int = 16,
+                                noise: bool = True
                                 ) -> list[tuple[tuple[str, str], Measurements]]:
     """The recorded CSI of each link as :class:`~engine.calibration.Measurements`.
 
@@ -78,6 +88,12 @@ def measurements_from_recording(path: str | Path, config: TwinConfig, *,
         max_snapshots: at most this many CSI messages per link, evenly spread over the
             run.
         max_subcarriers: at most this many of the recorded subcarriers, evenly spread.
+        noise: estimate each snapshot's noise variance from all its recorded
+            subcarriers (:func:`~engine.phy.estimation.noise_power_from_delay_tail`;
+            ``Measurements.noise_power``, added to the model's power). None where the
+            recorded subcarriers are too few or too far apart for a delay tail (logged),
+            or the estimate is more than :data:`NOISELESS_SNR_DB` below the channel.
+            False: no noise (the model's exact power is compared).
 
     Returns:
         ``[((tx, rx), measurements), ...]`` (first recorded OFDM symbol of each message).
@@ -109,12 +125,12 @@ def measurements_from_recording(path: str | Path, config: TwinConfig, *,
                                + ", ".join(f"{t}->{r}" for t, r in by_link) + ")")
     trajs = load_trajectories(path)
     return [(lk, _link_measurements(path, config, lk, by_link[lk], trajs, step,
-                                    max_snapshots, max_subcarriers)) for lk in links]
+                                    max_snapshots, max_subcarriers, noise)) for lk in links]
 
 
 def _link_measurements(path: Path, config: TwinConfig, link: tuple[str, str], msgs: list,
                        trajs: dict, step: int, max_snapshots: int,
-                       max_subcarriers: int) -> Measurements:
+                       max_subcarriers: int, noise: bool = True) -> Measurements:
     """One link of :func:`measurements_from_recording`."""
     tx, rx = link
     if rx not in trajs:
@@ -134,14 +150,26 @@ def _link_measurements(path: Path, config: TwinConfig, link: tuple[str, str], ms
     robot = next((d for d in config.devices if d.name == rx), None)
     if robot is None:
         raise CalibrationError(f"{path}: the CSI's receiver {rx!r} is not a device of the scene")
-    pos, ori, csi = [], [], []
+    pos, ori, csi, noise_power = [], [], [], []
     for i in pick:
         c = msgs[i]
+        if noise and noise_power is not None:
+            try:  # h[0]: [all recorded subcarriers, Nr, Nt] -> [Nr, Nt, K]
+                noise_power.append(noise_power_from_delay_tail(
+                    np.moveaxis(np.asarray(c.h)[0], 0, -1), offsets))
+            except ValueError as e:
+                log.warning("%s: %s->%s: no noise estimate, the model's exact power is "
+                            "compared (%s)", path, tx, rx, e)
+                noise_power = None
         pose, _, _ = trajs[rx].at(float(c.header.stamp))
         ap = antenna_pose(pose, robot.antenna_offset)
         pos.append(ap.position)
         ori.append(sionna_orientation(ap.orientation))
         csi.append(np.asarray(c.h)[0, sub])
+    if noise_power and np.median(10 * np.log10(
+            np.mean(np.abs(np.array(csi)) ** 2, axis=(1, 2, 3))
+            / np.maximum(noise_power, 1e-300))) > NOISELESS_SNR_DB:
+        noise_power = None  # the window's leakage, not noise: an exact channel
     txp = device_poses(config).get(tx)
     if txp is None:
         raise CalibrationError(f"{path}: the CSI's transmitter {tx!r} is not a device of the "
@@ -149,7 +177,8 @@ def _link_measurements(path: Path, config: TwinConfig, link: tuple[str, str], ms
     return Measurements(txp.position, np.array(pos), offsets[sub], np.array(csi),
                         tx_array=_array(config, tx, path), rx_array=_array(config, rx, path),
                         tx_orientation=sionna_orientation(txp.orientation),
-                        rx_orientations=np.array(ori))
+                        rx_orientations=np.array(ori),
+                        noise_power=np.array(noise_power) if noise and noise_power else None)
 
 
 def material_users(scene, target: str) -> list:
@@ -448,7 +477,8 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
                         solver: SolverSettings | None = None, scan: bool = True,
                         multistart: int = 3, materials: list[str] | None = None,
                         pose_scan: bool = False, trust: float | None = 1.5,
-                        polish: bool = True, hop: bool = True) -> RunOutput:
+                        polish: bool = True, hop: bool = True,
+                        noise: bool = True) -> RunOutput:
     """Fit the scene at ``scene_dir`` to ``recording``; write ``out/scene`` and
     ``out/calibration.json`` (see the module doc). ``solver``: default the scene's
     ``[tracer]`` settings (:meth:`SolverSettings.from_tracer`). ``scan``: start each
@@ -474,14 +504,16 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     those objects' x/y offsets and yaws across the next half-wavelength basins
     (:meth:`~engine.calibration.Calibrator.hop`) and polish again (from
     :data:`POLISH_STEPS_AFTER_HOP`) when that lowered the mismatch; the report's ``hop``
-    gives the scans."""
+    gives the scans. ``noise``: the model's power gets each snapshot's noise variance
+    estimated from the recording added (:func:`measurements_from_recording`); the
+    report's ``noise_snr_db`` gives the estimates."""
     from engine.scene import load_scene
 
     out = Path(out)
     scene = load_scene(scene_dir)
     measured = measurements_from_recording(recording, scene.config, links=links,
                                            max_snapshots=max_snapshots,
-                                           max_subcarriers=max_subcarriers)
+                                           max_subcarriers=max_subcarriers, noise=noise)
     params = default_parameters(scene, tuple(what), list(objects or []), materials)
     cal = Calibrator(scene, [m for _, m in measured], params,
                      solver or SolverSettings.from_tracer(scene.config.tracer))
@@ -665,6 +697,11 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     report = {"scene": str(Path(scene_dir)), "recording": str(Path(recording)),
               "links": [list(lk) for lk, _ in measured],
               "snapshots": [int(len(m.rx_positions)) for _, m in measured],
+              # per link: the noise estimated per snapshot (None: none added to the model)
+              "noise_snr_db": [None if m.noise_power is None else
+                               (10 * np.log10(np.mean(np.abs(m.csi) ** 2, axis=(1, 2, 3))
+                                              / np.maximum(m.noise_power, 1e-300))).tolist()
+                               for _, m in measured],
               "subcarriers": int(len(measured[0][1].subcarrier_offsets_hz)),
               "permittivity_scans": scans, "pose_scans": pose_scans,
               "fits_from_starts": [{"start": [float(v) for v in x], "final": r.final.tolist(),

@@ -196,6 +196,12 @@ class Measurements:
             ``rows * cols`` must be ``Nt`` / ``Nr``.
         tx_orientation: ``[3]`` Sionna ``(yaw, pitch, roll)`` of the transmit array, rad.
         rx_orientations: ``[N, 3]`` the same per receiver pose, rad.
+        noise_power: ``[N]`` noise variance of each snapshot's CSI per complex sample,
+            in the units of ``|csi|^2`` (e.g.
+            :func:`engine.phy.estimation.noise_power_from_delay_tail`), or None (an
+            exact channel). The model's power gets it added, ``|h|^2 + noise``, the
+            expected power of a noisy estimate: without it, a fade the noise fills
+            weighs as a model error of tens of dB.
     """
 
     tx_position: np.ndarray
@@ -206,6 +212,7 @@ class Measurements:
     rx_array: tuple = (1, 1, 0.5, 0.5)
     tx_orientation: np.ndarray | None = None
     rx_orientations: np.ndarray | None = None
+    noise_power: np.ndarray | None = None
 
     def __post_init__(self):
         self.tx_position = np.asarray(self.tx_position, float).reshape(-1)
@@ -236,6 +243,14 @@ class Measurements:
             raise CalibrationError(f"measurements: orientations must be [3] (tx) and "
                                    f"[N={n}, 3] (rx) rad, got {self.tx_orientation.shape} and "
                                    f"{self.rx_orientations.shape}")
+        if self.noise_power is not None:
+            self.noise_power = np.asarray(self.noise_power, float).reshape(-1)
+            if self.noise_power.shape != (n,) or not (
+                    np.isfinite(self.noise_power).all() and (self.noise_power >= 0).all()):
+                raise CalibrationError(f"measurements: noise_power must be [N={n}] finite "
+                                       f"values >= 0 (|csi|^2 units), got "
+                                       f"{self.noise_power.tolist()[:4]} of shape "
+                                       f"{self.noise_power.shape}")
         for label, a in (("tx_position", self.tx_position), ("rx_positions", self.rx_positions),
                          ("subcarrier_offsets_hz", self.subcarrier_offsets_hz),
                          ("csi", self.csi), ("rx_orientations", self.rx_orientations)):
@@ -332,8 +347,9 @@ class _LinkGroup:
     """One link of a :class:`Calibrator`: its transmitter (``src``: Dr.Jit position,
     orientation, array element offsets) and its snapshots' receivers (``tgt``), ``n``
     snapshots, the antennas at either end, the arrays' patterns, the measured power
-    (dB, float64 ``[N * Nr * Nt * K]``) and the link's weight in the mismatch (its
-    share of all snapshots)."""
+    (dB, float64 ``[N * Nr * Nt * K]``), the link's weight in the mismatch (its
+    share of all snapshots) and the measurements' noise variance added to the model's
+    power (float64 ``[N * Nr * Nt * K]``, or None)."""
 
     src: tuple
     tgt: tuple
@@ -343,6 +359,7 @@ class _LinkGroup:
     patterns: tuple
     meas_db: object
     weight: float
+    noise: object = None
 
 
 @dataclass(frozen=True)
@@ -516,7 +533,9 @@ class Calibrator:
                 patterns=(tx_arr.antenna_pattern.patterns, rx_arr.antenna_pattern.patterns),
                 # Sionna's cfr order [N, Nr, (tx=1), Nt, (time=1), K]
                 meas_db=mi.Float64(power_db(m.csi.transpose(0, 2, 3, 1)).reshape(-1)),
-                weight=len(rxs) / n_all))
+                weight=len(rxs) / n_all,
+                noise=None if m.noise_power is None else mi.Float64(np.repeat(
+                    m.noise_power, m.csi[0].size))))
         # the scene's arrays: those of the first link (Sionna's own traces, visibility)
         sc.tx_array, sc.rx_array = array(self.links[0].tx_array), array(self.links[0].rx_array)
         lanes = self.settings.max_depth * self.settings.samples_per_src * max(
@@ -794,6 +813,8 @@ class Calibrator:
         dr.scatter_add(h_re, mi.Float64(are * cs - aim * sn), out)
         dr.scatter_add(h_im, mi.Float64(are * sn + aim * cs), out)
         pw = h_re * h_re + h_im * h_im
+        if grp.noise is not None:  # what a noisy estimate's power is on average
+            pw = pw + grp.noise
         return 10.0 * dr.log(pw + POWER_FLOOR) / math.log(10.0)
 
     def _trace(self):

@@ -1012,6 +1012,10 @@ def _calibrate_args(p: argparse.ArgumentParser) -> None:
                    help="with poses: after the pose polish, do not scan the x/y offsets of "
                         "the objects with a clear path across the next half-wavelength "
                         "basins (shifts of 0.3-0.6 wavelength in wavelength/12 steps)")
+    p.add_argument("--no-noise", action="store_true",
+                   help="compare the model's exact power (default: each snapshot's noise, "
+                        "estimated from the delay-domain tail of all its recorded "
+                        "subcarriers, is added to the model's power)")
 
 
 @command("calibrate", "fit materials and object poses of a scene to recorded CSI "
@@ -1038,7 +1042,7 @@ def cmd_calibrate(args) -> int:
                                   objects=objects, links=links, max_snapshots=args.snapshots,
                                   max_subcarriers=args.subcarriers, max_steps=args.max_steps,
                                   scan=not args.no_scan, pose_scan=args.pose_scan,
-                                  hop=not args.no_hop,
+                                  hop=not args.no_hop, noise=not args.no_noise,
                                   materials=[m.strip() for m in args.materials.split(",")
                                              if m.strip()] or None)
     except CalibrationError as exc:

@@ -379,3 +379,57 @@ def test_permittivity_grid_is_fine_for_a_thin_slab(tmp_path):
     g = permittivity_grid(scene, "wood-0.03", 1.99)
     assert len(g) >= 12 and g[0] == pytest.approx(1.0) and g[-1] == pytest.approx(3.98)
     assert np.max(g[1:] / g[:-1]) < 1.2
+
+
+@pytest.mark.slow
+def test_noise_is_read_off_the_recording_and_added_to_the_model(recording, tmp_path, caplog):
+    """A lap recorded at 20 dB SNR on 64 subcarriers 1.25 MHz apart (a delay tail beyond
+    +-200 ns): each snapshot's noise variance is estimated from all its subcarriers
+    within 15 % of the noise the recorder added (its power is the message's mean over
+    10^2, so E|y|^2 = 1.01 x that), and with it added to the model's power the truth
+    fits the noisy recording better than the exact model does (by 1 % here: at 20 dB
+    the mismatch is mostly the noise's own spread, few fades sink below it). The
+    module's noise-free
+    recording (16 subcarriers 5 MHz apart: 200 ns, no tail) gets no estimate, logged."""
+    from engine.msgs import Csi
+    from engine.record import CsiRecording, read_messages, record_twin
+    from engine.twin import Twin
+
+    real = room(tmp_path / "real", "brick")
+    run = tmp_path / "noisy.mcap"
+    record_twin(Twin.from_scene(real), 6, run,
+                csi=CsiRecording(subcarrier_step=4, snr_db=20.0, seed=2))
+    scene = load_scene(real)
+    [(_, meas)] = measurements_from_recording(run, scene.config, max_snapshots=6,
+                                              max_subcarriers=16)
+    ys = [np.asarray(m.decode().h)[0] for m in read_messages(run)
+          if m.type_name == Csi.ROS_TYPE]
+    assert meas.csi.shape[:2] == (6, 16) and ys[0].shape[0] == 64
+    want = np.array([np.mean(np.abs(y) ** 2) / 101.0 for y in ys])
+    np.testing.assert_allclose(meas.noise_power, want, rtol=0.15)
+    [(_, exact)] = measurements_from_recording(run, scene.config, max_snapshots=6,
+                                               max_subcarriers=16, noise=False)
+    assert exact.noise_power is None
+    settings = SolverSettings.from_tracer(scene.config.tracer)
+    with_noise = Calibrator(scene, meas, [Parameter("permittivity", "brick")], settings)
+    f_noise = with_noise.evaluate(with_noise.initial, grad=False)[0]
+    without = Calibrator(load_scene(real), exact, [Parameter("permittivity", "brick")], settings)
+    f_exact = without.evaluate(without.initial, grad=False)[0]
+    assert f_noise < f_exact, (f_noise, f_exact)
+    # end to end: the report gives the estimates, and --no-noise turns them off
+    for flag, out in (([], "with"), (["--no-noise"], "without")):
+        assert main(["calibrate", str(real), "--measurements", str(run), "--out",
+                     str(tmp_path / out), "--snapshots", "3", "--subcarriers", "8",
+                     "--max-steps", "2", "--no-scan", *flag]) == 0
+    [snr] = json.loads((tmp_path / "with" / "calibration.json").read_text())["noise_snr_db"]
+    np.testing.assert_allclose(snr, 20.0, atol=1.0)  # dB (the estimate and the draw)
+    assert json.loads((tmp_path / "without" / "calibration.json").read_text())[
+        "noise_snr_db"] == [None]
+    with pytest.raises(CalibrationError, match=r"noise_power must be \[N=6\]"):
+        type(meas)(meas.tx_position, meas.rx_positions, meas.subcarrier_offsets_hz, meas.csi,
+                   meas.tx_array, meas.rx_array, noise_power=[-1.0] * 6)
+    # the module's recording: 16 subcarriers 5 MHz apart resolve 200 ns, no tail
+    with caplog.at_level("WARNING", logger="engine.calibrate_run"):
+        [(_, m2)] = measurements_from_recording(recording[2], scene.config,
+                                                max_snapshots=2, max_subcarriers=8)
+    assert m2.noise_power is None and "no noise estimate" in caplog.text
