@@ -81,6 +81,10 @@ def _flat_tail(history: list[float]) -> bool:
 #: (x/y 0.5 -> 0.0625 cm, yaw 0.5 -> 0.0625 deg, a material 5 % -> 0.625 %).
 POLISH_STEPS = (0.5, 0.0625)
 
+#: :meth:`Calibrator.polish` with chains: enumerate them again after a sweep that
+#: moved something once this many traces were made on the last ones (and at the end).
+POLISH_REFRESH_TRACES = 40
+
 #: :meth:`Calibrator.hop`: the scan of an x/y offset covers shifts between these many
 #: wavelengths to either side of its value, in steps of 1 / :data:`HOP_PER_WAVELENGTH`
 #: wavelength. The magnitude mismatch has a local minimum about every half wavelength
@@ -985,17 +989,27 @@ class Calibrator:
         f = self.evaluate(x, grad=False)[0]
         # name -> [[move (physical units), mismatch change dB^2], ...] of the first step
         self.polish_trials = {self.params[i].name: [] for i in free}
-        n = 1
+        n = n_at = 1
         at = x.copy()  # where the chains were enumerated
-        while n < max_evaluations and any(step[i] >= steps[1] * self.scales[i] * (1 - 1e-9)
-                                          for i in free):
-            if refresh and self.settings.chains and not np.array_equal(x, at):
-                # a sweep moved something: the chains of where it ended (the kept
+        stale = refresh and self.settings.chains  # (else nothing to refresh)
+
+        def active():
+            return any(step[i] >= steps[1] * self.scales[i] * (1 - 1e-9) for i in free)
+
+        while n < max_evaluations and (active() or (stale and not np.array_equal(x, at))):
+            if stale and not np.array_equal(x, at) and (
+                    n - n_at >= POLISH_REFRESH_TRACES or not active()):
+                # sweeps moved something: the chains of where they ended (the kept
                 # chains' reflection points lag the moved objects; lab: the hop's
-                # fresh chains traced the polish's end at another mismatch)
+                # fresh chains traced the polish's end at another mismatch). Not
+                # after every such sweep: late in a search a sweep is a few traces
+                # of the coordinates still searched, and an enumeration (~1 s on the
+                # lab) cost more than they did
                 self.refresh_chains()
-                f, at = self.evaluate(x, grad=False)[0], x.copy()
+                f, at, n_at = self.evaluate(x, grad=False)[0], x.copy(), n
                 n += 1
+                if not active():  # the end, on fresh chains: one more sweep there
+                    step = {i: steps[1] * self.scales[i] for i in free}
             for i in free:
                 if step[i] < steps[1] * self.scales[i] * (1 - 1e-9) or n >= max_evaluations:
                     continue
@@ -1015,8 +1029,7 @@ class Calibrator:
                         break
                 else:
                     step[i] /= 2.0
-        self.polish_converged = not any(step[i] >= steps[1] * self.scales[i] * (1 - 1e-9)
-                                        for i in free)
+        self.polish_converged = not active()
         self.evaluate(x, grad=False)  # leave the scene there
         log.info("calibrate: polish %d traces -> %.5g dB^2", n, f)
         return x, f, n

@@ -189,8 +189,9 @@ def test_cli_recovers_cabinet_offset_and_says_what_it_cannot_see(tmp_path, capsy
     # robot) and, at the truth already, found no lower basin
     hop = rep["hop"]
     assert hop["parameters"] == ["Cabinet.x", "Cabinet.y", "Cabinet.yaw"]
-    assert hop["moved"] == []
-    assert all(len(hop["scans"][k]["mismatch_db2"]) == len(hop["scans"][k]["shifts_m"]) > 4
+    assert hop["moved"] == [] and len(hop["rounds"]) == 1  # nothing moved: no second round
+    scans = hop["rounds"][0]["scans"]
+    assert all(len(scans[k]["mismatch_db2"]) == len(scans[k]["shifts_m"]) > 4
                for k in hop["parameters"])
     assert main(["calibrate", str(twin), "--measurements", str(tmp_path / "run.mcap"),
                  "--out", str(tmp_path / "out2"), "--params", "poses", "--objects", "Cabinet",
