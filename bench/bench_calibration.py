@@ -49,6 +49,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--lab", action="store_true", help="the closing-the-loop case on the lab")
     ap.add_argument("--snr", type=float, default=None, help="--lab: CSI noise SNR, dB")
+    ap.add_argument("--no-noise", action="store_true",
+                    help="--lab: no noise estimate added to the model's power")
     ap.add_argument("--localize", action="store_true",
                     help="--lab: also the localization errors, original vs calibrated twin")
     ap.add_argument("--per-fix", action="store_true",
@@ -105,7 +107,7 @@ def lab(a) -> int:
     objects = [o.strip() for o in a.objects.split(",") if o.strip()] or None
     r = closing_the_loop(folder, a.out, snr_db=a.snr, snapshots=a.snapshots,
                          subcarriers=a.subcarriers, max_steps=a.max_steps, objects=objects,
-                         dt=2.0)
+                         dt=2.0, noise=not a.no_noise)
     print(f"lab, one lap ({r['steps']} steps of {r['dt']} s), {a.snapshots} snapshots x "
           f"{a.subcarriers} subcarriers, CSI noise "
           f"{'none' if a.snr is None else f'{a.snr:g} dB SNR'}")
@@ -120,9 +122,16 @@ def lab(a) -> int:
     print(f"material {m['name']}: permittivity twin {m['twin_permittivity']:.3f}, real "
           f"{m['relative_permittivity']:.3f}, fitted {m['fitted']:.3f} "
           f"({m['error_percent']:.1f} % off)")
+    for lk, snr in zip(r["links"], r["noise_snr_db"]):
+        print(f"noise estimated on {lk[0]}->{lk[1]}: " + (
+            "none (the model's exact power)" if snr is None else
+            f"SNR {np.median(snr):.1f} dB (median of {len(snr)} snapshots, "
+            f"{min(snr):.1f}..{max(snr):.1f})"))
     mm = r["mismatch_db2"]
     print(f"mismatch {mm['initial']:.4g} -> {mm['final']:.4g} dB^2 (baseline: the original "
-          f"twin), {r['evaluations']} evaluations at {r['seconds_per_step']:.1f} s, "
+          f"twin; {mm['at_truth']:.4g} at the truth"
+          f"{': the fit is below it, noise-limited' if mm['final'] < mm['at_truth'] else ''}"
+          f"), {r['evaluations']} evaluations at {r['seconds_per_step']:.1f} s, "
           f"{'converged' if r['converged'] else 'NOT converged'} ({r['message']})")
     print(f"recording {r['record_s']:.0f} s, calibration {r['calibration_s']:.0f} s "
           f"(candidate buffer {r['candidate_buffer']['size']}, grown "
@@ -130,16 +139,17 @@ def lab(a) -> int:
     print("stages: " + "; ".join(
         f"{st['stage']} {st['seconds']:.0f} s ({st['evaluations']} evaluations, "
         f"{st['gradient_steps']} with gradients)" for st in r["stages"]))
-    for label in ("polish", "hop"):
-        st = r[label]
-        if st:
-            mm = st["mismatch_db2"]
-            print(f"{label}: {st['traces']} traces, {len(st['parameters'])} coordinates, "
-                  f"mismatch {mm['before']:.4g} -> {mm['after']:.4g} dB^2"
-                  + (f", moved {', '.join(st['moved']) or 'nothing'}" if label == "hop" else "")
-                  + (f", then a second polish of {st['polish_after']['traces']} traces -> "
-                     f"{st['polish_after']['mismatch_db2']:.4g} dB^2"
-                     if label == "hop" and st["polish_after"] else ""))
+    if r["polish"]:
+        st = r["polish"]
+        print(f"polish: {st['traces']} traces, {len(st['parameters'])} coordinates, mismatch "
+              f"{st['mismatch_db2']['before']:.4g} -> {st['mismatch_db2']['after']:.4g} dB^2")
+    for k, st in enumerate((r["hop"] or {}).get("rounds", [])):
+        mm, pa = st["mismatch_db2"], st["polish_after"]
+        print(f"hop {k + 1}: {st['traces']} traces, {len(r['hop']['parameters'])} coordinates, "
+              f"mismatch {mm['before']:.4g} -> {mm['after']:.4g} dB^2, moved "
+              f"{', '.join(st['moved']) or 'nothing'}"
+              + (f", then a polish of {pa['traces']} traces -> {pa['mismatch_db2']:.4g} dB^2"
+                 if pa else ""))
     for target, o in r["observability"].items():
         share = np.asarray(o["power_share_per_snapshot"]) * 100
         print(f"{target}: paths per snapshot {o['paths_per_snapshot']}, power share max "
@@ -150,13 +160,14 @@ def lab(a) -> int:
     for note in r["could_not_see"]:
         print(f"  could not see: {note}")
     if a.localize:
-        loc = localization_errors(folder, r["calibrated_scene"], cache_dir=a.out / "cache")
+        loc = localization_errors(folder, r["calibrated_scene"], cache_dir=a.out / "cache",
+                                  true_folder=r["true_room_scene"])
         r["localization"] = loc
         st = loc["settings"]
         print(f"localization against the truth, realistic mode: {st['method']} + "
               f"{st['fusion']} {'closed loop' if st['closed_loop'] else 'open loop'}, pilots "
               f"{st['snr_db']:g} dB, {st['spacing_m'] * 100:g} cm database, dt {st['dt_s']} s")
-        for label in ("original", "calibrated"):
+        for label in ("original", "calibrated", "true room"):
             e = loc[label]
             print(f"  {label:10s} twin: RMSE {e['rmse'] * 100:.1f} cm, median "
                   f"{e['median'] * 100:.1f} cm, P90 {e['p90'] * 100:.1f} cm, max "

@@ -85,7 +85,7 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
                      dt: float = 1.0, laps: float = 1.0, snr_db: float | None = None,
                      snapshots: int = 8, subcarriers: int = 16, max_steps: int = 40,
                      solver: SolverSettings | None = None, multistart: int = 1,
-                     pose_scan: bool = False) -> dict:
+                     pose_scan: bool = False, noise: bool = True) -> dict:
     """Record one lap in the perturbed room, calibrate the twin at ``folder``, compare.
 
     Args:
@@ -94,7 +94,7 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
         objects: the objects whose poses are fitted (default the room's furniture).
         dt: twin step of the recording, s (only the snapshots used matter).
         snr_db: noise of the recorded CSI (None: the twin's exact channel).
-        snapshots, subcarriers, max_steps, solver, multistart, pose_scan: of the
+        snapshots, subcarriers, max_steps, solver, multistart, pose_scan, noise: of the
             calibration (:func:`engine.calibrate_run.calibrate_recording`).
 
     Returns:
@@ -127,9 +127,14 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
                               objects=objects, materials=[changed_material],
                               max_snapshots=snapshots, max_subcarriers=subcarriers,
                               max_steps=max_steps, solver=solver, multistart=multistart,
-                              pose_scan=pose_scan)
+                              pose_scan=pose_scan, noise=noise)
     t_cal = time.perf_counter() - t0
     rep = run.report
+    gc.collect()
+    at_truth, true_folder = mismatch_at_truth(
+        folder, mcap, truth, objects=objects, changed_material=changed_material,
+        snapshots=snapshots, subcarriers=subcarriers, solver=solver, noise=noise,
+        out=out / "true_room")
     got = {p["name"]: p["final"] for p in rep["parameters"]}
     unseen = set(rep["unobserved"])
     rows = {}
@@ -148,18 +153,61 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
             "material": {**m, "fitted": eps_fit, "error_percent":
                          100 * abs(eps_fit - m["relative_permittivity"])
                          / m["relative_permittivity"]},
-            "mismatch_db2": rep["mismatch_db2"], "converged": rep["converged"],
+            "mismatch_db2": {**rep["mismatch_db2"], "at_truth": at_truth},
+            "converged": rep["converged"],
             "message": rep["message"], "evaluations": rep["evaluations"],
             "seconds_per_step": rep["seconds_per_step"], "record_s": t_rec,
             "observability": rep["observability"], "could_not_see": rep["could_not_see"],
             "polish": rep["polish"], "hop": rep["hop"], "stages": rep["stages"],
-            "candidate_buffer": rep["candidate_buffer"],
+            "candidate_buffer": rep["candidate_buffer"], "links": rep["links"],
+            "noise_snr_db": rep["noise_snr_db"],
             "calibration_s": t_cal, "calibrated_scene": str(run.scene_dir),
+            "true_room_scene": str(true_folder),
             "recording": str(mcap),
             "report": str(run.report_path)}
 
 
-def localization_errors(folder, calibrated_folder, *, seed: int = 1,
+def mismatch_at_truth(folder, recording, truth: dict, *, objects: list[str],
+                      changed_material: str, snapshots: int, subcarriers: int,
+                      solver: SolverSettings | None = None, noise: bool = True,
+                      out=None) -> tuple[float, Path | None]:
+    """The calibration's mismatch (dB^2) at the real room's values: the objects' true
+    offsets and the changed material's true permittivity (``truth`` of
+    :func:`real_room`), the rest at the twin's values, on the same measurements and
+    model as :func:`closing_the_loop`'s calibration. A fit that ends below it has
+    fitted the recording's noise as well as the truth does: its errors are the
+    measurements' limit, not the search's. With ``out``, the twin calibrated to those
+    values is written there (:func:`~engine.calibrate_run.write_calibrated_scene`):
+    the best any calibration can do, the reference of :func:`localization_errors`.
+
+    Returns:
+        ``(mismatch dB^2, the folder written or None)``.
+    """
+    from engine.calibrate_run import (default_parameters, measurements_from_recording,
+                                      write_calibrated_scene)
+    from engine.calibration import Calibrator
+
+    scene = load_scene(folder)
+    measured = measurements_from_recording(recording, scene.config, max_snapshots=snapshots,
+                                           max_subcarriers=subcarriers, noise=noise)
+    params = default_parameters(scene, ("materials", "poses"), objects, [changed_material])
+    cal = Calibrator(scene, [m for _, m in measured], params,
+                     solver or SolverSettings.from_tracer(scene.config.tracer))
+    x = cal.initial.copy()
+    for i, p in enumerate(params):
+        if p.kind == "permittivity" and p.target == changed_material:
+            x[i] = truth["material"]["relative_permittivity"]
+        elif p.kind in ("x", "y", "yaw"):
+            dx, dy, dyaw = truth["moved"].get(p.target, [0.0, 0.0, 0.0])
+            x[i] = {"x": dx, "y": dy, "yaw": math.radians(dyaw)}[p.kind]
+    cal.evaluate(x, grad=False)  # the scene at the truth, then the true room's chains
+    res = cal.result(x, converged=True, message="the real room's values")
+    if out is None:
+        return float(res.mismatch_final), None
+    return float(res.mismatch_final), write_calibrated_scene(scene, res, Path(out))
+
+
+def localization_errors(folder, calibrated_folder, *, true_folder=None, seed: int = 1,
                         changed_material: str = "wood-0.03", permittivity_factor: float = 1.3,
                         spacing: float = 0.05, dt: float = 0.25, steps: int | None = None,
                         snr_db: float = 20.0, method: str = "MCA-angles", fusion: str = "ekf",
@@ -169,7 +217,10 @@ def localization_errors(folder, calibrated_folder, *, seed: int = 1,
     pilots received there at ``snr_db``, the controller steering on an EKF over odometry
     with the gated fixes, on the twin's ``spacing`` fingerprint database; the README's
     closed-loop figures), once with the original twin's database and once with the
-    calibrated twin's. Returns ``{"original": summary, "calibrated": summary}``
+    calibrated twin's, and with ``true_folder`` (:func:`mismatch_at_truth`'s) once with
+    the twin at the real room's values: what no calibration can beat, and where the
+    errors are not the twin's at all. Returns ``{"original": summary, "calibrated":
+    summary[, "true room": summary]}``
     (:func:`engine.localization.deployment.summarize` of the per-step
     ``estimate_vs_truth`` errors, m) plus the database build times and the settings."""
     from engine.localization.deployment import (Deployment, DeploymentSettings, errors,
@@ -180,7 +231,8 @@ def localization_errors(folder, calibrated_folder, *, seed: int = 1,
     out: dict = {"settings": {"method": method, "fusion": fusion, "closed_loop": closed_loop,
                               "mode": "pilots", "snr_db": snr_db, "spacing_m": spacing,
                               "dt_s": dt, "seed": seed}}
-    for label, f in (("original", folder), ("calibrated", calibrated_folder)):
+    twins = [("original", folder), ("calibrated", calibrated_folder)]
+    for label, f in twins + ([("true room", true_folder)] if true_folder else []):
         t0 = time.perf_counter()
         db = cached_database(load_scene(f), spacing=spacing, cache_dir=cache_dir)
         t_db = time.perf_counter() - t0
