@@ -259,6 +259,10 @@ def compute_radio_map(scene, tx_names=None, *, cell_size: float = DEFAULT_CELL_M
               "scene_hash": scene.content_hash(), "scene": cfg.scene.name})
 
 
+#: Received powers this close (relative) are a tie for the best server: the first wins.
+TIE_REL = 1e-9
+
+
 def radio_map_from_gain(gain: np.ndarray, tx_names, *, origin, cell_size: float, height: float,
                         tx_positions, tx_power_dbm, noise_dbm: float, free=None,
                         meta: dict | None = None) -> RadioMap:
@@ -280,7 +284,10 @@ def radio_map_from_gain(gain: np.ndarray, tx_names, *, origin, cell_size: float,
     with np.errstate(divide="ignore", invalid="ignore"):
         pg_db = 10 * np.log10(gain)
         rss_dbm = 10 * np.log10(rss_w) + 30.0
-        best = np.argmax(rss_w, axis=0).astype(np.int16)
+        # a tie (within float rounding: 20 dBm + -60 dB against 30 dBm + -70 dB came
+        # out 2e-16 apart where NumPy's vectorised power rounds differently, on AVX-512)
+        # goes to the first transmitter
+        best = np.argmax(rss_w >= rss_w.max(axis=0) * (1.0 - TIE_REL), axis=0).astype(np.int16)
         best_w = np.take_along_axis(rss_w, best[None].astype(int), 0)[0]
         covered = best_w > 0
         best[~covered] = -1
