@@ -10,7 +10,7 @@ import pytest
 from engine.config import ConfigError, load_config
 from engine.raytrace.base import DevicePose, device_poses
 from engine.raytrace.chains import ChainTracer
-from engine.raytrace.conformance import find_repeats, match_paths
+from engine.raytrace.conformance import find_repeats, grazing, match_paths, scene_edges
 from engine.raytrace.raw import free_points
 from engine.raytrace.sionna import SionnaTracer
 from engine.raytrace.solver_core import SolverCore
@@ -53,7 +53,8 @@ def test_chains_equal_sionna_direct_paths_with_identical_values(room_scene):
     chains = SionnaTracer(replace(cfg, method="chains"))
     assert chains.chains is not None and direct.chains is None
     poses = device_poses(room_scene.config)
-    confirmed = 0
+    confirmed = grazed = 0
+    edges = scene_edges(room_scene.sionna.mi_scene)
     for pos in POSITIONS + LATTICE_POSITIONS:
         p = dict(poses, robot1=DevicePose(pos))
         a, b = direct(room_scene, p), chains(room_scene, p)
@@ -70,8 +71,13 @@ def test_chains_equal_sionna_direct_paths_with_identical_values(room_scene):
                 more = SionnaTracer(replace(cfg, method="sbr", samples_per_src=10_000_000))
                 big = more(room_scene, p, [lk])[lk]
                 found = match_paths(big, got)
-                assert np.all(found[extra] >= 0), (pos, lk, got.interactions[extra])
-                confirmed += extra.size
+                # or touching an edge, where float rounding decides whether a ray
+                # finds it (an AVX-512 machine: at (1.2, 1.0) a -19 dB path refracted
+                # exactly on the table top's edge, missed by 10^7 rays there)
+                graze = grazing(got.interactions[extra], got.vertices[extra], edges)
+                assert np.all((found[extra] >= 0) | graze), (pos, lk, got.interactions[extra])
+                confirmed += int((found[extra] >= 0).sum())
+                grazed += int((graze & (found[extra] < 0)).sum())
             hit = m >= 0
             # Both are Sionna's float32 kernels, fed different representatives of
             # one chain (the direct trace keeps the first ray's hit point, chain
@@ -87,6 +93,7 @@ def test_chains_equal_sionna_direct_paths_with_identical_values(room_scene):
             assert np.all(np.abs(got.pol[m[hit]] - ref.pol[hit]).max(axis=(1, 2))
                           <= 3e-4 * scale + 1e-12), (pos, lk)
     assert confirmed <= 3  # a handful of weak paths, each confirmed above
+    assert grazed <= 2
 
 
 def test_box_room_chains_follow_mirror_geometry(tmp_path):

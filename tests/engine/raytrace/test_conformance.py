@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from engine.raytrace.base import device_poses
-from engine.raytrace.conformance import check_shapes, check_tracer
+from engine.raytrace.conformance import check_shapes, check_tracer, grazing, scene_edges
 from engine.raytrace.sionna import SionnaTracer
 
 
@@ -167,3 +167,16 @@ def test_every_backend_returns_sionnas_path_set_in_the_lab(lab_scene):
         rep = check_path_sets(comps)
         print(f"\n{name}:\n{rep}")
         assert rep.passed, f"{name}:\n{rep}"
+
+
+def test_grazing_tells_a_path_on_an_edge(room_scene):
+    """The room's table top spans (0.4, 2.0, 0.7)-(1.4, 2.8, 0.75): a path refracted on
+    its top edge (y = 2.0, z = 0.75) grazes, the same path 1 cm inside the top does
+    not, nor does one with no interaction; the room's meshes give their edges."""
+    edges = scene_edges(room_scene.sionna.mi_scene)
+    assert edges.shape[1:] == (2, 3) and len(edges) >= 3 * 12 * 2  # >= 2 boxes of 12 triangles
+    inter = np.array([[1, 4], [1, 4], [0, 0]])
+    wall = (0.0, 1.82, 1.84)
+    verts = np.array([[wall, (0.82, 2.0, 0.75)], [wall, (0.82, 2.01, 0.75)],
+                      [(0, 0, 0), (0.82, 2.0, 0.75)]])
+    assert grazing(inter, verts, edges).tolist() == [True, False, False]

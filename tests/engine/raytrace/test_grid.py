@@ -140,14 +140,21 @@ def test_verification_tells_an_invented_path_from_a_real_one(room_scene, room_gr
     so = np.array([sionna_orientation(poses[n].orientation) for n in g.tx_names])
     core = SolverCore(room_scene.config.tracer, deterministic=False,
                       spec_table_size=G.GRID_SPEC_TABLE_SIZE)
-    i = int(np.flatnonzero(g.free)[5])
-    args = (core, room_scene.sionna, src, so, g.points[i])
-
     def at(arrays):
         return {k: arrays[k][i] for k in ("num_paths", "a", "tau", "interactions", "vertices")}
 
-    ok = G.verify_point(*args, at(g.arrays))
+    # a point whose stored paths the direct trace finds, all: on an AVX-512 machine the
+    # 6th free point held a path refracted exactly on the table top's bottom edge,
+    # (0.8, 2.8, 0.7), which the rays' float rounding misses there (grazing; the
+    # chain tests check such paths touch an edge)
+    for i in np.flatnonzero(g.free)[3:12]:
+        args = (core, room_scene.sionna, src, so, g.points[i])
+        ok = G.verify_point(*args, at(g.arrays))
+        if not any(ok[k] for k in ("paths_missing", "paths_extra", "paths_repeated",
+                                   "paths_found_more")):
+            break
     assert ok["paths_missing"] == 0 and ok["paths_extra"] == 0 and ok["paths_repeated"] == 0
+    assert ok["paths_found_more"] == 0
     arrays = {k: v.copy() for k, v in g.arrays.items()}
     arrays["tau"][i, 0, 1] += 3e-9
     arrays["vertices"][i, 0, 1] += 0.5
