@@ -111,8 +111,11 @@ class TwinScene:
         if self._sionna is None:
             import sionna.rt as rt
 
+            from engine.raytrace.chains import register_scene
+
             sc = rt.load_scene(str(self.config.scene.file), merge_shapes=False)
             sc.frequency = self.config.scene.frequency_hz
+            register_scene(sc)
             self._sionna = sc
         return self._sionna
 

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import gc
 import warnings
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -66,6 +67,29 @@ FROZEN_RECORDINGS = 8
 #: Extra calls made right after the frozen evaluation records a new size,
 #: until one replays (Dr.Jit recorded the same size on the next two calls).
 PRIME_CALLS = 3
+
+#: The Sionna scenes loaded in this process (:func:`register_scene`), held weakly.
+_LIVE_SCENES: weakref.WeakSet = weakref.WeakSet()
+
+
+def register_scene(sc) -> None:
+    """Note a loaded ``sionna.rt.Scene`` (``TwinScene.sionna`` does, on load): the
+    frozen chain evaluation traverses every live scene's objects (see
+    :meth:`ChainTracer._frozen`)."""
+    _LIVE_SCENES.add(sc)
+
+
+def live_scene_objects(mi_scene=None) -> list:
+    """What a call on radio materials may dispatch to besides ``mi_scene``'s own
+    shapes: every live registered scene's radio materials (those no shape uses any
+    more included: a material replaced by an edit stays registered) and the Mitsuba
+    scenes other than ``mi_scene``."""
+    out = []
+    for sc in sorted(_LIVE_SCENES, key=id):  # one order: a frozen call's state is keyed
+        if sc.mi_scene is not mi_scene:
+            out.append(sc.mi_scene)
+        out.extend(m for _, m in sorted(sc.radio_materials.items()))
+    return out
 
 
 def neighbour_buckets(b: int) -> list[int]:
@@ -307,8 +331,14 @@ class ChainTracer:
         def sizes(mi_scene, chains, chain_idx, target_idx, src, tgt, *rest):
             # Widths enter Sionna's code as Python ints (literals in the
             # recorded kernels): a call with other widths must record anew.
+            # The other live scenes: a call on radio materials dispatches over
+            # every registered instance, those of every scene loaded (the
+            # real room beside the twin's), and Dr.Jit traverses only the
+            # instances it finds in the inputs and this state; else it refused
+            # to record ("no such object instance was found in the function's
+            # inputs") and the evaluation ran unfrozen.
             return (dr.width(chains["_src_indices"]), dr.width(chain_idx), dr.width(src),
-                    dr.width(tgt))
+                    dr.width(tgt), *live_scene_objects(mi_scene))
 
         return dr.freeze(self.core.evaluate_chains, state_fn=sizes, limit=FROZEN_RECORDINGS,
                          warn_after=16, auto_opaque=False)

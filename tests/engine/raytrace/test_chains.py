@@ -428,6 +428,12 @@ from engine.raytrace.sionna import SionnaTracer
 from engine.scene import load_scene
 
 room_scene = load_scene(sys.argv[1])
+if sys.argv[2] == "second":  # the real room beside the twin's, a material replaced
+    other = load_scene(sys.argv[1])
+    other.define_material("real-wood", {"relative_permittivity": 2.6, "conductivity": 0.01,
+                                        "thickness": 0.05})
+    other.set_material("table", "real-wood")
+    assert other.sionna is not None
 cfg = replace(room_scene.config.tracer, method="chains")
 live = SionnaTracer(cfg)
 assert live.chains.freeze
@@ -442,7 +448,9 @@ for i in range(8):
     known, rec = set(live.chains.frozen_sizes), live.chains.recordings
     a, b = live(room_scene, p), plain(room_scene, p)
     # a size seen before replays; a new one records in this call only (primed)
-    if set(live.chains.frozen_sizes) == known:
+    # (with a second scene, Dr.Jit records the first size once more at the next
+    # call: the other scene's objects enter as state, evaluated by the first call)
+    if set(live.chains.frozen_sizes) == known and (i > 1 or sys.argv[2] == "one"):
         assert live.chains.recordings == rec, (i, rec, live.chains.recordings)
     for lk in a:
         assert a[lk].num_paths == b[lk].num_paths > 0
@@ -458,7 +466,8 @@ assert live.chains.freeze_error is None, live.chains.freeze_error
 # second time, as before)
 from engine.raytrace.chains import neighbour_buckets
 sizes = live.chains.frozen_sizes
-assert len(sizes) <= live.chains.recordings <= len(sizes) + 1, (live.chains.recordings, sizes)
+extra = 1 if sys.argv[2] == "one" else 2
+assert len(sizes) <= live.chains.recordings <= len(sizes) + extra, (live.chains.recordings, sizes)
 assert len(sizes) < 4 * 3, sizes
 for ns, nt, b in sizes:  # a size's neighbours were primed with it
     assert any((ns, nt, m) in sizes for m in neighbour_buckets(b)), (b, sizes)
@@ -472,7 +481,8 @@ print("ok")
 """
 
 
-def test_frozen_live_trace_equals_unfrozen_and_replays(room_folder):
+@pytest.mark.parametrize("scenes", ["one", "second"])
+def test_frozen_live_trace_equals_unfrozen_and_replays(room_folder, scenes):
     """The live tracer replays the recorded evaluation (``drjit.freeze``) step
     after step: the same paths as the unfrozen evaluation at every step (bit for
     bit but the Doppler shift, within one float32 rounding), a robot moving and
@@ -482,10 +492,16 @@ def test_frozen_live_trace_equals_unfrozen_and_replays(room_folder):
     a scene edit drops the recording with the
     chains. In its own process, as the twin runs: in this test session other
     tests' objects make Dr.Jit refuse to record (the tracer then falls back to
-    the unfrozen evaluation, see test_deployment)."""
+    the unfrozen evaluation, see test_deployment). With a second scene loaded whose
+    table's material was replaced (a deployment's real room beside the twin's): a
+    call on radio materials dispatches over both scenes' materials, the replaced one
+    included, and Dr.Jit refused to record until the frozen call's state listed them
+    (``live_scene_objects``); the realistic deployments ran unfrozen, and on an
+    AVX-512 machine Dr.Jit then emitted LLVM IR that failed verification ("does not
+    dominate all uses") in 3 of 6 runs of the lab's localization comparison."""
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, "-c", _FROZEN_CHECK, str(room_folder)],
+    out = subprocess.run([sys.executable, "-c", _FROZEN_CHECK, str(room_folder), scenes],
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-3000:]
