@@ -208,6 +208,7 @@ def mismatch_at_truth(folder, recording, truth: dict, *, objects: list[str],
 
 
 def localization_errors(folder, calibrated_folder, *, true_folder=None, seed: int = 1,
+                        run_seed: int | None = None,
                         changed_material: str = "wood-0.03", permittivity_factor: float = 1.3,
                         spacing: float = 0.05, dt: float = 0.25, steps: int | None = None,
                         snr_db: float = 20.0, method: str = "MCA-angles", fusion: str = "ekf",
@@ -220,7 +221,8 @@ def localization_errors(folder, calibrated_folder, *, true_folder=None, seed: in
     calibrated twin's, and with ``true_folder`` (:func:`mismatch_at_truth`'s) once with
     the twin at the real room's values: what no calibration can beat, and where the
     errors are not the twin's at all. Returns ``{"original": summary, "calibrated":
-    summary[, "true room": summary]}``
+    summary[, "true room": summary]}``; ``seed`` makes the real room, ``run_seed``
+    (default ``seed``) the run's noise (pilots, odometry, start calibration)
     (:func:`engine.localization.deployment.summarize` of the per-step
     ``estimate_vs_truth`` errors, m) plus the database build times and the settings."""
     from engine.localization.deployment import (Deployment, DeploymentSettings, errors,
@@ -230,7 +232,7 @@ def localization_errors(folder, calibrated_folder, *, true_folder=None, seed: in
     mca = dict(CASE_STUDY_MCA)
     out: dict = {"settings": {"method": method, "fusion": fusion, "closed_loop": closed_loop,
                               "mode": "pilots", "snr_db": snr_db, "spacing_m": spacing,
-                              "dt_s": dt, "seed": seed}}
+                              "dt_s": dt, "seed": seed, "run_seed": run_seed}}
     twins = [("original", folder), ("calibrated", calibrated_folder)]
     for label, f in twins + ([("true room", true_folder)] if true_folder else []):
         t0 = time.perf_counter()
@@ -242,7 +244,8 @@ def localization_errors(folder, calibrated_folder, *, true_folder=None, seed: in
                                       closed_loop=closed_loop, method=method, fusion=fusion,
                                       mca=mca, num_paths=mca["num_paths"])
         t0 = time.perf_counter()
-        dep = Deployment(f, db, settings, seed=seed, dt=dt, rate_every=10 ** 9,
+        dep = Deployment(f, db, settings, seed=seed if run_seed is None else run_seed,
+                         dt=dt, rate_every=10 ** 9,
                          real_scene=real)
         n = steps if steps is not None else dep.lap_steps()
         dep.run(n)
