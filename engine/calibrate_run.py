@@ -508,8 +508,9 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     their numbers. ``hop``: after the polish, scan
     those objects' x/y offsets and yaws across the next half-wavelength basins
     (:meth:`~engine.calibration.Calibrator.hop`) and polish again (from
-    :data:`POLISH_STEPS_AFTER_HOP`) when that lowered the mismatch; the report's ``hop``
-    gives the scans. ``noise``: the model's power gets each snapshot's noise variance
+    :data:`POLISH_STEPS_AFTER_HOP`) when that lowered the mismatch, then again (up to
+    :data:`HOP_ROUNDS` rounds) while a hop moves something; the report's ``hop``
+    gives each round's scans. ``noise``: the model's power gets each snapshot's noise variance
     estimated from the recording added (:func:`measurements_from_recording`); the
     report's ``noise_snr_db`` gives the estimates."""
     from engine.scene import load_scene
