@@ -253,7 +253,8 @@ def cmd_grid(args) -> int:
     if v.get("points"):
         print(f"verification: {v['points']} points re-traced one per call: "
               f"{v['paths_missing']} of {v['paths_single_calls']} paths missing in the grid, "
-              f"{v.get('paths_extra', 0)} extra, {v.get('paths_repeated', 0)} repeated")
+              f"{v.get('paths_extra', 0)} extra ({v.get('paths_grazing', 0)} more on an "
+              f"edge), {v.get('paths_repeated', 0)} repeated")
     print(f"wrote {args.out}")
     return 0
 

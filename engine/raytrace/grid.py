@@ -64,6 +64,7 @@ from engine.raytrace.base import DevicePose, device_poses, sionna_orientation, v
 from engine.raytrace.chains import CHAIN_REUSE_VERSION, ChainTracer
 from engine.raytrace.raw import (RawPaths, find_repeats, free_points, grow_cap, match_paths,
                                  pad_paths)
+from engine.raytrace.conformance import grazing, scene_edges
 from engine.raytrace.solver_core import SolverCore
 
 log = logging.getLogger(__name__)
@@ -633,8 +634,8 @@ def grid_summary(grid: PathGrid) -> dict:
 #: The counts :func:`verify_point` returns (summed over points by
 #: :func:`verification_summary`).
 VERIFY_COUNTS = ("paths_grid", "paths_single_calls", "paths_missing", "paths_extra",
-                 "paths_found_more", "paths_repeated", "links_differing", "links",
-                 "top_paths_checked", "top_paths_missing")
+                 "paths_grazing", "paths_found_more", "paths_repeated", "links_differing",
+                 "links", "top_paths_checked", "top_paths_missing")
 
 
 def verify_pick(todo: np.ndarray, n: int, seed: int) -> np.ndarray:
@@ -670,7 +671,9 @@ def verify_point(core, sc, src, src_orient, point: np.ndarray, stored: dict[str,
         The counts :data:`VERIFY_COUNTS` of this point (paths the grid lacks,
         all and among the ``top_n`` strongest per link; paths the direct trace
         lacks that more rays do not confirm; paths more rays confirmed;
-        repeated paths; links and links that differ).
+        repeated paths; links and links that differ). A stored path neither trace
+        finds that touches a triangle edge (:func:`~engine.raytrace.conformance.grazing`)
+        counts as ``paths_grazing``, not ``paths_extra``.
     """
     confirm = {} if confirm is None else confirm
     if keep_strongest is not None:
@@ -703,6 +706,15 @@ def verify_point(core, sc, src, src_orient, point: np.ndarray, stored: dict[str,
             real[mb[mb >= 0]] = True
             c["paths_found_more"] += int((~found & real).sum())
             found |= real
+        if not found.all():  # on an edge, whether a ray finds a path is float rounding
+            key = ("edges", id(sc.mi_scene))
+            if key not in confirm:
+                confirm[key] = scene_edges(sc.mi_scene)
+            graze = np.zeros(k, bool)
+            graze[~found] = grazing(mine["interactions"][~found], mine["vertices"][~found],
+                                    confirm[key])
+            c["paths_grazing"] += int(graze.sum())
+            found |= graze
         c["links"] += 1
         c["paths_single_calls"] += len(ref["tau"])
         c["paths_missing"] += int((m < 0).sum())
@@ -729,7 +741,8 @@ def verification_summary(pick: np.ndarray, counts: Sequence[dict], top_n: int = 
     out = {"points": int(len(pick)), "indices": [int(i) for i in pick], **tot,
            "top_n": int(top_n)}
     out = {k: out[k] for k in ("points", "indices", "paths_grid", "paths_single_calls",
-                               "paths_missing", "paths_extra", "paths_found_more",
+                               "paths_missing", "paths_extra", "paths_grazing",
+                               "paths_found_more",
                                "paths_repeated", "links_differing", "links", "top_n",
                                "top_paths_checked", "top_paths_missing")}
     if tot["paths_missing"] or tot["paths_extra"] or tot["paths_repeated"]:
