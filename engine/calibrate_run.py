@@ -166,19 +166,18 @@ def _link_measurements(path: Path, config: TwinConfig, link: tuple[str, str], ms
         pos.append(ap.position)
         ori.append(sionna_orientation(ap.orientation))
         csi.append(np.asarray(c.h)[0, sub])
-    if noise_power and np.median(10 * np.log10(
-            np.mean(np.abs(np.array(csi)) ** 2, axis=(1, 2, 3))
-            / np.maximum(noise_power, 1e-300))) > NOISELESS_SNR_DB:
-        noise_power = None  # the window's leakage, not noise: an exact channel
     txp = device_poses(config).get(tx)
     if txp is None:
         raise CalibrationError(f"{path}: the CSI's transmitter {tx!r} is not a device of the "
                                "scene")
-    return Measurements(txp.position, np.array(pos), offsets[sub], np.array(csi),
-                        tx_array=_array(config, tx, path), rx_array=_array(config, rx, path),
-                        tx_orientation=sionna_orientation(txp.orientation),
-                        rx_orientations=np.array(ori),
-                        noise_power=np.array(noise_power) if noise and noise_power else None)
+    m = Measurements(txp.position, np.array(pos), offsets[sub], np.array(csi),
+                     tx_array=_array(config, tx, path), rx_array=_array(config, rx, path),
+                     tx_orientation=sionna_orientation(txp.orientation),
+                     rx_orientations=np.array(ori),
+                     noise_power=np.array(noise_power) if noise and noise_power else None)
+    if m.noise_power is not None and np.median(m.noise_snr_db()) > NOISELESS_SNR_DB:
+        m.noise_power = None  # the window's leakage, not noise: an exact channel
+    return m
 
 
 def material_users(scene, target: str) -> list:
@@ -718,9 +717,7 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
               "links": [list(lk) for lk, _ in measured],
               "snapshots": [int(len(m.rx_positions)) for _, m in measured],
               # per link: the noise estimated per snapshot (None: none added to the model)
-              "noise_snr_db": [None if m.noise_power is None else
-                               (10 * np.log10(np.mean(np.abs(m.csi) ** 2, axis=(1, 2, 3))
-                                              / np.maximum(m.noise_power, 1e-300))).tolist()
+              "noise_snr_db": [None if m.noise_power is None else m.noise_snr_db().tolist()
                                for _, m in measured],
               "subcarriers": int(len(measured[0][1].subcarrier_offsets_hz)),
               "permittivity_scans": scans, "pose_scans": pose_scans,

@@ -262,6 +262,15 @@ class Measurements:
                 raise CalibrationError(f"measurements: {label} has non-finite values")
 
 
+    def noise_snr_db(self) -> np.ndarray | None:
+        """``[N]`` each snapshot's mean channel power over its :attr:`noise_power`, dB
+        (None without one)."""
+        if self.noise_power is None:
+            return None
+        power = np.mean(np.abs(self.csi) ** 2, axis=(1, 2, 3))
+        return 10.0 * np.log10(power / np.maximum(self.noise_power, 1e-300))
+
+
 #: A parameter whose scaled start gradient is below this fraction of the largest one
 #: is reported as not seen by the measurements.
 UNOBSERVED_RATIO = 1e-5
