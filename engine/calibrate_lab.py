@@ -33,6 +33,10 @@ from engine.scene import load_scene
 log = logging.getLogger(__name__)
 
 
+#: What :func:`closing_the_loop` calibrates (and :func:`mismatch_at_truth` evaluates).
+CALIBRATED = ("materials", "poses")
+
+
 def real_room(folder, *, seed: int = 1, changed_material: str = "wood-0.03",
               permittivity_factor: float = 1.3):
     """The perturbed "real" room of the twin at ``folder``: ``(scene, truth)`` with
@@ -123,7 +127,7 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
     del twin, scene
     gc.collect()
     t0 = time.perf_counter()
-    run = calibrate_recording(folder, mcap, out / "calibration", what=("materials", "poses"),
+    run = calibrate_recording(folder, mcap, out / "calibration", what=CALIBRATED,
                               objects=objects, materials=[changed_material],
                               max_snapshots=snapshots, max_subcarriers=subcarriers,
                               max_steps=max_steps, solver=solver, multistart=multistart,
@@ -183,16 +187,12 @@ def mismatch_at_truth(folder, recording, truth: dict, *, objects: list[str],
     Returns:
         ``(mismatch dB^2, the folder written or None)``.
     """
-    from engine.calibrate_run import (default_parameters, measurements_from_recording,
-                                      write_calibrated_scene)
-    from engine.calibration import Calibrator
+    from engine.calibrate_run import recording_calibrator, write_calibrated_scene
 
     scene = load_scene(folder)
-    measured = measurements_from_recording(recording, scene.config, max_snapshots=snapshots,
-                                           max_subcarriers=subcarriers, noise=noise)
-    params = default_parameters(scene, ("materials", "poses"), objects, [changed_material])
-    cal = Calibrator(scene, [m for _, m in measured], params,
-                     solver or SolverSettings.from_tracer(scene.config.tracer))
+    _, params, cal = recording_calibrator(
+        scene, recording, what=CALIBRATED, objects=objects, materials=[changed_material],
+        max_snapshots=snapshots, max_subcarriers=subcarriers, noise=noise, solver=solver)
     x = cal.initial.copy()
     for i, p in enumerate(params):
         if p.kind == "permittivity" and p.target == changed_material:

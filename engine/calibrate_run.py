@@ -474,6 +474,23 @@ def write_calibrated_scene(scene, result, out_dir: Path) -> Path:
     return out_dir
 
 
+def recording_calibrator(scene, recording, *, what: tuple[str, ...], objects, materials,
+                         links=None, max_snapshots: int, max_subcarriers: int,
+                         noise: bool = True, solver: SolverSettings | None = None):
+    """The :class:`Calibrator` :func:`calibrate_recording` fits with (its arguments of
+    the same names): ``(measured, params, calibrator)``, ``measured`` as
+    :func:`measurements_from_recording` gives it. One definition, so that another
+    evaluation of the same recording (the lab's mismatch at the truth) is of the
+    same model."""
+    measured = measurements_from_recording(recording, scene.config, links=links,
+                                           max_snapshots=max_snapshots,
+                                           max_subcarriers=max_subcarriers, noise=noise)
+    params = default_parameters(scene, tuple(what), list(objects or []), materials)
+    cal = Calibrator(scene, [m for _, m in measured], params,
+                     solver or SolverSettings.from_tracer(scene.config.tracer))
+    return measured, params, cal
+
+
 def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str | Path, *,
                         what: tuple[str, ...] = ("materials",), objects: list[str] | None = None,
                         links: list[tuple[str, str]] | None = None, max_snapshots: int = 6,
@@ -516,12 +533,10 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
 
     out = Path(out)
     scene = load_scene(scene_dir)
-    measured = measurements_from_recording(recording, scene.config, links=links,
-                                           max_snapshots=max_snapshots,
-                                           max_subcarriers=max_subcarriers, noise=noise)
-    params = default_parameters(scene, tuple(what), list(objects or []), materials)
-    cal = Calibrator(scene, [m for _, m in measured], params,
-                     solver or SolverSettings.from_tracer(scene.config.tracer))
+    measured, params, cal = recording_calibrator(
+        scene, recording, what=what, objects=objects, materials=materials, links=links,
+        max_snapshots=max_snapshots, max_subcarriers=max_subcarriers, noise=noise,
+        solver=solver)
     t_start = time.perf_counter()
     stages: list[dict] = []  # [{"stage", "seconds", "evaluations", "gradient_steps"}]
     clock = [t_start, 0, 0]
