@@ -107,7 +107,7 @@ def cmd_test(py: Path, extra: list[str]) -> int:
 
 
 def cmd_demo(py: Path, extra: list[str]) -> int:
-    return run(py, "-m", "engine.demo", *extra)
+    return run(py, "-m", "isac_twin.experiments.demo", *extra)
 
 
 def blender_ext_script(py: Path) -> Path:

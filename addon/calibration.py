@@ -20,7 +20,8 @@ from pathlib import Path
 import bpy
 from mathutils import Matrix, Vector
 
-from . import materials, schema
+from . import materials
+from .contract import schema
 from .exporter import geometry_objects, safe_name
 
 

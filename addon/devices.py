@@ -13,7 +13,7 @@ from typing import Sequence
 
 import bpy
 
-from . import schema
+from .contract import schema
 from .modelling import get_collection
 
 DEVICE_COLLECTION = "Devices"

@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from . import wire
+from .contract import wire
 
 log = logging.getLogger(__name__)
 
@@ -276,7 +276,7 @@ class EngineProcess:
         self._dir = tempfile.TemporaryDirectory(prefix="isac-live-")
         self.port_file = Path(self._dir.name) / "port"
         self.log_file = Path(self._dir.name) / "engine.log"
-        cmd = [self.python, "-m", "engine.cli", "serve", "--port", "0",
+        cmd = [self.python, "-m", "isac_twin.cli", "serve", "--port", "0",
                "--port-file", str(self.port_file), *args]
         if scene:
             cmd.insert(4, scene)

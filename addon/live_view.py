@@ -33,7 +33,8 @@ import bpy
 import numpy as np
 from mathutils import Matrix, Vector
 
-from . import legend, schema
+from . import legend
+from .contract import schema
 from .exporter import safe_name
 from .modelling import get_collection
 
@@ -880,7 +881,7 @@ class EditTracker:
                 self._sent[name] = self._base_keys[name]
                 names.append(name)
         self._new.clear()
-        from . import wire
+        from .contract import wire
 
         self._pending = [wire.edit("remove", w) for w in self._removed]
         names += self._removed
@@ -888,8 +889,9 @@ class EditTracker:
 
     def _added(self, scene) -> list[dict]:
         """New radio-tagged meshes: ``add`` edits carrying the world mesh as PLY bytes."""
-        from . import materials, wire
-        from .exporter.geometry import ply_bytes, world_mesh
+        from . import materials
+        from .contract import wire
+        from .contract.writers.geometry import ply_bytes, world_mesh
 
         out = []
         names = scene.objects.keys()
@@ -913,7 +915,7 @@ class EditTracker:
         return out
 
     def poll(self, scene) -> list[dict]:
-        from . import wire
+        from .contract import wire
 
         if not self.active:
             return []

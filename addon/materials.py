@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Iterable
 
-from . import schema
+from .contract import schema
 
 # material name -> valid frequency bands as (min, max) in GHz, inclusive,
 # in the same order as Sionna's table.

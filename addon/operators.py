@@ -5,14 +5,28 @@ from __future__ import annotations
 import math
 
 import bpy
-from bpy.props import (EnumProperty, FloatProperty, FloatVectorProperty, IntProperty,
-                       IntVectorProperty, StringProperty)
+from bpy.props import (
+    EnumProperty,
+    FloatProperty,
+    FloatVectorProperty,
+    IntProperty,
+    IntVectorProperty,
+    StringProperty,
+)
 
-from . import (calibration, devices, live, live_view, materials, modelling, placement,
-               radiomap_view, schema)
+from . import (
+    calibration,
+    devices,
+    live,
+    live_view,
+    materials,
+    modelling,
+    placement,
+    radiomap_view,
+)
+from .contract import schema
 from .exporter import ExportError, export_scene
-from .properties import (PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES, ROOM_PARTS,
-                         addon_preferences)
+from .properties import PATTERNS, POLARIZATIONS, ROBOT_MODELS, ROLES, ROOM_PARTS, addon_preferences
 
 _OPTS = {"REGISTER", "UNDO"}
 _FURNITURE_ITEMS = [(k, k.replace("_", " ").title(), "") for k in modelling.FURNITURE_PRESETS]

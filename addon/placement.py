@@ -1,7 +1,7 @@
 """Placement warnings before export: devices and robot paths in free space.
 
 The engine refuses, at load, a device or robot path point inside a wall or a
-piece of furniture or outside the room's footprint (``engine/room.py``,
+piece of furniture or outside the room's footprint (``engine/scene/room.py``,
 docs/config.md). This module finds the same faults in Blender first, so the
 panel can warn before export: a point is inside an object when a vertical ray
 up from it first meets that object's surface from behind (the inside of its
@@ -18,8 +18,8 @@ from mathutils import Vector
 
 from .devices import curve_waypoints, device_objects
 
-ROBOT_BODY_HEIGHT_M = 0.1  #: as engine/room.py
-PATH_SPACING_M = 0.05      #: as engine/room.py
+ROBOT_BODY_HEIGHT_M = 0.1  #: as engine/scene/room.py
+PATH_SPACING_M = 0.05      #: as engine/scene/room.py
 _UP, _DOWN = Vector((0.0, 0.0, 1.0)), Vector((0.0, 0.0, -1.0))
 
 

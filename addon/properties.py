@@ -10,10 +10,19 @@ silently.
 from __future__ import annotations
 
 import bpy
-from bpy.props import (BoolProperty, CollectionProperty, EnumProperty, FloatProperty,
-                       FloatVectorProperty, IntProperty, PointerProperty, StringProperty)
+from bpy.props import (
+    BoolProperty,
+    CollectionProperty,
+    EnumProperty,
+    FloatProperty,
+    FloatVectorProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
 
-from . import materials, schema
+from . import materials
+from .contract import schema
 
 
 def _items(table: dict) -> list[tuple[str, str, str]]:
@@ -21,7 +30,7 @@ def _items(table: dict) -> list[tuple[str, str, str]]:
     return [(k, label, desc) for k, (label, desc) in table.items()]
 
 
-# The value lists are the schema's (addon/schema.py, shared with the engine).
+# The value lists are the schema's (addon/contract/schema.py, shared with the engine).
 #: device kinds: "NONE" (scene geometry), then the schema's kinds upper-cased
 DEVICE_KINDS = [("NONE", "Geometry",
                  "Scene geometry (exported to scene.xml when it has a radio material)")] + [

@@ -1,4 +1,4 @@
-"""Benchmark: one gradient step of the calibration (engine.calibration).
+"""Benchmark: one gradient step of the calibration (isac_twin.calibration.calibrator).
 
 A 5 x 4 x 3 m synthetic room with a metal cabinet, one AP, N receiver
 positions, K subcarriers; parameters: the walls' permittivity and the
@@ -10,7 +10,7 @@ cost of Dr.Jit's AD. No assertions on time.
 Run: ``python bench/bench_calibration.py [--positions 4] [--subcarriers 8]
 [--rays 20000] [--repeat 3]``
 
-``--lab`` runs the closing-the-loop case instead (:mod:`engine.calibrate_lab`):
+``--lab`` runs the closing-the-loop case instead (:mod:`isac_twin.experiments.lab_calibration`):
 the bundled lab's perturbed "real" room (furniture shifted N(0, 3 cm), turned
 N(0, 2 deg); the tables' wood 30 % denser), one lap of the robot's CSI recorded
 there (``--snr`` adds noise), the twin calibrated from it (the tables' material
@@ -33,9 +33,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from engine import synthetic as syn  # noqa: E402
-from engine.calibration import Calibrator, Measurements, Parameter, SolverSettings  # noqa: E402
-from engine.scene import load_scene  # noqa: E402
+from isac_twin.calibration.calibrator import Calibrator, Measurements, Parameter, SolverSettings  # noqa: E402
+from isac_twin.scene import synthetic as syn  # noqa: E402
+from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def main(argv=None) -> int:
@@ -101,7 +101,7 @@ def main(argv=None) -> int:
 def lab(a) -> int:
     import json
 
-    from engine.calibrate_lab import closing_the_loop, localization_errors
+    from isac_twin.experiments.lab_calibration import closing_the_loop, localization_errors
 
     folder = Path(__file__).resolve().parents[1] / "blend_scenes" / "aces_lab" / "scene"
     objects = [o.strip() for o in a.objects.split(",") if o.strip()] or None
@@ -182,9 +182,9 @@ def lab(a) -> int:
 
 
 def print_per_fix(folder, r, cache_dir) -> dict:
-    """:func:`engine.calibrate_lab.per_fix_errors` of the original, the calibrated and the
+    """:func:`isac_twin.experiments.lab_calibration.per_fix_errors` of the original, the calibrated and the
     true-room twin on the lap recorded for ``r`` (a :func:`closing_the_loop` result)."""
-    from engine.calibrate_lab import per_fix_errors, real_room
+    from isac_twin.experiments.lab_calibration import per_fix_errors, real_room
 
     twins = {"original": load_scene(folder), "calibrated": load_scene(r["calibrated_scene"]),
              "true room": real_room(folder, seed=r["seed"])[0]}

@@ -1,4 +1,4 @@
-"""Benchmark: eq.-4 MIMO-OFDM channel synthesis (engine.phy.channel).
+"""Benchmark: eq.-4 MIMO-OFDM channel synthesis (isac_twin.phy.channel).
 
 Paper setup: AP with 32 antennas (4 x 8) -> robot with 2 antennas (1 x 2),
 N = 1024 subcarriers at 78.125 kHz, K = 14 symbols, ~60 paths.
@@ -32,9 +32,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from engine.phy.arrays import PlanarArray  # noqa: E402
-from engine.phy.channel import OFDMChannel  # noqa: E402
-from engine.phy.ofdm import ResourceGrid  # noqa: E402
+from isac_twin.phy.arrays import PlanarArray  # noqa: E402
+from isac_twin.phy.channel import OFDMChannel  # noqa: E402
+from isac_twin.phy.ofdm import ResourceGrid  # noqa: E402
 
 GRID = ResourceGrid(1024, 78125.0, 14, cyclic_prefix_samples=72)
 RX, TX = PlanarArray(1, 2), PlanarArray(4, 8)
@@ -119,15 +119,16 @@ def best_time(fn: Callable[[], object], repeat: int) -> tuple[float, object]:
 def sionna_baseline(repeat: int) -> None:
     """Time Sionna ``Paths.cfr`` vs ``OFDMChannel`` on the same traced lab paths."""
     try:
-        import engine  # noqa: F401 - configures Dr.Jit's LLVM before mitsuba
         import sionna.rt as rt
+
+        import isac_twin  # noqa: F401 - configures Dr.Jit's LLVM before mitsuba
     except ImportError as exc:  # pragma: no cover
         print(f"(Sionna baseline skipped: {exc})")
         return
-    from engine.phy.channel import baseband_gains
-    from engine.scene import load_scene
+    from isac_twin.phy.channel import baseband_gains
+    from isac_twin.scene.twin_scene import load_scene
 
-    cfg = load_scene(engine.bundled_scene_dir()).config
+    cfg = load_scene(isac_twin.bundled_scene_dir()).config
     tc = cfg.tracer
     fc = cfg.scene.frequency_hz
     tx_pos, rx_pos = [0.05, 3.0, 2.0], [5.5, 3.0, 0.25]
@@ -177,7 +178,7 @@ def sionna_baseline(repeat: int) -> None:
     nmse = np.sum(np.abs(h_o - h_s) ** 2) / np.sum(np.abs(h_s) ** 2)
     print(f"Sionna baseline: bundled lab traced by sionna.rt, {int(ok.sum())} paths, "
           f"{RX.num_ant}x{TX.num_ant}, N={GRID.num_subcarriers}, K={GRID.num_symbols}")
-    print(f"  {'OFDMChannel (engine.phy)':28s} {t_o * 1e3:9.2f} ms")
+    print(f"  {'OFDMChannel (isac_twin.phy)':28s} {t_o * 1e3:9.2f} ms")
     print(f"  {'sionna Paths.cfr':28s} {t_s * 1e3:9.2f} ms   ratio {t_s / t_o:6.1f}x   "
           f"NMSE {nmse:.1e}  (issue goal: >= 5x)")
 
@@ -192,7 +193,7 @@ def main(argv: list[str] | None = None) -> None:
     t_ours, h = best_time(lambda: ch(**p), args.repeat)
     print(f"channel synthesis {RX.num_ant}x{TX.num_ant}, N={GRID.num_subcarriers}, "
           f"K={GRID.num_symbols}, L={NUM_PATHS}: output {h.shape} {h.dtype}")
-    print(f"  {'OFDMChannel (engine.phy)':28s} {t_ours * 1e3:9.2f} ms")
+    print(f"  {'OFDMChannel (isac_twin.phy)':28s} {t_ours * 1e3:9.2f} ms")
     scale = np.max(np.abs(h))
     for name, fn in BASELINES:
         t_b, h_b = best_time(lambda: fn(p), max(1, args.repeat // 2))

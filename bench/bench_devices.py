@@ -19,10 +19,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from engine.devices.emulated_opencr import EmulatedOpenCR  # noqa: E402
-from engine.devices.emulated_rplidar import EmulatedRPLidar  # noqa: E402
-from engine.devices.opencr import OpenCR  # noqa: E402
-from engine.devices.rplidar import RPLidar  # noqa: E402
+from isac_twin.devices.emulated_opencr import EmulatedOpenCR  # noqa: E402
+from isac_twin.devices.emulated_rplidar import EmulatedRPLidar  # noqa: E402
+from isac_twin.devices.opencr import OpenCR  # noqa: E402
+from isac_twin.devices.rplidar import RPLidar  # noqa: E402
 
 log = logging.getLogger("bench_devices")
 ROS_READ_HZ = 20.0

@@ -3,9 +3,9 @@
 One fix = AP1's comb pilots as the case study receives them: a 4 x 8 AP, 32
 ports on combs of stride 32 (32 subcarriers each, 1024 x 78.125 kHz), 2 robot
 antennas, 12 paths (3-18 m, 10 dB per 5 m), 20 dB SNR, eq.-4 CSI
-(:func:`engine.phy.channel.cfr_at`). The baseline, in the same run, is the
-delay-only :class:`~engine.phy.estimation.MdpEstimator` configured as
-:func:`engine.localization.measurements.observe_pilots` ran it on the same
+(:func:`isac_twin.phy.channel.cfr_at`). The baseline, in the same run, is the
+delay-only :class:`~isac_twin.phy.estimation.MdpEstimator` configured as
+:func:`isac_twin.localization.measurements.observe_pilots` ran it on the same
 comb before the per-fix work (least squares at every order). Goal: <= 20 ms
 per joint fix on the lab machine.
 
@@ -24,11 +24,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from engine.phy.arrays import PlanarArray  # noqa: E402
-from engine.phy.channel import cfr_at  # noqa: E402
-from engine.phy.directions import DelayDirectionEstimator  # noqa: E402
-from engine.phy.estimation import MdpEstimator  # noqa: E402
-from engine.phy.units import SPEED_OF_LIGHT  # noqa: E402
+from isac_twin.phy.arrays import PlanarArray  # noqa: E402
+from isac_twin.phy.channel import cfr_at  # noqa: E402
+from isac_twin.phy.directions import DelayDirectionEstimator  # noqa: E402
+from isac_twin.phy.estimation import MdpEstimator  # noqa: E402
+from isac_twin.phy.units import SPEED_OF_LIGHT  # noqa: E402
 
 DF, N, STRIDE = 78125.0, 1024, 32
 AP, ROBOT = PlanarArray(4, 8), PlanarArray(1, 2)

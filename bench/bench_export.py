@@ -3,7 +3,7 @@
 * export: ``addon.exporter.export_scene`` (validation + PLY/XML/TOML, without and
   with the DAE/STL/USD interchange files) vs. Blender's own PLY exporter writing
   the same objects into one file (``bpy.ops.wm.ply_export``);
-* load: ``engine.scene.load_scene`` (validation of every file, then Sionna) vs.
+* load: ``isac_twin.scene.twin_scene.load_scene`` (validation of every file, then Sionna) vs.
   plain ``sionna.rt.load_scene(scene.xml, merge_shapes=False)``.
 
 Export runs in a subprocess with ``bpy`` (Blender and Mitsuba are kept in
@@ -19,7 +19,6 @@ import json
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -75,12 +74,12 @@ def main() -> int:
     print(f"  ratio ours / baseline              {ours / base:8.2f}x")
 
     sys.path.insert(0, str(ROOT))
-    import engine  # noqa: F401  (LLVM for Dr.Jit)
     import sionna.rt as rt
 
-    from engine.scene import load_scene
+    import isac_twin  # noqa: F401  (LLVM for Dr.Jit)
+    from isac_twin.scene.twin_scene import load_scene
 
-    folder = engine.bundled_scene_dir()
+    folder = isac_twin.bundled_scene_dir()
     load_scene(folder)  # warm-up: first Mitsuba/Dr.Jit use
     ours_l, plain_l = [], []
     for _ in range(args.repeat):
@@ -92,7 +91,7 @@ def main() -> int:
         plain_l.append(time.perf_counter() - t)
     a, b = _median_ms(ours_l), _median_ms(plain_l)
     print(f"load bundled lab (median of {args.repeat}, after warm-up):")
-    print(f"  engine.scene.load_scene            {a:8.1f} ms")
+    print(f"  isac_twin.scene.twin_scene.load_scene            {a:8.1f} ms")
     print(f"  baseline: sionna.rt.load_scene     {b:8.1f} ms")
     print(f"  ratio ours / baseline              {a / b:8.2f}x")
     return 0

@@ -37,15 +37,22 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import engine  # noqa: E402,F401 - configures LLVM before mitsuba
-from engine.paths import bundled_scene_dir  # noqa: E402
-from engine.raytrace.base import device_poses, sionna_orientation  # noqa: E402
-from engine.raytrace.grid import (DEFAULT_CHUNK_SIZE, GRID_SPEC_TABLE_SIZE,  # noqa: E402
-                                  VERIFY_TOP_N, grid_points, grid_summary, save_grid,
-                                  top_missing, trace_grid)
-from engine.raytrace.raw import free_points  # noqa: E402
-from engine.raytrace.solver_core import SolverCore  # noqa: E402
-from engine.scene import load_scene  # noqa: E402
+import isac_twin  # noqa: E402,F401 - configures LLVM before mitsuba
+from isac_twin.raytrace.base import device_poses, sionna_orientation  # noqa: E402
+from isac_twin.raytrace.grid import (  # noqa: E402
+    DEFAULT_CHUNK_SIZE,
+    GRID_SPEC_TABLE_SIZE,
+    VERIFY_TOP_N,
+    grid_points,
+    grid_summary,
+    save_grid,
+    top_missing,
+    trace_grid,
+)
+from isac_twin.raytrace.raw import free_points  # noqa: E402
+from isac_twin.raytrace.solver_core import SolverCore  # noqa: E402
+from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
+from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 OLD_CHUNK = 16
 

@@ -32,7 +32,6 @@ import os
 import random
 import socket
 import statistics
-import subprocess
 import sys
 import tempfile
 import threading
@@ -272,7 +271,7 @@ def bench_view_cost(scene, reps: int) -> None:
 
 
 def bench_latency(scene, steps: int) -> None:
-    from engine.synthetic import box_room
+    from isac_twin.scene.synthetic import box_room
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-live-"))
     folder = box_room(tmp / "box")

@@ -1,6 +1,6 @@
 """Per-fix cost of the twin's localizer (MCA-angles + EKF, pilots at 20 dB) on the lab.
 
-One fix, as :class:`~engine.localization.estimator.TwinLocalizer` and the demo's
+One fix, as :class:`~isac_twin.localization.estimator.TwinLocalizer` and the demo's
 closed loop run it on every step: the received comb pilots of both APs
 (``observe_pilots``: noise, LS at each port's comb), the delay-only MDP at the
 single-antenna AP2 (``MdpEstimator``), the joint delay-direction estimate at
@@ -37,16 +37,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from engine.localization import measurements  # noqa: E402
-from engine.localization.baselines import METHODS, make_localizer  # noqa: E402
-from engine.localization.fingerprints import cached_database  # noqa: E402
-from engine.localization.fusion import PoseEKF  # noqa: E402
-from engine.localization.measurements import (FeatureSpec, PilotSettings,  # noqa: E402
-                                              observe_pilots)
-from engine.paths import bundled_scene_dir  # noqa: E402
-from engine.phy.network import NetworkPHY  # noqa: E402
-from engine.raytrace import DevicePose, device_poses, make_tracer  # noqa: E402
-from engine.scene import load_scene  # noqa: E402
+from isac_twin.localization import measurements  # noqa: E402
+from isac_twin.localization.baselines import METHODS, make_localizer  # noqa: E402
+from isac_twin.localization.fingerprints import cached_database  # noqa: E402
+from isac_twin.localization.fusion import PoseEKF  # noqa: E402
+from isac_twin.localization.measurements import FeatureSpec, PilotSettings, observe_pilots  # noqa: E402
+from isac_twin.phy.network import NetworkPHY  # noqa: E402
+from isac_twin.raytrace import DevicePose, device_poses, make_tracer  # noqa: E402
+from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
+from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def lab_links(scene, db, n: int):

@@ -1,7 +1,7 @@
 """MCA query speed on a full fingerprint database, against brute-force scoring.
 
 Uses the cached database of the bundled lab (``out/cache``; the finest one
-found, 5 cm if it has been built, e.g. by ``python -m engine.demo --spacing
+found, 5 cm if it has been built, e.g. by ``python -m isac_twin.experiments.demo --spacing
 0.05``) and, for the paper's size whatever is cached, a synthetic database of
 the 5 cm grid of an 8 x 6 m room (19,200 points, image-source path lengths).
 Queries are database fingerprints with 2 cm Gaussian length noise and one
@@ -25,8 +25,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from engine.localization.fingerprints import load_database  # noqa: E402
-from engine.localization.mca import MCALocalizer  # noqa: E402
+from isac_twin.localization.fingerprints import load_database  # noqa: E402
+from isac_twin.localization.mca import MCALocalizer  # noqa: E402
 
 
 def synthetic_db(nx=160, ny=120, aps=((0.05, 3.0, 2.0), (4.0, 0.05, 2.0)), L=9):
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
                   db.lengths[free][:, :, :a.num_paths], min(a.queries, len(free)), a.k, a.eps)
         ok &= r["agree"]
     else:
-        print("no cached lab database in out/cache (run python -m engine.demo first)")
+        print("no cached lab database in out/cache (run python -m isac_twin.experiments.demo first)")
     pos, lengths = synthetic_db(L=a.num_paths)
     r = bench("synthetic 5 cm grid of an 8 x 6 m room", pos, lengths, a.queries, a.k, a.eps)
     ok &= r["agree"]

@@ -5,7 +5,7 @@ fits (no obstacle within ``--clearance`` m at the antenna height and near the
 floor) plus points at round coordinates, each backend traces both
 AP -> robot links and is compared, link by link, with a reference traced by
 Sionna RT's public ``PathSolver`` (one receiver per call, ``--reference``
-rays per source) and its ``Paths.cfr`` (:mod:`engine.raytrace.conformance`):
+rays per source) and its ``Paths.cfr`` (:mod:`isac_twin.raytrace.conformance`):
 
 - repeated paths (the chain-reuse defect of issue 12),
 - reference paths missing within 40 dB of their link's strongest path
@@ -33,13 +33,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import engine  # noqa: E402,F401 - configures LLVM before mitsuba
-from engine.paths import bundled_scene_dir  # noqa: E402
-from engine.raytrace.base import device_poses  # noqa: E402
-from engine.raytrace.conformance import (SionnaReference, check_path_sets,  # noqa: E402
-                                         compare_path_sets, robot_points)
-from engine.raytrace.sionna import SionnaTracer  # noqa: E402
-from engine.scene import load_scene  # noqa: E402
+import isac_twin  # noqa: E402,F401 - configures LLVM before mitsuba
+from isac_twin.raytrace.base import device_poses  # noqa: E402
+from isac_twin.raytrace.conformance import (  # noqa: E402
+    SionnaReference,
+    check_path_sets,
+    compare_path_sets,
+    robot_points,
+)
+from isac_twin.raytrace.sionna import SionnaTracer  # noqa: E402
+from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
+from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -1,4 +1,4 @@
-"""Benchmark: what the free-space placement check (engine/room.py) adds to loading a scene.
+"""Benchmark: what the free-space placement check (engine/scene/room.py) adds to loading a scene.
 
 For each bundled room, times ``load_scene(..., load_sionna=False)`` (parse
 twin.toml and scene.xml, read every PLY, bounds and placement checks) and,
@@ -18,9 +18,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from engine.paths import bundled_scene_dir  # noqa: E402
-from engine.room import check_placement, robot_path_points  # noqa: E402
-from engine.scene import load_scene  # noqa: E402
+from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
+from isac_twin.scene.room import check_placement, robot_path_points  # noqa: E402
+from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def best(fn, repeat: int) -> float:

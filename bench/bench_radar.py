@@ -1,4 +1,4 @@
-"""Benchmark: OFDM radar processing of one frame (engine.sensing.radar).
+"""Benchmark: OFDM radar processing of one frame (isac_twin.sensing.radar).
 
 Frame: N = 1024 subcarriers at 78.125 kHz, K = 14 symbols (the bundled
 lab's grid, all REs carry sensing symbols), 32-antenna receiver (4 x 8,
@@ -34,9 +34,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from engine.phy import OFDMChannel, PlanarArray, ResourceGrid, ResourceSet  # noqa: E402
-from engine.phy.units import SPEED_OF_LIGHT  # noqa: E402
-from engine.sensing.radar import OFDMRadar, RangeDopplerMap  # noqa: E402
+from isac_twin.phy import OFDMChannel, PlanarArray, ResourceGrid, ResourceSet  # noqa: E402
+from isac_twin.phy.units import SPEED_OF_LIGHT  # noqa: E402
+from isac_twin.sensing.radar import OFDMRadar, RangeDopplerMap  # noqa: E402
 
 GRID = ResourceGrid(1024, 78125.0, 14, cyclic_prefix_samples=72)
 ARRAY = PlanarArray(4, 8)
@@ -78,11 +78,11 @@ def naive_range_doppler(radar: OFDMRadar, h: np.ndarray) -> RangeDopplerMap:
 
 def twin_sensing_cost(steps: int, dt: float = 0.05) -> dict:
     """Sensing frame cost in the lab twin (stage ``sense``) vs the comms trace."""
-    import engine
-    from engine.twin import Twin
+    import isac_twin
+    from isac_twin.twin.twin import Twin
 
     # the frame within its own step (the default sensing worker delivers it later)
-    tw = Twin.from_scene(engine.bundled_scene_dir(), dt=dt, phy=False, sync_sensing=True)
+    tw = Twin.from_scene(isac_twin.bundled_scene_dir(), dt=dt, phy=False, sync_sensing=True)
     every = tw.radar.links[0].every
     for _ in tw.run(2 * every):  # warm-up: Sionna scenes, kernels, background
         pass

@@ -9,7 +9,7 @@ For every ray count (``--samples``, rays per access point) it prints:
 
 * ``bare``: ``sionna.rt.RadioMapSolver`` called directly on a Sionna scene of the same
   folder with two isotropic transmitters (the floor of what any wrapper can reach);
-* ``ours``: :func:`engine.radiomap.compute_radio_map` (device swap on the twin's own Sionna
+* ``ours``: :func:`isac_twin.radiomap.radio_map.compute_radio_map` (device swap on the twin's own Sionna
   scene, free-space mask, RSS / best server / SNR / SINR, dB conversions) and its ratio
   to ``bare`` (what the project adds);
 * the agreement with the grid trace (``trace_grid``, chain reuse, ``keep_strongest`` off)
@@ -36,10 +36,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from engine.radiomap import compute_radio_map  # noqa: E402
-from engine.raytrace.grid import trace_grid  # noqa: E402
-from engine.raytrace.solver_core import load_sionna_rt  # noqa: E402
-from engine.scene import load_scene  # noqa: E402
+from isac_twin.radiomap.radio_map import compute_radio_map  # noqa: E402
+from isac_twin.raytrace.grid import trace_grid  # noqa: E402
+from isac_twin.raytrace.solver_core import load_sionna_rt  # noqa: E402
+from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def bare_sionna(scene, rm, samples: int, reps: int) -> float:

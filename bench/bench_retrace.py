@@ -43,11 +43,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import engine  # noqa: E402,F401 - configures LLVM before mitsuba
-from engine.paths import bundled_scene_dir  # noqa: E402
-from engine.raytrace import DevicePose, device_poses  # noqa: E402
-from engine.raytrace.sionna import SionnaTracer  # noqa: E402
-from engine.scene import load_scene  # noqa: E402
+import isac_twin  # noqa: E402,F401 - configures LLVM before mitsuba
+from isac_twin.raytrace import DevicePose, device_poses  # noqa: E402
+from isac_twin.raytrace.sionna import SionnaTracer  # noqa: E402
+from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
+from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 TOP_N = 24
 

@@ -22,16 +22,23 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import engine  # noqa: E402,F401  (configures Dr.Jit's LLVM before mitsuba loads)
 import numpy as np  # noqa: E402
 
-from engine.bus import Bus  # noqa: E402
-from engine.robots import (CirclePath, DiffDriveRobot, FigureEightPath, Lidar2D,  # noqa: E402
-                           PurePursuit, RobotAgent, SensorOptions)
-from engine.robots.kinematics import KinematicState  # noqa: E402
-from engine.robots.sensors import cast_rays  # noqa: E402
-from engine.scene import load_scene  # noqa: E402
-from engine.synthetic import box_room  # noqa: E402
+import isac_twin  # noqa: E402,F401  (configures Dr.Jit's LLVM before mitsuba loads)
+from isac_twin.bus.bus import Bus  # noqa: E402
+from isac_twin.robots import (  # noqa: E402
+    CirclePath,
+    DiffDriveRobot,
+    FigureEightPath,
+    Lidar2D,
+    PurePursuit,
+    RobotAgent,
+    SensorOptions,
+)
+from isac_twin.robots.kinematics import KinematicState  # noqa: E402
+from isac_twin.robots.sensors import cast_rays  # noqa: E402
+from isac_twin.scene.synthetic import box_room  # noqa: E402
+from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def per_call(fn, n: int, warm: int = 3) -> float:

@@ -9,7 +9,7 @@ In one run, on one scene and grid (default: the bundled lab, 5 cm):
    AP's chains enumerated once, by one worker, and sent to every worker;
    tiles of whole chunks). The cluster
    start (seconds, printed: it includes the workers' import of Sionna RT,
-   :mod:`engine.scaleout.preload`) is not counted; the workers' scene loads
+   :mod:`isac_twin.scaleout.preload`) is not counted; the workers' scene loads
    and chain enumerations are.
 
 Prints seconds, points/s, points/s per worker, the 2-vs-1 ratio (ideal 2.0),
@@ -35,11 +35,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import engine  # noqa: E402,F401 - configures LLVM before mitsuba
-from engine.paths import bundled_scene_dir  # noqa: E402
-from engine.raytrace.grid import trace_grid  # noqa: E402
-from engine.scaleout.cluster import cluster_client, trace_grid_tiled  # noqa: E402
-from engine.scene import load_scene  # noqa: E402
+import isac_twin  # noqa: E402,F401 - configures LLVM before mitsuba
+from isac_twin.raytrace.grid import trace_grid  # noqa: E402
+from isac_twin.scaleout.cluster import cluster_client, trace_grid_tiled  # noqa: E402
+from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
+from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def _rss_mb() -> float:

@@ -3,10 +3,10 @@
 Run: ``.venv/bin/python bench/bench_transport.py [--n 2000]``. Prints; no asserts.
 
 * Latency: median and p99 (us) of publish -> subscriber callback for a 360-ray
-  ``LaserScan`` and a ``Twist``, (a) on the in-process :class:`engine.bus.Bus`
+  ``LaserScan`` and a ``Twist``, (a) on the in-process :class:`isac_twin.bus.bus.Bus`
   (synchronous delivery: the baseline), (b) across two zenoh sessions in one
   process over TCP loopback (CDR encode + zenoh + decode). Ratio = zenoh / bus.
-* MCAP: messages/s written by :class:`engine.record.McapRecorder` (CDR encode +
+* MCAP: messages/s written by :class:`isac_twin.transport.record.McapRecorder` (CDR encode +
   chunked write), LaserScan and Twist, no compression and zstd.
 """
 
@@ -25,10 +25,10 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from engine.bus import Bus  # noqa: E402
-from engine.msgs import Header, LaserScan, Twist  # noqa: E402
-from engine.record import McapRecorder  # noqa: E402
-from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport  # noqa: E402
+from isac_twin.bus.bus import Bus  # noqa: E402
+from isac_twin.bus.msgs import Header, LaserScan, Twist  # noqa: E402
+from isac_twin.transport.record import McapRecorder  # noqa: E402
+from isac_twin.transport.zenoh_transport import ZenohConfig, ZenohTransport  # noqa: E402
 
 
 def _scan() -> LaserScan:

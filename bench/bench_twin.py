@@ -46,11 +46,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import engine  # noqa: E402  - configures Dr.Jit's LLVM before mitsuba
-from engine.config import load_config  # noqa: E402
-from engine.phy.network import NetworkPHY  # noqa: E402
-from engine.robots import SensorOptions  # noqa: E402
-from engine.twin import STAGES, Twin  # noqa: E402
+import isac_twin  # noqa: E402  - configures Dr.Jit's LLVM before mitsuba
+from isac_twin.phy.network import NetworkPHY  # noqa: E402
+from isac_twin.robots import SensorOptions  # noqa: E402
+from isac_twin.scene.config import load_config  # noqa: E402
+from isac_twin.twin.twin import STAGES, Twin  # noqa: E402
 
 PATH = {"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5}
 VARIANTS = {
@@ -77,7 +77,7 @@ def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
     kw = {"sync_sensing": True} if sync_sensing else {}  # (an older engine lacks the option)
     if sensing_process:
         kw["sensing_process"] = True
-    tw = Twin.from_scene(folder or engine.bundled_scene_dir(), seed=seed, tracer=tracer,
+    tw = Twin.from_scene(folder or isac_twin.bundled_scene_dir(), seed=seed, tracer=tracer,
                          sensors=SensorOptions(lidar=True, imu=True, odometry=True,
                                                camera=False), sensing=sensing, **kw)
     cfg = overlap_config(tw.config) if overlap else tw.config
@@ -106,7 +106,7 @@ def run_variant(name: str, steps: int, warmup: int, tracer=None, seed: int = 0,
 #: Extra robots of the ``--robots`` variant: start pose and circle, in free space
 #: (the scene load refuses a pose or path point inside furniture) and clear of
 #: robot1's circle (centre (4, 3) m, radius 1.5 m) and of each other; the last 11
-#: were found with ``engine.room.path_obstruction`` on a 0.25 m grid of centres.
+#: were found with ``isac_twin.scene.room.path_obstruction`` on a 0.25 m grid of centres.
 EXTRA_ROBOTS = [((2.0, 2.5, 0.0), {"kind": "circle", "centre": [1.5, 2.5], "radius": 0.5}),
                 ((2.5, 5.0, 0.0), {"kind": "circle", "centre": [2.0, 5.0], "radius": 0.5}),
                 ((6.5, 1.0, 0.0), {"kind": "circle", "centre": [6.0, 1.0], "radius": 0.5}),
@@ -122,7 +122,7 @@ def lab_with_robots(n: int, folder: Path) -> Path:
     :data:`EXTRA_ROBOTS`), each the rx of a downlink from both APs."""
     import shutil
 
-    src = engine.bundled_scene_dir()
+    src = isac_twin.bundled_scene_dir()
     shutil.copytree(src, folder, dirs_exist_ok=True)
     text = (folder / "twin.toml").read_text()
     blocks = []
@@ -158,11 +158,16 @@ radius = {path["radius"]}
 #: functions; parts nest: ``bus publish`` includes the ``/tf`` publication of
 #: ``tf frames`` and any synchronous subscriber, e.g. a recorder).
 def split_parts() -> dict:
-    from engine.bus import Node
-    from engine.robots.agent import RobotAgent
-    from engine.robots.kinematics import DiffDriveRobot
-    from engine.robots.sensors import (DepthCamera, ImuSensor, Lidar2D, WheelEncoders,
-                                       WheelOdometry)
+    from isac_twin.bus.bus import Node
+    from isac_twin.robots.agent import RobotAgent
+    from isac_twin.robots.kinematics import DiffDriveRobot
+    from isac_twin.robots.sensors import (
+        DepthCamera,
+        ImuSensor,
+        Lidar2D,
+        WheelEncoders,
+        WheelOdometry,
+    )
 
     return {"kinematics": [DiffDriveRobot.step],
             "controllers": [RobotAgent.control],
@@ -214,7 +219,7 @@ def run_robots_variant(counts, steps: int, warmup: int, split: bool = False) -> 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in counts:
-            folder = (engine.bundled_scene_dir() if n == 1
+            folder = (isac_twin.bundled_scene_dir() if n == 1
                       else lab_with_robots(n, Path(tmp) / f"lab{n}"))
             tw = Twin.from_scene(folder, seed=0, sensing=False,
                                  sensors=SensorOptions(lidar=True, imu=True, odometry=True,
@@ -315,7 +320,7 @@ def run_sensing_variant(steps: int, warmup: int, robots: int = 1,
 
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
-        folder = (engine.bundled_scene_dir() if robots == 1
+        folder = (isac_twin.bundled_scene_dir() if robots == 1
                   else lab_with_robots(robots, Path(tmp) / f"lab{robots}"))
         for label, on, mode in (("without sensing", False, "thread"),
                                 ("radar on the stepping thread", True, "sync"),
@@ -329,7 +334,7 @@ def run_sensing_variant(steps: int, warmup: int, robots: int = 1,
             print(f"== {robots} robot(s), {label} ({steps} steps"
                   + (f", paced at {rate_hz:g} Hz" if rate_hz else "") + f")\n{r['table']}")
             print(f"  -> {r['steps_s']:.1f} steps/s\n", flush=True)
-    every = load_config(engine.bundled_scene_dir()).sensing[0].every
+    every = load_config(isac_twin.bundled_scene_dir()).sensing[0].every
     base = out["without sensing"]
     for label in list(out)[1:]:
         r = out[label]
@@ -346,7 +351,7 @@ def lab_with_polarization(pol: str, folder: Path) -> Path:
     import re
     import shutil
 
-    shutil.copytree(engine.bundled_scene_dir(), folder)
+    shutil.copytree(isac_twin.bundled_scene_dir(), folder)
     p = folder / "twin.toml"
     text = re.sub(r"\[\[sensing\]\][^\[]*", "", p.read_text())
     blocks = text.split("[[devices]]")
@@ -447,13 +452,13 @@ def main(argv: list[str] | None = None) -> None:
                   f"{r['doppler_phase']:.2e} rad\n", flush=True)
     grid = args.grid
     if grid is None:
-        from engine.scene import load_scene
+        from isac_twin.scene.twin_scene import load_scene
 
-        cfg = load_scene(engine.bundled_scene_dir()).config
+        cfg = load_scene(isac_twin.bundled_scene_dir()).config
         if cfg.tracer.grid_file:
             grid = cfg.folder / cfg.tracer.grid_file
     if grid is not None and Path(grid).exists():
-        from engine.raytrace.grid_backend import GridTracer
+        from isac_twin.raytrace.grid_backend import GridTracer
 
         try:
             r = run_variant("batched", steps, 1 if args.quick else args.warmup,

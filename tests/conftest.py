@@ -7,7 +7,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from engine._llvm import configure_llvm  # noqa: E402
+from isac_twin.utils.llvm import configure_llvm  # noqa: E402
 
 configure_llvm()
 
@@ -21,6 +21,6 @@ def _no_radar_frame_left_computing():
     computing with Dr.Jit beside the next test (a session once aborted in
     Sionna's ``discard_invalid`` there): wait for every such frame."""
     yield
-    worker = sys.modules.get("engine.sensing.worker")
+    worker = sys.modules.get("isac_twin.sensing.worker")
     if worker is not None:
         worker.wait_all()

@@ -21,13 +21,14 @@ from types import SimpleNamespace
 
 import bpy
 
-from .. import materials, schema
+from .. import materials
+from ..contract import schema
+from ..contract.writers.geometry import WorldMesh, world_mesh, write_ply
+from ..contract.writers.mitsuba_xml import custom_material_id, material_id, write_scene_xml
+from ..contract.writers.numbers import clean
+from ..contract.writers.twin_toml import write_twin_toml
 from ..devices import curve_waypoints
-from .geometry import WorldMesh, world_mesh, write_ply
 from .interchange import write_dae, write_stl, write_usd
-from .mitsuba_xml import custom_material_id, material_id, write_scene_xml
-from .numbers import clean
-from .twin_toml import write_twin_toml
 
 log = logging.getLogger(__name__)
 

@@ -12,9 +12,9 @@ import struct
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from .geometry import WorldMesh
-from .mitsuba_xml import material_id
-from .numbers import fmt_float
+from ..contract.writers.geometry import WorldMesh
+from ..contract.writers.mitsuba_xml import material_id
+from ..contract.writers.numbers import fmt_float
 
 COLLADA_NS = "http://www.collada.org/2005/11/COLLADASchema"
 

@@ -8,7 +8,7 @@ out through a plain ``publish(topic, msg)`` callable, so the bus's
 ``node.publish`` plugs straight in.
 
 Each driver declares the topics it publishes and their message types in
-``MESSAGE_TYPES``; :mod:`engine.devices.conformance` checks that it keeps to
+``MESSAGE_TYPES``; :mod:`isac_twin.devices.conformance` checks that it keeps to
 them. A started driver also publishes ``diagnostic_msgs/DiagnosticArray`` on
 ``diagnostics_topic`` every ``diagnostics_period_s`` and at once when it
 connects or loses the device, connected or not (:meth:`DeviceDriver.diagnostic_status`).
@@ -23,20 +23,13 @@ import time
 from dataclasses import dataclass, field, fields
 from typing import Any, Callable, ClassVar
 
-from engine.msgs import DiagnosticArray, DiagnosticStatus, Header
+from ..bus.msgs import DiagnosticArray, DiagnosticStatus, Header
+from ..errors import DeviceError, DeviceTimeout
 
 log = logging.getLogger(__name__)
 
 #: ``publish(topic, msg)``: where drivers send their messages.
 Publish = Callable[[str, Any], None]
-
-
-class DeviceError(RuntimeError):
-    """A device answered wrongly or not at all (message names port and field)."""
-
-
-class DeviceTimeout(DeviceError):
-    """No (valid) answer within the allowed time."""
 
 
 def _discard(topic: str, msg: Any) -> None:

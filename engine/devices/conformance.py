@@ -1,6 +1,6 @@
 """Conformance checker for device drivers, run against an emulated device.
 
-:func:`check_driver` drives a :class:`~engine.devices.base.DeviceDriver`
+:func:`check_driver` drives a :class:`~isac_twin.devices.base.DeviceDriver`
 through what a real robot does to it and reports each step:
 
 1. ``data``: it opens the port and publishes every declared topic;
@@ -23,7 +23,7 @@ through what a real robot does to it and reports each step:
 7. ``stop``: its thread ends within the timeout.
 
 The emulator must offer ``start()``, ``url``, ``unplug()``, ``replug()``,
-``silent``, ``inject_fault(kind)`` (see :class:`~engine.devices.emulated.EmulatedSerialDevice`)
+``silent``, ``inject_fault(kind)`` (see :class:`~isac_twin.devices.emulated.EmulatedSerialDevice`)
 and ``check_message(topic, msg) -> str`` (what is wrong with ``msg``; ``""``
 if nothing; an emulator without it fails the ``truthful`` step).
 """
@@ -36,8 +36,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-from engine.devices.base import DeviceDriver, Publish
-from engine.msgs import DiagnosticArray, DiagnosticStatus
+from ..bus.msgs import DiagnosticArray, DiagnosticStatus
+from .base import DeviceDriver, Publish
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ import threading
 import time
 from dataclasses import dataclass
 
-from engine.devices.ptyserial import PtyPort, register_modem_listener, unregister_modem_listener
+from .ptyserial import PtyPort, register_modem_listener, unregister_modem_listener
 
 log = logging.getLogger(__name__)
 

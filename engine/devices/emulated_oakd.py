@@ -1,11 +1,11 @@
-"""An emulated OAK-D for the conformance checker: a :class:`~engine.devices.oakd.ReplaySource`
+"""An emulated OAK-D for the conformance checker: a :class:`~isac_twin.devices.oakd.ReplaySource`
 that can be unplugged, fall silent and send faulty frames.
 
-It feeds :class:`~engine.devices.oakd.OakD` through the driver's own device
+It feeds :class:`~isac_twin.devices.oakd.OakD` through the driver's own device
 path (host-only depthai pipeline, real ``dai.ImgFrame``/``dai.IMUData``;
-needs depthai). It offers what :func:`engine.devices.conformance.check_driver`
+needs depthai). It offers what :func:`isac_twin.devices.conformance.check_driver`
 drives: ``start()``, ``url``, ``unplug()``/``replug()`` (the driver's connect
-then fails with :class:`~engine.devices.oakd.OakDNotFound`, as with no camera
+then fails with :class:`~isac_twin.devices.oakd.OakDNotFound`, as with no camera
 on the bus), ``silent``, ``inject_fault(kind)`` and ``check_message``.
 
 Faults (each on the next frame): ``truncate`` a colour frame whose buffer is
@@ -20,12 +20,12 @@ import threading
 
 import numpy as np
 
-from engine.devices.oakd import Frame, ReplaySource, generated_frames
-from engine.msgs import Image, Imu
+from ..bus.msgs import Image, Imu
+from .oakd import Frame, ReplaySource, generated_frames
 
 
 class EmulatedOakD(ReplaySource):
-    """Generated frames (:func:`~engine.devices.oakd.generated_frames`) at ``fps``.
+    """Generated frames (:func:`~isac_twin.devices.oakd.generated_frames`) at ``fps``.
 
     Args:
         color_size, depth_size: (width, height) px.

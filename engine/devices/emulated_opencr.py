@@ -34,9 +34,9 @@ from typing import Callable
 
 import numpy as np
 
-from engine.devices import opencr as oc
-from engine.devices.emulated import EmulatedSerialDevice
-from engine.msgs import BatteryState, Imu, Odometry
+from ..bus.msgs import BatteryState, Imu, Odometry
+from . import opencr as oc
+from .emulated import EmulatedSerialDevice
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 Ranges come from ``scan_source(angles) -> ranges``: ``angles`` ``[M]`` in
 rad, ROS convention (counter-clockwise in the laser frame, see
-:func:`engine.devices.rplidar.device_to_ros_angle`), ``ranges`` ``[M]`` in m
+:func:`isac_twin.devices.rplidar.device_to_ros_angle`), ``ranges`` ``[M]`` in m
 (``inf``/``nan``/``<= 0`` = no return). The twin's ray-cast LiDAR plugs in
 here (:func:`laser_scan_source` adapts anything returning a ``LaserScan``);
 the default is a 4 m x 3 m room centred on the sensor.
@@ -36,9 +36,9 @@ from typing import Callable
 
 import numpy as np
 
-from engine.devices import rplidar as rp
-from engine.devices.emulated import EmulatedSerialDevice
-from engine.msgs import LaserScan
+from ..bus.msgs import LaserScan
+from . import rplidar as rp
+from .emulated import EmulatedSerialDevice
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ class EmulatedRPLidar(EmulatedSerialDevice):
         max_distance_m: per-mode max distance reported by GET_LIDAR_CONF (A1 12 m).
         motor_control: ``"dtr"`` (A1: DTR low spins) or ``"pwm"`` (SET_MOTOR_PWM).
         require_motor: if True, scans carry no samples while the motor is off.
-        angle_offset: rad, see :func:`engine.devices.rplidar.device_to_ros_angle`.
+        angle_offset: rad, see :func:`isac_twin.devices.rplidar.device_to_ros_angle`.
         time_scale: >1 runs the sample clock faster than real time (benchmarks).
         link_path: stable port path (default: temp dir).
     """

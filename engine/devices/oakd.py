@@ -37,20 +37,13 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from engine.devices.base import DeviceDriver, DeviceError, Publish
-from engine.msgs import Header, Image, Imu
+from ..bus.msgs import Header, Image, Imu
+from ..errors import DeviceError, OakDNotFound, OakDUnavailable
+from .base import DeviceDriver, Publish
 
 log = logging.getLogger(__name__)
 
 DEFAULT_SEARCH_TIMEOUT_MS = 500
-
-
-class OakDUnavailable(DeviceError):
-    """depthai is not installed."""
-
-
-class OakDNotFound(DeviceError):
-    """No OAK device is attached (or the requested one is not)."""
 
 
 def import_depthai(search_timeout_ms: int = DEFAULT_SEARCH_TIMEOUT_MS) -> Any:

@@ -27,10 +27,11 @@ import numpy as np
 import serial
 from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
 
-import engine.devices.ptyserial  # noqa: F401  (registers the pty:// URL handler)
-from engine.addon_shared import schema
-from engine.devices.base import DeviceDriver, DeviceError, DeviceTimeout, Publish
-from engine.msgs import BatteryState, Header, Imu, Odometry, Pose, Twist
+from ..bus.msgs import BatteryState, Header, Imu, Odometry, Pose, Twist
+from ..contract import schema
+from ..errors import DeviceError, DeviceTimeout
+from . import ptyserial  # noqa: F401  (registers the pty:// URL handler)
+from .base import DeviceDriver, Publish
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +73,7 @@ BLOCK_LEN = 172
 CMD_VEL_LEN = 24
 TICK_TO_RAD = 0.001533981  #: rad per encoder tick (2 pi / 4096)
 RPM_PER_UNIT = 0.229  #: rev/min per present_velocity unit
-# the robots' bodies and firmware limits are the shared schema's (addon/schema.py)
+# the robots' bodies and firmware limits are the shared schema's (addon/contract/schema.py)
 WHEEL_RADIUS = schema.ROBOT_MODELS["burger"].wheel_radius  #: m (both models)
 WHEEL_SEPARATION = {m: b.wheel_separation for m, b in schema.ROBOT_MODELS.items()}  #: m
 MAX_LINEAR = {m: b.max_linear for m, b in schema.ROBOT_MODELS.items()}  #: m/s (firmware)

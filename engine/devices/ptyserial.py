@@ -30,7 +30,7 @@ import serial
 log = logging.getLogger(__name__)
 
 #: Package searched by ``serial.serial_for_url`` for ``protocol_<scheme>`` modules.
-URL_HANDLER_PACKAGE = "engine.devices.urlhandler"
+URL_HANDLER_PACKAGE = "isac_twin.devices.urlhandler"
 if URL_HANDLER_PACKAGE not in serial.protocol_handler_packages:
     serial.protocol_handler_packages.append(URL_HANDLER_PACKAGE)
 

@@ -51,9 +51,10 @@ from typing import Iterator, NamedTuple
 import numpy as np
 import serial
 
-import engine.devices.ptyserial  # noqa: F401  (registers the pty:// URL handler)
-from engine.devices.base import DeviceDriver, DeviceError, DeviceTimeout, DriverStats, Publish
-from engine.msgs import Header, LaserScan
+from ..bus.msgs import Header, LaserScan
+from ..errors import DeviceError, DeviceTimeout
+from . import ptyserial  # noqa: F401  (registers the pty:// URL handler)
+from .base import DeviceDriver, DriverStats, Publish
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,7 @@
 """The engine's side of the wire format: convert records to and from messages.
 
-The format itself is ``addon/wire.py``, the one definition the add-on and the
-engine share (stdlib only); ``engine.addon_shared`` loads it (from the
+The format itself is ``addon/contract/wire.py``, the one definition the add-on and the
+engine share (stdlib only); ``isac_twin.contract`` loads it (from the
 repository's ``addon/`` folder, or from the copy a built wheel carries) and
 this module re-exports it as :data:`wire`.
 """
@@ -12,8 +12,8 @@ import time
 
 import numpy as np
 
-from engine.addon_shared import wire
-from engine.state import Command, Edit, StepResult
+from ..contract import wire
+from ..twin.state import Command, Edit, StepResult
 
 _ROUND = 4  # coordinates on the wire: 0.1 mm
 
@@ -24,7 +24,7 @@ def _vec(v, n=None) -> list[float]:
 
 
 def scene_message(scene) -> dict:
-    """``scene`` message for a :class:`~engine.scene.TwinScene`."""
+    """``scene`` message for a :class:`~isac_twin.scene.twin_scene.TwinScene`."""
     cfg = scene.config
     objects = [{"name": o.name, "material": o.material, "thickness": float(o.thickness),
                 "bounds_min": _vec(o.bounds_min), "bounds_max": _vec(o.bounds_max)}
@@ -165,7 +165,7 @@ def step_summary(res: StepResult) -> dict:
 
 
 def edit_from_message(msg: dict) -> Edit:
-    """:class:`~engine.state.Edit` from a validated ``edit`` message.
+    """:class:`~isac_twin.twin.state.Edit` from a validated ``edit`` message.
 
     Raises:
         ValueError: ``mesh_ply`` is not base64.
@@ -180,5 +180,5 @@ def edit_from_message(msg: dict) -> Edit:
 
 
 def command_from_message(msg: dict) -> Command:
-    """:class:`~engine.state.Command` from a validated ``command`` message."""
+    """:class:`~isac_twin.twin.state.Command` from a validated ``command`` message."""
     return Command(op=msg["op"], args=dict(msg.get("args") or {}))

@@ -1,6 +1,6 @@
 """Radio maps on the live link: build ``radiomap`` messages and keep viewers' maps current.
 
-:class:`RadioMapFeed` is handed to :class:`~engine.live.server.LiveServer` as
+:class:`RadioMapFeed` is handed to :class:`~isac_twin.live.server.LiveServer` as
 its ``on_step`` hook (the loop thread, the only thread that touches the
 twin's Sionna scene). After a step it recomputes the map when the scene's
 content hash or the access points' poses changed (the twin applies viewers'
@@ -16,9 +16,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from engine.live.protocol import wire
-from engine.pose import DevicePose
-from engine.radiomap import DEFAULT_CELL_M, RadioMap, compute_radio_map
+from ..radiomap.radio_map import DEFAULT_CELL_M, RadioMap, compute_radio_map
+from ..utils.geometry import DevicePose
+from .protocol import wire
 
 log = logging.getLogger(__name__)
 

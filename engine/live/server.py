@@ -20,8 +20,8 @@ and must say hello within the handshake timeout; the token (when set) is
 checked first, in constant time, before anything else is answered; any frame
 that cannot be handled closes only that viewer's connection; at most
 ``max_viewers`` are connected. After the hello it may send edits and commands,
-which the twin validates completely (:meth:`~engine.twin.Twin.validate_edit`,
-:meth:`~engine.twin.Twin.validate_command`) before anything changes; a bad one
+which the twin validates completely (:meth:`~isac_twin.twin.twin.Twin.validate_edit`,
+:meth:`~isac_twin.twin.twin.Twin.validate_command`) before anything changes; a bad one
 is answered ``error{code: "rejected", ref}`` to the sender only. Meshes named
 by ``add`` edits are read only from the scene folder or an asset folder.
 """
@@ -42,9 +42,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
-from engine.live import protocol
-from engine.live.protocol import wire
-from engine.state import Command, Edit, StepResult
+from ..twin.state import Command, Edit, StepResult
+from . import protocol
+from .protocol import wire
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ _CAPABILITIES = ("state", "paths", wire.RAYS_CAPABILITY, "metrics", "status", "e
 
 @runtime_checkable
 class LiveTwin(Protocol):
-    """What the server needs from a twin (``engine.twin.Twin`` satisfies it).
+    """What the server needs from a twin (``isac_twin.twin.twin.Twin`` satisfies it).
 
     The twin owns the command semantics: :meth:`command` validates and applies
     every op (``run``/``pause`` set :attr:`running`, ``step`` adds to

@@ -1,10 +1,10 @@
-"""Localizers over a :class:`~engine.localization.fingerprints.FingerprintDB`.
+"""Localizers over a :class:`~isac_twin.localization.fingerprints.FingerprintDB`.
 
 Every localizer is a callable ``loc(obs: Observation) -> [3]`` position (m)
 with a ``name``:
 
 * :class:`MCA`: multipath component analysis on the MDP (the paper's method;
-  :class:`~engine.localization.mca.MCALocalizer` underneath).
+  :class:`~isac_twin.localization.mca.MCALocalizer` underneath).
 * :class:`MCAAngles`: MCA whose matching distance adds the departure
   direction at multi-antenna APs (joint delay-direction estimation); single
   antennas fall back to length.
@@ -13,7 +13,7 @@ with a ``name``:
 * :class:`KnnCsi`: weighted kNN on CSI amplitude: ``|H|^2`` in dB averaged
   over the robot's antennas, at a decimated set of subcarriers and every AP
   antenna; the database CSI is synthesized from the database paths with
-  :mod:`engine.phy` (robot array at yaw 0; the receive-antenna average
+  :mod:`isac_twin.phy` (robot array at yaw 0; the receive-antenna average
   makes the feature nearly independent of the robot's heading).
 * :class:`PdpMatch`: weighted kNN on the power-delay profile in dB (what the
   band resolves: paths convolved with the Dirichlet kernel of N subcarriers).
@@ -29,14 +29,12 @@ import logging
 
 import numpy as np
 
-from engine.localization.fingerprints import FingerprintDB
-from engine.localization.mca import MCALocalizer
-from engine.localization.measurements import (FeatureSpec, Observation, csi_from_paths,
-                                              front_directions)
-from engine.localization.measurements import db as to_db
-from engine.phy.arrays import r_hat
-from engine.phy.directions import DelayDirectionProfile
-from engine.localization.measurements import pdp_from_paths
+from ..phy.arrays import r_hat
+from ..phy.directions import DelayDirectionProfile
+from .fingerprints import FingerprintDB
+from .mca import MCALocalizer
+from .measurements import FeatureSpec, Observation, csi_from_paths, front_directions, pdp_from_paths
+from .measurements import db as to_db
 
 log = logging.getLogger(__name__)
 
@@ -82,11 +80,11 @@ class MCAAngles(MCA):
     The database fingerprint of every AP with more than one antenna is its
     ``num_paths`` strongest traced paths with their departure directions
     ``r_hat(theta_t, phi_t)`` folded into the array's front half-space
-    (:func:`~engine.localization.measurements.front_directions`: the array
+    (:func:`~isac_twin.localization.measurements.front_directions`: the array
     cannot tell a path leaving backwards from its mirror image); a measured
     path with a direction (from :attr:`Observation.paths`, i.e. joint
     delay-direction estimation at that AP) is matched by ``sqrt(dd^2 + (angle_weight_m |k - k_db|)^2)``
-    (:class:`~engine.localization.mca.MCALocalizer`). Single-antenna APs, and
+    (:class:`~isac_twin.localization.mca.MCALocalizer`). Single-antenna APs, and
     observations without directions, fall back to the delay-only MDP.
 
     Each measured path's score is weighted by its power relative to the
@@ -345,7 +343,7 @@ def make_localizers(db: FingerprintDB, spec: FeatureSpec, *, mca: dict | None = 
 
 
 #: Localizers by name, with the observation features each needs
-#: (:func:`~engine.localization.measurements.observe_pilots` ``features``).
+#: (:func:`~isac_twin.localization.measurements.observe_pilots` ``features``).
 METHODS = {"MCA": ("mdp",), "MCA-angles": ("mdp_fallback", "dirs"), "LOS-fix": ("dirs",),
            "PDP": ("pdp",), "kNN-CSI": ("csi",)}
 

@@ -1,16 +1,16 @@
 """The twin's own localizer: a stage-5 estimator that fills ``robots[r].estimate``.
 
 :class:`TwinLocalizer` is what ``[localization]`` in ``twin.toml`` gives any
-:class:`~engine.twin.Twin` (``Twin`` appends it to its ``estimators`` hook;
+:class:`~isac_twin.twin.twin.Twin` (``Twin`` appends it to its ``estimators`` hook;
 see ``docs/config.md``). Every step with traced links, for every robot:
 
 1. the observation of its links from every database AP: ``mode="pilots"``
    received pilots at ``snr_db`` on the step's eq.-4 channel
-   (:func:`~engine.localization.measurements.observe_pilots`, only the
+   (:func:`~isac_twin.localization.measurements.observe_pilots`, only the
    features the method needs), or ``mode="tracer"`` the traced paths;
 2. the fix of the configured localizer (``method``) over the fingerprint
    database of the twin's room (:func:`cached_database`, built once);
-3. ``fusion="ekf"``: a :class:`~engine.localization.fusion.PoseEKF` per robot,
+3. ``fusion="ekf"``: a :class:`~isac_twin.localization.fusion.PoseEKF` per robot,
    predicted with the robot's odometry and updated with the gated fix;
    ``"none"``: the fix itself.
 
@@ -26,15 +26,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.localization.baselines import METHODS, make_localizer
-from engine.localization.fingerprints import FingerprintDB, attach, cached_database
-from engine.localization.fusion import PoseEKF
-from engine.localization.measurements import (FeatureSpec, PilotSettings, observe_pilots,
-                                              observe_tracer)
-from engine.msgs import Header
-from engine.phy.network import NetworkPHY
-from engine.pose import antenna_pose, planar_pose
-from engine.transport.twin_msgs import Fingerprint
+from ..bus.msgs import Header
+from ..bus.twin_msgs import Fingerprint
+from ..phy.network import NetworkPHY
+from ..utils.geometry import antenna_pose, planar_pose
+from .baselines import METHODS, make_localizer
+from .fingerprints import FingerprintDB, attach, cached_database
+from .fusion import PoseEKF
+from .measurements import FeatureSpec, PilotSettings, observe_pilots, observe_tracer
 
 __all__ = ["TwinLocalizer"]
 
@@ -43,8 +42,8 @@ class TwinLocalizer:
     """Stage-5 estimator ``loc(twin, result)`` (see the module doc).
 
     Args:
-        config: the twin's :class:`~engine.config.TwinConfig`.
-        settings: its :class:`~engine.config.LocalizationConfig`.
+        config: the twin's :class:`~isac_twin.scene.config.TwinConfig`.
+        settings: its :class:`~isac_twin.scene.config.LocalizationConfig`.
         db: the fingerprint database of the twin's room.
         seed: pilot-noise seed.
     """

@@ -5,9 +5,9 @@ the robot antenna height) and every access point (AP), the ``L`` strongest
 propagation paths traced in the twin: path length ``c * tau`` (m), power
 ``|a|^2`` (single isotropic elements at the array centres), complex passband
 coefficient ``a`` and the four angles (enough to synthesize the MIMO-OFDM CSI
-of any array with :mod:`engine.phy`, which the CSI-kNN baseline does).
+of any array with :mod:`isac_twin.phy`, which the CSI-kNN baseline does).
 
-It is built with the grid tracer (:func:`engine.raytrace.grid.trace_grid`) and
+It is built with the grid tracer (:func:`isac_twin.raytrace.grid.trace_grid`) and
 stored as an NPZ file (format ``isac-twin-fingerprints``, see
 :data:`DB_ARRAYS` and ``docs/casestudy.md``) with the metadata that decides
 whether it may be used: the scene's content hash, the carrier frequency, the
@@ -17,7 +17,7 @@ says why (:class:`DatabaseMismatchError`).
 
 After an edit of the room (an object moved, a material changed) the scene's
 content hash changes; a twin that registered the database
-(:meth:`engine.twin.Twin.register_database`, done by :func:`attach`) lists
+(:meth:`isac_twin.twin.twin.Twin.register_database`, done by :func:`attach`) lists
 it in ``stale_databases()`` and logs a warning; :func:`cached_database`
 then builds a new file, because the cache file name contains the hash.
 """
@@ -32,8 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.npzfile import NpzRecord, read_npz, write_npz
-from engine.raytrace.base import SPEED_OF_LIGHT
+from ..errors import DatabaseMismatchError
+from ..raytrace.base import SPEED_OF_LIGHT
+from ..utils.npzfile import NpzRecord, read_npz, write_npz
 
 log = logging.getLogger(__name__)
 
@@ -60,12 +61,6 @@ DB_ARRAYS = {
     "theta_r": ("float32", "[N, A, L]  arrival zenith, rad"),
     "phi_r": ("float32", "[N, A, L]  arrival azimuth, rad"),
 }
-
-
-class DatabaseMismatchError(ValueError):
-    """A database does not belong to this scene / frequency / AP layout.
-
-    The message names what differs and what to do (rebuild)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -221,7 +216,7 @@ def check_compatible(meta: dict, scene, *, tx_positions: dict | None = None,
 
 
 def from_grid(grid, scene, *, max_paths: int = DEFAULT_MAX_PATHS) -> FingerprintDB:
-    """Reduce a traced :class:`~engine.raytrace.grid.PathGrid` to a fingerprint database.
+    """Reduce a traced :class:`~isac_twin.raytrace.grid.PathGrid` to a fingerprint database.
 
     Keeps the ``max_paths`` strongest paths (by ``|a|^2``) per point and AP,
     strongest first.
@@ -272,26 +267,26 @@ def build_database(scene, *, spacing: float = DEFAULT_SPACING, height: float | N
     """Trace the floor grid of ``scene`` and keep the strongest paths.
 
     Args:
-        scene: the twin's :class:`~engine.scene.TwinScene`.
+        scene: the twin's :class:`~isac_twin.scene.twin_scene.TwinScene`.
         spacing: grid spacing, m (default 5 cm, the paper's).
         height: receiver height, m (default: the first robot's antenna height).
         max_paths: strongest paths kept per point and AP.
         margin: distance kept from the room's bounding box, m.
-        tracer_config: :class:`~engine.config.TracerConfig` (default the scene's).
+        tracer_config: :class:`~isac_twin.scene.config.TracerConfig` (default the scene's).
         ap_names: access points (default: every transmitter of a link).
         progress: tqdm progress bar.
         verify: points re-traced one per call to check the chunked trace.
         out: also save the database there.
         grid_tracer: what traces the grid, called like
-            :func:`~engine.raytrace.grid.trace_grid` (default that one; e.g. a
+            :func:`~isac_twin.raytrace.grid.trace_grid` (default that one; e.g. a
             ``functools.partial`` of
-            :func:`engine.scaleout.cluster.trace_grid_tiled` for a Dask cluster).
+            :func:`isac_twin.scaleout.cluster.trace_grid_tiled` for a Dask cluster).
 
     Returns:
         The :class:`FingerprintDB`.
     """
     if grid_tracer is None:
-        from engine.raytrace.grid import trace_grid as grid_tracer
+        from ..raytrace.grid import trace_grid as grid_tracer
 
     grid = grid_tracer(scene, ap_names, spacing=spacing, height=height, margin=margin,
                       config=tracer_config, progress=progress, verify=verify)
@@ -320,7 +315,7 @@ def cached_database(scene, *, spacing: float = DEFAULT_SPACING,
     if path.is_file() and not rebuild:
         try:
             db = load_database(path, scene=scene)
-            from engine.raytrace.chains import config_path_set_settings, path_set_settings
+            from ..raytrace.chains import config_path_set_settings, path_set_settings
 
             want = config_path_set_settings(kw.get("tracer_config") or scene.config.tracer)
             have = path_set_settings(db.meta.get("tracer", {}))

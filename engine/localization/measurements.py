@@ -6,15 +6,15 @@ Two measurement modes (``docs/casestudy.md``):
   MDP is the tracer's path lengths ``c * tau`` and powers, strongest first;
   CSI and PDP features are synthesized from all traced paths.
 * ``"pilots"`` (realistic): the eq.-4 channel of the link
-  (:meth:`engine.phy.network.NetworkPHY.channel`) carries comb pilots
-  (:class:`~engine.phy.estimation.PilotPattern`, one port per AP antenna,
+  (:meth:`isac_twin.phy.network.NetworkPHY.channel`) carries comb pilots
+  (:class:`~isac_twin.phy.estimation.PilotPattern`, one port per AP antenna,
   stride ``max(min_stride, ports)``) received with white Gaussian noise at a
-  given SNR; :class:`~engine.phy.estimation.LSChannelEstimator` estimates the
-  CSI; the MDP comes from :class:`~engine.phy.estimation.MdpEstimator`
+  given SNR; :class:`~isac_twin.phy.estimation.LSChannelEstimator` estimates the
+  CSI; the MDP comes from :class:`~isac_twin.phy.estimation.MdpEstimator`
   (TLS-ESPRIT + least squares) on the raw LS values at each port's pilot
   comb, averaged over the 14 symbols, with every (port, receive antenna) as a
   snapshot. The APs' pilots are assumed orthogonal to each other. At APs
-  with more than one antenna, :class:`~engine.phy.directions.DelayDirectionEstimator`
+  with more than one antenna, :class:`~isac_twin.phy.directions.DelayDirectionEstimator`
   also estimates each path's departure direction from the same combs
   (feature ``"dirs"``, :attr:`Observation.paths`; in tracer mode the traced
   ``theta_t, phi_t``).
@@ -29,13 +29,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.phy.arrays import PlanarArray, r_hat, rotation_matrix
-from engine.phy.channel import baseband_gains, cfr_at
-from engine.phy.directions import DelayDirectionEstimator, DelayDirectionProfile
-from engine.phy.estimation import LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp
-from engine.phy.ofdm import ResourceGrid, ResourceSet
-from engine.pose import sionna_orientation
-from engine.raytrace.base import SPEED_OF_LIGHT
+from ..phy.arrays import PlanarArray, r_hat, rotation_matrix
+from ..phy.channel import baseband_gains, cfr_at
+from ..phy.directions import DelayDirectionEstimator, DelayDirectionProfile
+from ..phy.estimation import LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp
+from ..phy.ofdm import ResourceGrid, ResourceSet
+from ..raytrace.base import SPEED_OF_LIGHT
+from ..utils.geometry import sionna_orientation
 
 #: Decimation of the subcarriers used as kNN features (1024 / 64 = 16 subcarriers).
 KNN_SUBCARRIER_STEP = 64
@@ -93,7 +93,7 @@ class Observation:
         csi_db: per AP ``[S, Nt]``: ``10 log10`` of ``|H|^2`` averaged over the
             receive antennas at the kNN subcarriers.
         pdp_db: ``[A, B]`` power-delay profile in dB at :attr:`FeatureSpec.pdp_bins_m`.
-        paths: per AP a :class:`~engine.phy.directions.DelayDirectionProfile`
+        paths: per AP a :class:`~isac_twin.phy.directions.DelayDirectionProfile`
             (path lengths, departure directions at the AP, powers) for APs
             with more than one antenna, ``None`` for single-antenna APs; empty
             when directions were not measured.
@@ -113,7 +113,7 @@ def csi_from_paths(a, tau, frequency_hz: float, freqs_hz, rx_array: PlanarArray,
                    tx_array: PlanarArray, *, theta_r, phi_r, theta_t, phi_t,
                    rx_orientation=(0.0, 0.0, 0.0), tx_orientation=(0.0, 0.0, 0.0)) -> np.ndarray:
     """Eq.-4 CSI of one link at selected subcarriers (one symbol, no Doppler):
-    :func:`engine.phy.channel.cfr_at` of the passband gains ``a``.
+    :func:`isac_twin.phy.channel.cfr_at` of the passband gains ``a``.
 
     Args:
         a, tau: ``[L]`` passband path gains and delays (s).
@@ -176,7 +176,7 @@ def observe_tracer(links: list, spec: FeatureSpec, num_paths: int = 9) -> Observ
     """Paper's mode: features straight from the traced paths of each AP's link.
 
     Args:
-        links: per AP (database order) the :class:`~engine.raytrace.base.LinkPaths`.
+        links: per AP (database order) the :class:`~isac_twin.raytrace.base.LinkPaths`.
         num_paths: strongest paths in the MDP (J).
     """
     A = len(links)
@@ -292,7 +292,7 @@ class CombGather:
 
 
 def comb_pilots(grid, name: str, num_ports: int, stride: int, seed: int):
-    """The comb :class:`~engine.phy.estimation.PilotPattern` of transmitter ``name``
+    """The comb :class:`~isac_twin.phy.estimation.PilotPattern` of transmitter ``name``
     (``num_ports`` ports, subcarrier ``stride``, QPSK ``seed``) on ``grid``, its
     symbols ``[P, K, N]`` (read-only), its :class:`LSChannelEstimator` and its
     :class:`CombGather`, made once and kept (a few patterns per twin)."""
@@ -325,7 +325,7 @@ def observe_pilots(links: list, channels: list, spec: FeatureSpec, settings: Pil
         features: which of ``"mdp"``, ``"csi"``, ``"pdp"``, ``"dirs"`` to
             estimate (the MDP's super-resolution is the costly one); the others
             stay NaN / empty. ``"dirs"``: joint delay-direction estimation
-            (:class:`~engine.phy.directions.DelayDirectionEstimator`) at every
+            (:class:`~isac_twin.phy.directions.DelayDirectionEstimator`) at every
             AP with more than one antenna, into :attr:`Observation.paths`.
             ``"mdp_fallback"``: the delay-only MDP only at the APs that get no
             direction estimate (single-antenna APs, or all when ``"dirs"`` is

@@ -30,7 +30,7 @@ from typing import Callable, Union
 
 import numpy as np
 
-from engine.phy._checks import positive_float, positive_int, real_array
+from ._checks import positive_float, positive_int, real_array
 
 __all__ = ["PlanarArray", "rotation_matrix", "r_hat", "ElementPattern"]
 

@@ -39,9 +39,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.phy._checks import complex_array, real_array, same_length
-from engine.phy.arrays import PlanarArray
-from engine.phy.ofdm import ResourceGrid
+from ._checks import complex_array, real_array, same_length
+from .arrays import PlanarArray
+from .ofdm import ResourceGrid
 
 __all__ = ["OFDMChannel", "baseband_gains", "cfr_at", "cfr_from_antenna_gains",
            "port_pair_gains", "synthesize_many"]
@@ -52,7 +52,7 @@ def port_pair_gains(b: np.ndarray, a_rx: np.ndarray, a_tx: np.ndarray) -> np.nda
 
     Args:
         b: baseband gains ``[L]`` (single-polarized ends) or ``[L, Pr, Pt]`` per
-            polarization port pair (``engine.phy.patterns``).
+            polarization port pair (``isac_twin.raytrace.antenna_patterns``).
         a_rx, a_tx: steering vectors ``[L, Er]`` / ``[L, Et]`` of the elements.
 
     Returns:

@@ -1,6 +1,6 @@
 r"""Joint delay-direction estimation at a multi-antenna access point from comb pilots.
 
-The PHY's comb pilots (:class:`~engine.phy.estimation.PilotPattern`, ``"comb"``)
+The PHY's comb pilots (:class:`~isac_twin.phy.estimation.PilotPattern`, ``"comb"``)
 give every transmit antenna (port ``p``) its own comb: port ``p`` sits on the
 allocated subcarriers ``p, p + S, p + 2S, ...`` (stride ``S >= P``). The LS
 estimates at the combs, ``csi[m, r, p]`` (comb index ``m``, receive antenna
@@ -10,12 +10,12 @@ estimates at the combs, ``csi[m, r, p]`` (comb index ``m``, receive antenna
 
 with ``o_p`` the port's comb offset [Hz] (``p delta_f`` for the PHY's combs) and
 ``a_p(k) = exp(+j 2 pi pos_p . k)`` the AP array's steering vector
-(:class:`~engine.phy.arrays.PlanarArray`; ``k`` is the departure direction,
+(:class:`~isac_twin.phy.arrays.PlanarArray`; ``k`` is the departure direction,
 world frame, pointing away from the AP). :class:`DelayDirectionEstimator`
 returns, per component, the path length ``c tau`` [m], the departure direction
 ``k`` [3] (unit vector, world axes) and the power ``mean_r |c_{l,r}|^2``:
 
-1. delays: :class:`~engine.phy.estimation.MdpEstimator` (TLS-ESPRIT,
+1. delays: :class:`~isac_twin.phy.estimation.MdpEstimator` (TLS-ESPRIT,
    robust order, least squares on the chosen order) on the comb, every ``(r, p)`` a snapshot (a
    port's comb offset is a constant phase per snapshot there);
 2. per delay, the amplitudes over the ports, with the comb offset
@@ -43,10 +43,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from engine.phy._checks import complex_array, positive_float, positive_int, real_array
-from engine.phy.arrays import PlanarArray, rotation_matrix
-from engine.phy.estimation import MdpEstimator
-from engine.phy.units import SPEED_OF_LIGHT
+from ._checks import complex_array, positive_float, positive_int, real_array
+from .arrays import PlanarArray, rotation_matrix
+from .estimation import MdpEstimator
+from .units import SPEED_OF_LIGHT
 
 __all__ = ["DelayDirectionProfile", "DelayDirectionEstimator"]
 

@@ -15,7 +15,7 @@ r"""Pilots, least-squares channel estimation and multipath delay profiles.
   smoothing + forward-backward averaging, model order by MDL/AIC with a cap),
   because one IFFT bin is ``c / (N delta_f)`` = 3.75 m at 80 MHz.
 
-Frequency model used by the estimator (same as :mod:`engine.phy.channel`):
+Frequency model used by the estimator (same as :mod:`isac_twin.phy.channel`):
 ``h[n] = sum_l c_l exp(-j 2 pi f_n tau_l)``, ``f_n`` centred subcarrier
 offsets, so adjacent subcarriers rotate by ``z_l = exp(-j 2 pi delta_f tau_l)``;
 delays are unambiguous in ``[0, 1/delta_f)`` (3837 m at 78.125 kHz).
@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.phy._checks import complex_array, positive_float, positive_int, real_array
-from engine.phy.ofdm import ResourceSet
-from engine.phy.units import SPEED_OF_LIGHT
+from ._checks import complex_array, positive_float, positive_int, real_array
+from .ofdm import ResourceSet
+from .units import SPEED_OF_LIGHT
 
 __all__ = ["PilotPattern", "LSChannelEstimator", "MultipathDelayProfile",
            "ideal_mdp", "MdpEstimator", "noise_power_from_delay_tail"]

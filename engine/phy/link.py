@@ -11,7 +11,7 @@ Symbols have ``E|d|^2 = 1``; the budget is ``sum_{(k,n) in R_q} ||x||^2 <= P_q``
 (in expectation, and exactly for unit-modulus symbols and orthonormal ``W``).
 
 Power units: ``p`` is the power of one RE in W, and ``sigma^2 = k_B T delta_f F``
-is the noise power in one subcarrier (:func:`engine.phy.units.thermal_noise_power`),
+is the noise power in one subcarrier (:func:`isac_twin.phy.units.thermal_noise_power`),
 so ``p |h|^2 / sigma^2`` is the per-RE SNR. With the total power P_q spread
 uniformly over R_q, per-RE power is ``P_q / |R_q|``.
 
@@ -39,8 +39,8 @@ from typing import Sequence
 
 import numpy as np
 
-from engine.phy._checks import complex_array, positive_float, real_array
-from engine.phy.ofdm import ResourceGrid
+from ._checks import complex_array, positive_float, real_array
+from .ofdm import ResourceGrid
 
 __all__ = [
     "MRTPrecoder", "SVDPrecoder", "EqualPower", "WaterFilling", "water_filling",

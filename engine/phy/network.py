@@ -17,21 +17,21 @@ tests/engine/phy/test_network_batched.py):
   orientation does not change (static access points: once), and the per-RE
   precoding and rates of all links of one transmitter with the same array
   shapes stacked along the RE axis into one call each; water-filling (one
-  row per link: own budget, :func:`~engine.phy.link.water_levels`) and MCS
-  (:meth:`~engine.phy.mcs.McsRate.many`) take the stack in one call too.
+  row per link: own budget, :func:`~isac_twin.phy.link.water_levels`) and MCS
+  (:meth:`~isac_twin.phy.mcs.McsRate.many`) take the stack in one call too.
   Rates equal the per-link ``fast`` ones (equal to ~1e-15 on the lab; tested
   to 1e-6 relative).
 * ``method="fast"``: per link (the per-link reference of ``batched``), the channel is synthesised once, the
   per-RE SVD precoder comes from the closed-form 2 x 2 Gram eigen-decomposition
-  (:func:`~engine.phy.link.svd_streams`, exact; LAPACK when ``min(Nr, Nt) > 2``),
+  (:func:`~isac_twin.phy.link.svd_streams`, exact; LAPACK when ``min(Nr, Nt) > 2``),
   its eigenmode gains feed water-filling directly, and the effective channels
   ``H W sqrt(P) = U Sigma sqrt(P)`` are computed once and reused for the link's
   own rate *and* as interference at the same receiver
-  (:func:`~engine.phy.link.rate_per_re`, closed-form 2 x 2 log-det / SINR). Only
+  (:func:`~isac_twin.phy.link.rate_per_re`, closed-form 2 x 2 log-det / SINR). Only
   the REs of each transmitter's allocation are processed.
 * ``method="reference"``: the straightforward composition of
-  :class:`~engine.phy.link.SVDPrecoder`, :class:`~engine.phy.link.WaterFilling`
-  and :class:`~engine.phy.link.AchievableRate` with ``np.linalg`` on every RE.
+  :class:`~isac_twin.phy.link.SVDPrecoder`, :class:`~isac_twin.phy.link.WaterFilling`
+  and :class:`~isac_twin.phy.link.AchievableRate` with ``np.linalg`` on every RE.
 
 Time-invariant steps (``time_invariant_tol``, fast path only): the symbols are
 grouped by the pattern of all transmitters' allocations (one group for
@@ -61,16 +61,25 @@ from functools import cached_property
 
 import numpy as np
 
-from engine.phy.arrays import PlanarArray, r_hat
-from engine.phy.channel import OFDMChannel, baseband_gains, port_pair_gains, synthesize_many
-from engine.phy.mcs import McsRate
-from engine.phy.patterns import MODELLED_POLARIZATIONS, AntennaPatterns
-from engine.phy.link import (AchievableRate, EqualPower, Interferer, SVDPrecoder,
-                             WaterFilling, channel_gains, rate_per_re, svd_streams,
-                             water_levels, wideband_streams)
-from engine.phy.ofdm import ResourceGrid, ResourceSet
-from engine.phy.threads import one_blas_thread
-from engine.phy.units import dbm_to_watt, thermal_noise_power
+from ..contract import schema
+from ..utils.threads import one_blas_thread
+from .arrays import PlanarArray, r_hat
+from .channel import OFDMChannel, baseband_gains, port_pair_gains, synthesize_many
+from .link import (
+    AchievableRate,
+    EqualPower,
+    Interferer,
+    SVDPrecoder,
+    WaterFilling,
+    channel_gains,
+    rate_per_re,
+    svd_streams,
+    water_levels,
+    wideband_streams,
+)
+from .mcs import McsRate
+from .ofdm import ResourceGrid, ResourceSet
+from .units import dbm_to_watt, thermal_noise_power
 
 __all__ = ["LinkSignal", "METHODS", "NetworkPHY"]
 
@@ -107,7 +116,7 @@ class LinkSignal:
             Doppler sensing).
         mcs_rate_bps: the rate a modem reaches: per stream one MCS of the
             config's ``[link_adaptation]`` table over the allocation, with the
-            transmitter EVM floor (:class:`~engine.phy.mcs.McsRate`), bit/s.
+            transmitter EVM floor (:class:`~isac_twin.phy.mcs.McsRate`), bit/s.
         mcs: ``[S]`` table index per stream (-1: below the lowest entry).
         group: ``[K]`` symbol -> group index, or None (one group per symbol).
         per_re: ``per_re(name) -> array`` for ``name`` in ``"h"``, ``"w"``,
@@ -194,15 +203,19 @@ class _Once:
         return self.value
 
 
+#: polarizations the PHY models (every one the scene-folder vocabulary names)
+MODELLED_POLARIZATIONS = tuple(schema.POLARIZATIONS)
+
+
 def _array(cfg) -> PlanarArray:
     if cfg.polarization not in MODELLED_POLARIZATIONS:
-        # engine.config refuses these at load; a hand-built config gets the same line.
+        # isac_twin.scene.config refuses these at load; a hand-built config gets the same line.
         raise ValueError(f"array polarization {cfg.polarization!r} is not modelled "
                          f"(modelled: {', '.join(MODELLED_POLARIZATIONS)})")
-    # The element pattern and polarization are applied to the path coefficients
-    # at the array centre (engine/phy/patterns.py, one coefficient per port
-    # pair), as in Sionna's synthetic arrays; the steering vectors then carry
-    # the geometry only (each element's ports share its position).
+    # The element pattern and polarization are in the path coefficients, applied by
+    # the tracer at the array centre (isac_twin.raytrace.antenna_patterns, one
+    # coefficient per port pair), as in Sionna's synthetic arrays; the steering
+    # vectors carry the geometry only (each element's ports share its position).
     return PlanarArray(cfg.rows, cfg.cols, cfg.vertical_spacing, cfg.horizontal_spacing)
 
 
@@ -215,7 +228,7 @@ class NetworkPHY:
     """Callable: traced paths of all links -> :class:`LinkSignal` per link.
 
     Args:
-        config: :class:`~engine.config.TwinConfig`.
+        config: :class:`~isac_twin.scene.config.TwinConfig`.
         power_allocation: ``"waterfilling"`` (default) or ``"equal"``.
         precoding: ``"svd"`` (per resource element) or ``"svd_wideband"``.
         method: one of :data:`METHODS` (see the module doc).
@@ -248,7 +261,11 @@ class NetworkPHY:
         self.precoding = "per_re" if precoding == "svd" else "wideband"
         self.devices = {d.name: d for d in config.devices}
         self.arrays = {d.name: _array(d.array) for d in config.devices}
-        self.patterns = AntennaPatterns.from_config(config)
+        #: devices whose element is not iso V: their links must come with port
+        #: coefficients (``extra["a_ports"]``), as the config's tracer returns them
+        self._elements = {d.name: (d.array.pattern, d.array.polarization)
+                          for d in config.devices
+                          if (d.array.pattern, d.array.polarization) != ("iso", "V")}
         self.masks = {d.name: ResourceSet(self.grid, d.subcarriers, d.symbols, name=d.name).mask
                       for d in config.devices if d.is_tx}
         self.rate = AchievableRate(self.grid, self.noise_power, method="numpy")
@@ -257,24 +274,42 @@ class NetworkPHY:
         self._cache: dict = {}
 
     def channel(self, paths, times=None) -> np.ndarray:
-        """Eq. 4 for one :class:`~engine.raytrace.base.LinkPaths` -> ``[K, N, Nr, Nt]``
+        """Eq. 4 for one :class:`~isac_twin.raytrace.base.LinkPaths` -> ``[K, N, Nr, Nt]``
         (``[T, N, Nr, Nt]`` at explicit symbol ``times`` [s])."""
-        from engine.pose import sionna_orientation
+        from ..utils.geometry import sionna_orientation
 
         syn = OFDMChannel(self.grid, self.arrays[paths.rx], self.arrays[paths.tx])
-        b = _gains(self.patterns.apply(paths))
+        b = _gains(self._checked(paths))
         return syn(b, paths.tau, paths.doppler, paths.theta_r, paths.phi_r, paths.theta_t,
                    paths.phi_t, rx_orientation=sionna_orientation(paths.rx_orientation),
                    tx_orientation=sionna_orientation(paths.tx_orientation), times=times)
 
     def __call__(self, link_paths: dict) -> dict[tuple[str, str], LinkSignal]:
-        """Args: ``{(tx, rx): LinkPaths}`` (iso-traced, or with the devices'
-        patterns already applied). Returns ``{(tx, rx): LinkSignal}``."""
-        link_paths = self.patterns(link_paths)
-        one_blas_thread()  # small matrices (engine.phy.threads)
+        """Args: ``{(tx, rx): LinkPaths}`` as the config's tracer returns them (the
+        devices' element patterns applied). Returns ``{(tx, rx): LinkSignal}``."""
+        for lp in link_paths.values():
+            self._checked(lp)
+        one_blas_thread()  # small matrices (isac_twin.utils.threads)
         if self.method == "reference":
             return self._reference(link_paths)
         return self._fast(link_paths, batched=self.method == "batched")
+
+    def _checked(self, lp):
+        """``lp`` itself, once it is known to carry its devices' elements.
+
+        Raises:
+            ValueError: a link of a device with a non-iso-V element traced without
+                its elements (a backend other than ``make_tracer(config)``'s).
+        """
+        if lp.num_paths and "a_ports" not in lp.extra:
+            odd = [n for n in (lp.tx, lp.rx) if n in self._elements]
+            if odd:
+                raise ValueError(
+                    f"link {lp.tx}->{lp.rx}: {', '.join(odd)} has element "
+                    f"{'/'.join(self._elements[odd[0]])}, but the paths carry iso-V "
+                    f"coefficients only: trace with isac_twin.make_tracer(config), which "
+                    f"applies the elements (isac_twin.raytrace.antenna_patterns)")
+        return lp
 
     def _steering(self, name: str, theta, phi, orientation) -> np.ndarray:
         """Steering vectors ``[L, Nant]`` of device ``name``'s array; the rotated
@@ -295,9 +330,9 @@ class NetworkPHY:
         Nt)}``; one steering-vector evaluation per (device, orientation) over all
         its links' paths and one baseband conversion over all links (issue #19:
         per link, the calls cost more in Python than in arithmetic)."""
-        from engine.pose import sionna_orientation
+        from ..utils.geometry import sionna_orientation
 
-        lps = {lk: self.patterns.apply(lp) for lk, lp in link_paths.items()}
+        lps = {lk: self._checked(lp) for lk, lp in link_paths.items()}
         ends: dict = {}  # (device, orientation) -> [(link, side, theta, phi)]
         for lk, lp in lps.items():
             for side, dev, th, ph, ori in (("r", lp.rx, lp.theta_r, lp.phi_r, lp.rx_orientation),
@@ -332,7 +367,7 @@ class NetworkPHY:
         return out
 
     def channels(self, link_paths: dict, times=None, rows: dict | None = None) -> dict:
-        """Eq. 4 for every link in one pass (:func:`~engine.phy.channel.synthesize_many`):
+        """Eq. 4 for every link in one pass (:func:`~isac_twin.phy.channel.synthesize_many`):
         ``{(tx, rx): LinkPaths}`` -> ``{(tx, rx): [K|T, N, Nr, Nt]}`` complex64;
         equal to :meth:`channel` per link. ``rows``: ``{(tx, rx): indices [R]}``
         of the symbols (or ``times``) to compute per link -> ``[R, N, Nr, Nt]``."""

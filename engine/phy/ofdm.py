@@ -24,7 +24,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from engine.phy._checks import positive_float, positive_int
+from ._checks import positive_float, positive_int
 
 __all__ = ["ResourceGrid", "ResourceSet", "allocation_masks"]
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.phy._checks import positive_float
+from ._checks import positive_float
 
 __all__ = ["SPEED_OF_LIGHT", "BOLTZMANN", "dbm_to_watt", "watt_to_dbm",
            "db_to_linear", "linear_to_db", "thermal_noise_power"]

@@ -1,6 +1,6 @@
 """Ray tracing: the tracer interface and its backends.
 
-``from engine.raytrace import make_tracer, device_poses``::
+``from isac_twin.raytrace import make_tracer, device_poses``::
 
     scene = load_scene(folder)
     tracer = make_tracer(scene.config)        # [tracer].backend: "sionna" | "grid"
@@ -12,8 +12,16 @@ needs Sionna. See ``docs/tracers.md``.
 
 from __future__ import annotations
 
-from engine.raytrace.base import (DevicePose, Link, LinkPaths, Tracer, TruncationError,
-                                  device_poses, sionna_orientation, validate_poses)
+from ..errors import TruncationError
+from .base import (
+    DevicePose,
+    Link,
+    LinkPaths,
+    Tracer,
+    device_poses,
+    sionna_orientation,
+    validate_poses,
+)
 
 __all__ = ["DevicePose", "Link", "LinkPaths", "Tracer", "TruncationError", "device_poses",
            "sionna_orientation", "validate_poses", "make_tracer"]
@@ -26,11 +34,11 @@ def make_tracer(config) -> Tracer:
     """
     t = config.tracer
     if t.backend == "sionna":
-        from engine.raytrace.sionna import SionnaTracer
+        from .sionna import SionnaTracer
 
         return SionnaTracer(t)
     if t.backend == "grid":
-        from engine.raytrace.grid_backend import GridTracer
+        from .grid_backend import GridTracer
 
         return GridTracer(config.folder / t.grid_file)
     raise ValueError(f"{config.path}: tracer.backend: unknown backend {t.backend!r}")

@@ -10,11 +10,11 @@ Conventions (Sionna RT's, so that Sionna's own ``Paths.cfr`` is the reference):
 * ``a`` is the *passband* complex path coefficient of single isotropic,
   vertically polarized elements at the two array centres (Sionna's
   ``Paths.a``); the baseband gain of eq. 4 is ``b = a * exp(-j 2 pi f_c tau)``
-  (``engine.phy.channel.baseband_gains``).
+  (``isac_twin.phy.channel.baseband_gains``).
 * ``pol`` (when the backend provides it) is the path's 2 x 2 complex field
   transfer matrix between the world spherical bases (theta-hat, phi-hat) at
   departure (columns) and arrival (rows), from which any element's
-  coefficient follows (:mod:`engine.raytrace.polarization`); ``a`` is the
+  coefficient follows (:mod:`isac_twin.raytrace.polarization`); ``a`` is the
   V-V coefficient of it in the devices' orientations.
 * ``tau`` is the absolute propagation delay in s (not normalized).
 * Zenith ``theta`` from +z in ``[0, pi]``, azimuth ``phi`` from +x towards +y in
@@ -22,7 +22,7 @@ Conventions (Sionna RT's, so that Sionna's own ``Paths.cfr`` is the reference):
   angles point from the receiver towards where the wave comes from.
 * ``doppler`` in Hz, including the devices' velocities.
 * Device orientation is ``[roll, pitch, yaw]`` rad as in ``twin.toml``; Sionna
-  and ``engine.phy.arrays`` take ``[yaw, pitch, roll]`` (use
+  and ``isac_twin.phy.arrays`` take ``[yaw, pitch, roll]`` (use
   :func:`sionna_orientation`).
 """
 
@@ -34,8 +34,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from engine.config import LinkConfig, TwinConfig
-from engine.pose import DevicePose, antenna_pose, sionna_orientation  # noqa: F401 (re-exported)
+from ..scene.config import LinkConfig, TwinConfig
+from ..utils.geometry import DevicePose, antenna_pose, sionna_orientation  # noqa: F401 (re-exported)
 
 #: Speed of light in vacuum, m/s (Sionna's value).
 SPEED_OF_LIGHT = 299_792_458.0
@@ -49,11 +49,6 @@ INTERACTION_REFRACTION = 4
 INTERACTION_DIFFRACTION = 8
 
 Link = tuple[str, str]  #: ``(tx name, rx name)``
-
-
-class TruncationError(RuntimeError):
-    """The solver hit its path-buffer cap (``max_num_paths_per_src``): paths
-    would have been dropped silently."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,7 +182,7 @@ def device_poses(config: TwinConfig) -> dict[str, DevicePose]:
     """Initial array-centre poses of all devices from the config (velocity 0).
 
     Access points: ``position`` is the array centre. Robots: ``position`` is
-    ``base_link`` and the array centre is :func:`engine.pose.antenna_pose` of it.
+    ``base_link`` and the array centre is :func:`isac_twin.utils.geometry.antenna_pose` of it.
     """
     out = {}
     for d in config.devices:

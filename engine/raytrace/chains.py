@@ -14,7 +14,7 @@ link's strongest that 1e7 rays find (8 of 28 links; the strongest missed at
 
 :class:`ChainTracer` splits the stages:
 
-1. **Chains of the sources.** :func:`~engine.raytrace.source_chains.shoot_chains`
+1. **Chains of the sources.** :func:`~isac_twin.raytrace.source_chains.shoot_chains`
    follows ``samples_per_src`` rays per source without targets, branching at
    every hit into reflection and refraction, and keeps every distinct chain
    (every prefix). A :class:`ChainStore` holds them, identified as Sionna
@@ -37,16 +37,16 @@ from __future__ import annotations
 
 import gc
 import warnings
-import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.raytrace.base import INTERACTION_REFRACTION, INTERACTION_SPECULAR
-from engine.raytrace.planes import PlaneIndex
-from engine.raytrace.raw import RawPaths, concat_targets, to_points
-from engine.raytrace.source_chains import MirrorFilter, shoot_chains
-from engine.raytrace.solver_core import arrays_to_raw, chain_arrays
+from ..scene.twin_scene import live_sionna_scenes
+from .base import INTERACTION_REFRACTION, INTERACTION_SPECULAR
+from .planes import PlaneIndex
+from .raw import RawPaths, concat_targets, to_points
+from .solver_core import arrays_to_raw, chain_arrays
+from .source_chains import MirrorFilter, shoot_chains
 
 #: Bumped whenever a change of this module changes which paths are found;
 #: stored in grid metadata so that caches traced by another version are rebuilt.
@@ -68,24 +68,13 @@ FROZEN_RECORDINGS = 8
 #: until one replays (Dr.Jit recorded the same size on the next two calls).
 PRIME_CALLS = 3
 
-#: The Sionna scenes loaded in this process (:func:`register_scene`), held weakly.
-_LIVE_SCENES: weakref.WeakSet = weakref.WeakSet()
-
-
-def register_scene(sc) -> None:
-    """Note a loaded ``sionna.rt.Scene`` (``TwinScene.sionna`` does, on load): the
-    frozen chain evaluation traverses every live scene's objects (see
-    :meth:`ChainTracer._frozen`)."""
-    _LIVE_SCENES.add(sc)
-
-
 def live_scene_objects(mi_scene=None) -> list:
     """What a call on radio materials may dispatch to besides ``mi_scene``'s own
     shapes: every live registered scene's radio materials (those no shape uses any
     more included: a material replaced by an edit stays registered) and the Mitsuba
     scenes other than ``mi_scene``."""
     out = []
-    for sc in sorted(_LIVE_SCENES, key=id):  # one order: a frozen call's state is keyed
+    for sc in live_sionna_scenes():  # one order: a frozen call's state is keyed
         if sc.mi_scene is not mi_scene:
             out.append(sc.mi_scene)
         out.extend(m for _, m in sorted(sc.radio_materials.items()))
@@ -154,7 +143,7 @@ class ChainStore:
 
     A chain is identified as Sionna's generator identifies it: by its source
     index and, per depth, the interaction type and, for a specular reflection,
-    the reflection *plane* (:class:`~engine.raytrace.planes.PlaneIndex`);
+    the reflection *plane* (:class:`~isac_twin.raytrace.planes.PlaneIndex`);
     which triangle of a plane was hit, and which surface a transmission went
     through, are not part of it (Sionna's image method finds the path through
     any coplanar triangle and whatever surfaces the segments cross). Keying by
@@ -166,7 +155,7 @@ class ChainStore:
 
     Args:
         max_depth: the solver's ``max_depth`` (``D = max(1, max_depth)``).
-        planes: the scene's :class:`~engine.raytrace.planes.PlaneIndex`.
+        planes: the scene's :class:`~isac_twin.raytrace.planes.PlaneIndex`.
     """
 
     _FIELDS = ("src", "types", "shapes", "prims", "probs", "vx", "vy", "vz", "k_tx")
@@ -185,7 +174,7 @@ class ChainStore:
 
     def add_columns(self, f: dict[str, np.ndarray]) -> np.ndarray:
         """Add chains given as columns (the fields of :meth:`columns`, e.g. from
-        :func:`~engine.raytrace.source_chains.shoot_chains`); specular
+        :func:`~isac_twin.raytrace.source_chains.shoot_chains`); specular
         interactions are canonicalized in place. Returns the store index of
         each row ``[C]`` (a chain already stored keeps its index)."""
         if len(f["src"]) == 0:
@@ -256,7 +245,7 @@ class ChainStore:
         return self._cols
 
     def arrays(self) -> dict:
-        """The chains as :func:`~engine.raytrace.solver_core.chain_arrays`
+        """The chains as :func:`~isac_twin.raytrace.solver_core.chain_arrays`
         (Dr.Jit arrays; entries from ``len(self)`` on are empty chains)."""
         if self._arrays is None:
             self._arrays = chain_arrays(self.columns(), self.max_depth)
@@ -267,7 +256,7 @@ class ChainTracer:
     """Traces receivers with every chain of the sources (see the module doc).
 
     Args:
-        core: the :class:`~engine.raytrace.solver_core.SolverCore` (its settings,
+        core: the :class:`~isac_twin.raytrace.solver_core.SolverCore` (its settings,
             image method and field calculator; ``samples_per_src`` is the number
             of branching rays per source).
         max_pairs: candidate-target pairs per image-method call.
@@ -288,7 +277,7 @@ class ChainTracer:
         self.core = core
         self.max_pairs = int(max_pairs)
         #: Give the image method only the chains that mirror geometry allows
-        #: (:class:`~engine.raytrace.source_chains.MirrorFilter`; the paths are
+        #: (:class:`~isac_twin.raytrace.source_chains.MirrorFilter`; the paths are
         #: the same, tested), else every chain.
         self.mirror_filter = bool(mirror_filter)
         #: Replay the evaluation's recorded kernels (``drjit.freeze``) while the
@@ -355,7 +344,7 @@ class ChainTracer:
 
         Returns:
             Per target, the store indices of its candidate chains: those that
-            pass the :class:`~engine.raytrace.source_chains.MirrorFilter` (all
+            pass the :class:`~isac_twin.raytrace.source_chains.MirrorFilter` (all
             of them without :attr:`mirror_filter`).
         """
         if self.store is None:
@@ -389,7 +378,7 @@ class ChainTracer:
                 gives them (e.g. another tracer's ``store.columns()`` of the same
                 scene), with this process's shape ids; ``src`` indexes ``sources``.
             context: the ``context`` :meth:`trace` will be given.
-            planes: the scene's :class:`~engine.raytrace.planes.PlaneIndex`
+            planes: the scene's :class:`~isac_twin.raytrace.planes.PlaneIndex`
                 (built when None).
 
         The store holds the same chains in the same order as one that shot
@@ -427,7 +416,7 @@ class ChainTracer:
                 revision); the cache is dropped when it changes.
 
         Returns:
-            :class:`~engine.raytrace.sionna.RawPaths` ``[T, S, P]``, paths of a
+            :class:`~isac_twin.raytrace.sionna.RawPaths` ``[T, S, P]``, paths of a
             link in no particular order; ``candidates_per_source`` counts the
             chains in the store and ``cap`` exceeds it: chain enumeration has no
             candidate buffer to overflow, so the result is never truncated.

@@ -28,11 +28,20 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from engine.raytrace.raw import find_repeats, match_paths
-from engine.raytrace.base import (INTERACTION_DIFFRACTION, INTERACTION_DIFFUSE,
-                                  INTERACTION_NONE, INTERACTION_REFRACTION,
-                                  INTERACTION_SPECULAR, SPEED_OF_LIGHT, DevicePose, Link,
-                                  LinkPaths, device_poses, resolve_links)
+from .base import (
+    INTERACTION_DIFFRACTION,
+    INTERACTION_DIFFUSE,
+    INTERACTION_NONE,
+    INTERACTION_REFRACTION,
+    INTERACTION_SPECULAR,
+    SPEED_OF_LIGHT,
+    DevicePose,
+    Link,
+    LinkPaths,
+    device_poses,
+    resolve_links,
+)
+from .raw import find_repeats, match_paths
 
 _CODES = {INTERACTION_NONE, INTERACTION_SPECULAR, INTERACTION_DIFFUSE, INTERACTION_REFRACTION,
           INTERACTION_DIFFRACTION}
@@ -242,8 +251,8 @@ def check_tracer(tracer, scene, poses: Mapping[str, DevicePose] | None = None,
     """Run the conformance checks on ``tracer`` for ``scene``.
 
     Args:
-        tracer: a :class:`~engine.raytrace.base.Tracer`.
-        scene: the :class:`~engine.scene.TwinScene`; at least one link should be
+        tracer: a :class:`~isac_twin.raytrace.base.Tracer`.
+        scene: the :class:`~isac_twin.scene.twin_scene.TwinScene`; at least one link should be
             unobstructed (an "open configuration") for the LOS checks.
         poses: device poses (default: from the config).
         links: links to check (default: the config's links).
@@ -358,15 +367,15 @@ class SionnaReference:
     never shared between receivers).
 
     Args:
-        scene: the :class:`~engine.scene.TwinScene` (its file is reloaded; edits
+        scene: the :class:`~isac_twin.scene.twin_scene.TwinScene` (its file is reloaded; edits
             made to the live scene are not seen).
         samples_per_src: rays per source of the reference (e.g. 1e6 or 1e7).
     """
 
     def __init__(self, scene, samples_per_src: int):
-        import engine._llvm
+        from ..utils import llvm
 
-        engine._llvm.configure_llvm()
+        llvm.configure_llvm()
         import sionna.rt as rt
 
         cfg = scene.config
@@ -387,7 +396,7 @@ class SionnaReference:
         Returns:
             per transmitter ``(LinkPaths, cfr [S] complex128)``.
         """
-        from engine.raytrace.base import sionna_orientation
+        from .base import sionna_orientation
 
         rt, sc, t = self._rt, self.sc, self.config.tracer
         for n in list(sc.transmitters) + list(sc.receivers):
@@ -438,8 +447,8 @@ class SionnaReference:
 
 def link_cfr(lp: LinkPaths, freqs_hz: np.ndarray) -> np.ndarray:
     """The engine's eq.-4 channel of ``lp`` for single isotropic elements ``[S]``."""
-    from engine.phy.arrays import PlanarArray
-    from engine.phy.channel import baseband_gains, cfr_at
+    from ..phy.arrays import PlanarArray
+    from ..phy.channel import baseband_gains, cfr_at
 
     one = PlanarArray(1, 1)
     b = baseband_gains(lp.a, lp.tau, lp.frequency_hz)
@@ -451,7 +460,7 @@ def robot_points(scene, n: int, height: float, *, clearance: float = 0.11, seed:
                  lattice: float | None = None) -> np.ndarray:
     """``n`` random floor points where a robot fits, plus points on probe-lattice lines.
 
-    A point qualifies when it is in free space (:func:`~engine.raytrace.raw.free_points`)
+    A point qualifies when it is in free space (:func:`~isac_twin.raytrace.raw.free_points`)
     and no surface lies within ``clearance`` m of it horizontally (16 rays) at
     ``height`` and at 5 cm above the floor (a TurtleBot3 burger's footprint
     radius is 0.105 m). With ``lattice`` (the probe spacing, m), up to 4 more
@@ -462,7 +471,7 @@ def robot_points(scene, n: int, height: float, *, clearance: float = 0.11, seed:
     """
     import mitsuba as mi
 
-    from engine.raytrace.raw import free_points
+    from .raw import free_points
 
     lo, hi = np.asarray(scene.bounds_min, float), np.asarray(scene.bounds_max, float)
     floor = float(lo[2])

@@ -5,14 +5,14 @@ that move on the floor, the paths can be traced once for every grid position
 and stored in a database. :func:`trace_grid` traces a regular grid of receiver
 positions at one height against the static transmitters with a progress bar.
 
-By default it reuses specular chains (:mod:`engine.raytrace.chains`): every
+By default it reuses specular chains (:mod:`isac_twin.raytrace.chains`): every
 chain of each transmitter is enumerated once, Sionna's image method keeps the
 ones that are paths to each grid point. ``method="sbr"`` traces every point
 by shoot-and-bounce, in chunks of receivers (bounded memory). No path is
 dropped silently: a chunk whose solver buffer reached
 ``max_num_paths_per_src`` is split in halves (down to one receiver) and then
 retried with a doubled cap; if that is still not enough,
-:class:`~engine.raytrace.base.TruncationError`.
+:class:`~isac_twin.raytrace.base.TruncationError`.
 The rest of this note is about the chunked shoot-and-bounce.
 
 Receivers per solver call. Besides the cap, Sionna's shoot-and-bounce
@@ -58,14 +58,13 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.npzfile import NpzRecord, read_npz, write_npz
-from engine.config import TracerConfig
-from engine.raytrace.base import DevicePose, device_poses, sionna_orientation, validate_poses
-from engine.raytrace.chains import CHAIN_REUSE_VERSION, ChainTracer
-from engine.raytrace.raw import (RawPaths, find_repeats, free_points, grow_cap, match_paths,
-                                 pad_paths)
-from engine.raytrace.conformance import grazing, scene_edges
-from engine.raytrace.solver_core import SolverCore
+from ..scene.config import TracerConfig
+from ..utils.npzfile import NpzRecord, read_npz, write_npz
+from .base import DevicePose, device_poses, sionna_orientation, validate_poses
+from .chains import CHAIN_REUSE_VERSION, ChainTracer
+from .conformance import grazing, scene_edges
+from .raw import RawPaths, find_repeats, free_points, grow_cap, match_paths, pad_paths
+from .solver_core import SolverCore
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +99,7 @@ DEFAULT_CHUNK_SIZE = 64
 #: reuse; 0: no second thread).
 PIPELINE_DEPTH = 2
 
-#: Receivers per :class:`~engine.raytrace.chains.ChainTracer` call (chain reuse).
+#: Receivers per :class:`~isac_twin.raytrace.chains.ChainTracer` call (chain reuse).
 CHAIN_CHUNK_SIZE = 1024
 
 #: Entries per source of Sionna's specular-chain hash table in grid traces
@@ -235,7 +234,7 @@ def sorted_chunk(raw, keep_strongest: int | None = None) -> dict[str, np.ndarray
 
 class _ChunkTracer:
     """Traces receiver chunks: a truncated chunk is split in halves, a single
-    receiver's cap grown by :func:`~engine.raytrace.raw.grow_cap`."""
+    receiver's cap grown by :func:`~isac_twin.raytrace.raw.grow_cap`."""
 
     def __init__(self, core, sc, src, src_orient, cap: int, max_cap: int,
                  keep_strongest: int | None = None):
@@ -278,7 +277,7 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
     """Trace a floor grid of receiver positions against static transmitters.
 
     Args:
-        scene: the :class:`~engine.scene.TwinScene`.
+        scene: the :class:`~isac_twin.scene.twin_scene.TwinScene`.
         tx_names: transmitters (default: every device that is the ``tx`` of a link).
         spacing: grid spacing, m.
         height: receiver height z, m (default: the first robot's antenna height).
@@ -309,7 +308,7 @@ def trace_grid(scene, tx_names: Sequence[str] | None = None, spacing: float = 0.
             ``max(cap, 1e6)``, which loses candidates when many receivers share
             a call).
         method: ``"chains"`` (every specular chain of the transmitters, see
-            :mod:`engine.raytrace.chains`), ``"sbr"`` (shoot-and-bounce for
+            :mod:`isac_twin.raytrace.chains`), ``"sbr"`` (shoot-and-bounce for
             every receiver, in chunks) or ``"auto"`` (default: ``config.method``,
             whose ``"auto"`` means chains when only specular reflection and
             refraction are enabled).
@@ -492,7 +491,7 @@ def assemble_grid(plan, pieces, depth: int) -> dict[str, np.ndarray]:
     Args:
         plan: the raster (``tx_names``, ``points [N, 3]``, ``free [N]``,
             ``src [S, 3]``, ``src_orient_cfg [S, 3]``), e.g. ``trace_grid``'s or
-            :class:`engine.scaleout.tiles.GridPlan`.
+            :class:`isac_twin.scaleout.tiles.GridPlan`.
         pieces: ``(point indices [t], chunk)``, a chunk as :func:`sorted_chunk`
             returns it (``[t, S, P']`` arrays).
         depth: interaction slots ``D``.
@@ -544,7 +543,7 @@ def grid_metadata(scene, plan, spacing: float, margin: float, tracer_meta: dict,
 
 def top_missing(ref: dict, grid: dict, n: int) -> tuple[int, int]:
     """Of ``ref``'s ``n`` strongest paths, how many are not in ``grid`` (see
-    :func:`~engine.raytrace.raw.match_paths`) -> (missing, checked).
+    :func:`~isac_twin.raytrace.raw.match_paths`) -> (missing, checked).
 
     Both are dicts with ``a, tau [L]``, ``interactions [L, D]``, ``vertices [L, D, 3]``."""
     order = np.argsort(-np.abs(ref["a"]), kind="stable")[:n]
@@ -651,10 +650,10 @@ def verify_point(core, sc, src, src_orient, point: np.ndarray, stored: dict[str,
                  confirm: dict | None = None) -> dict:
     """Re-trace one grid point directly and compare with its stored paths, as
     ``trace_grid``'s verification does for each of its points (e.g. on the
-    worker of a tiled grid: ``engine.scaleout``).
+    worker of a tiled grid: ``isac_twin.scaleout``).
 
     Args:
-        core: the grid's :class:`~engine.raytrace.solver_core.SolverCore`
+        core: the grid's :class:`~isac_twin.raytrace.solver_core.SolverCore`
             (its settings trace the direct reference; ``max_num_paths_per_src``
             is the cap).
         sc: the ``sionna.rt.Scene``.
@@ -672,7 +671,7 @@ def verify_point(core, sc, src, src_orient, point: np.ndarray, stored: dict[str,
         all and among the ``top_n`` strongest per link; paths the direct trace
         lacks that more rays do not confirm; paths more rays confirmed;
         repeated paths; links and links that differ). A stored path neither trace
-        finds that touches a triangle edge (:func:`~engine.raytrace.conformance.grazing`)
+        finds that touches a triangle edge (:func:`~isac_twin.raytrace.conformance.grazing`)
         counts as ``paths_grazing``, not ``paths_extra``.
     """
     confirm = {} if confirm is None else confirm

@@ -1,11 +1,11 @@
 """Grid backend: serve paths from a precomputed floor grid (``isac-twin grid``).
 
-:class:`GridTracer` implements the :class:`~engine.raytrace.base.Tracer`
+:class:`GridTracer` implements the :class:`~isac_twin.raytrace.base.Tracer`
 protocol for static transmitters (those the grid was traced against) and
 receivers that move on the floor at the grid's height. A receiver gets the
 paths of the **nearest grid point** (no interpolation: the set of paths
 changes between neighbouring points and their phases are not interpolable);
-the returned :class:`~engine.raytrace.base.LinkPaths` carries the grid
+the returned :class:`~isac_twin.raytrace.base.LinkPaths` carries the grid
 point as ``rx_position`` and ``extra = {"grid_index", "snap_distance_m"}``.
 The position error is at most ``spacing / sqrt(2)``.
 
@@ -14,7 +14,7 @@ scene: ``nu = (r_t . v_tx + r_r . v_rx) / lambda`` with ``r_t``, ``r_r`` the
 unit departure / arrival directions.
 
 A link from a moving device to a grid transmitter (uplink) is served by
-reciprocity (:meth:`~engine.raytrace.base.LinkPaths.reversed`).
+reciprocity (:meth:`~isac_twin.raytrace.base.LinkPaths.reversed`).
 
 Errors (``ValueError`` naming the device): a position outside the stored
 grid, at another height (more than ``height_tolerance``), at a grid point
@@ -30,9 +30,17 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.raytrace.base import (SPEED_OF_LIGHT, DevicePose, Link, LinkPaths, empty_link,
-                                  resolve_links, validate_poses)
-from engine.raytrace.grid import PathGrid, load_grid
+from .antenna_patterns import apply_elements
+from .base import (
+    SPEED_OF_LIGHT,
+    DevicePose,
+    Link,
+    LinkPaths,
+    empty_link,
+    resolve_links,
+    validate_poses,
+)
+from .grid import PathGrid, load_grid
 
 
 def _r_hat(theta, phi) -> np.ndarray:
@@ -41,7 +49,7 @@ def _r_hat(theta, phi) -> np.ndarray:
 
 
 class GridTracer:
-    """Tracer backend serving a :class:`~engine.raytrace.grid.PathGrid`.
+    """Tracer backend serving a :class:`~isac_twin.raytrace.grid.PathGrid`.
 
     Args:
         grid: a grid file path or a loaded :class:`PathGrid`.
@@ -142,4 +150,4 @@ class GridTracer:
             else:
                 raise ValueError(f"link {tx}->{rx}: the grid serves links between one of its "
                                  f"transmitters ({', '.join(g.tx_names)}) and a moving device")
-        return out
+        return apply_elements(scene.config, out)

@@ -8,7 +8,7 @@ its first non-zero component of z, y, x is positive, and the offset
 through is not part of it. Its image method accepts a reflection point on any
 triangle coplanar with the recorded one. Two chains through different
 triangles of one plane are therefore one path, and anything that caches
-chains (:mod:`engine.raytrace.chains`) must identify them by plane too.
+chains (:mod:`isac_twin.raytrace.chains`) must identify them by plane too.
 
 :class:`PlaneIndex` groups the triangles of every mesh of a Mitsuba scene
 into planes once: triangles whose oriented normals differ by at most

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.pose import rotation_matrix
+from ..utils.geometry import rotation_matrix
 
 __all__ = ["local_to_world", "v_world", "world_basis"]
 
@@ -94,7 +94,7 @@ def v_world(k: np.ndarray, orientations: np.ndarray, index: np.ndarray) -> np.nd
     [L]``), seen from world unit directions ``k [L, 3]``.
 
     The same as ``local_to_world(k, R[index])[2][:, :, 0]`` with ``R [N, 3, 3]``
-    the orientations' rotations (:func:`~engine.pose.rotation_matrix`), but for
+    the orientations' rotations (:func:`~isac_twin.utils.geometry.rotation_matrix`), but for
     an orientation of zero, which is the world frame itself: exactly ``(1, 0)``."""
     k = np.asarray(k, np.float64).reshape(-1, 3)
     o = np.asarray(orientations, np.float64).reshape(-1, 3)

@@ -1,10 +1,10 @@
 r"""Shared pieces of the tracer backends: the raw path record and its plumbing.
 
-The leaf of ``engine/raytrace/`` (below it only :mod:`engine.raytrace.base`):
+The leaf of ``engine/raytrace/`` (below it only :mod:`isac_twin.raytrace.base`):
 the numpy copy of a solver result (:class:`RawPaths`), the conversion of
 numpy points into Mitsuba's, zero-padding of the path axis, joining results
 of consecutive receiver groups, the free-space test of points, the per-link
-:class:`~engine.raytrace.base.LinkPaths` builder, and the one
+:class:`~isac_twin.raytrace.base.LinkPaths` builder, and the one
 retry-on-truncation rule every backend follows (:func:`grow_cap`).
 
 Layers (each imports only the ones below it; see ``docs/tracers.md``)::
@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from engine.raytrace.base import DevicePose, LinkPaths, TruncationError, empty_link
+from ..errors import TruncationError
+from .base import DevicePose, LinkPaths, empty_link
 
 __all__ = ["PATH_FIELDS", "MATCH_DELAY_RTOL", "MATCH_VERTEX_M", "REPEAT_DELAY_S", "REPEAT_VERTEX_M",
            "RawPaths", "concat_targets", "find_repeats", "free_points", "grow_cap",
@@ -48,7 +49,7 @@ class RawPaths:
         a: ``[R, T, P]`` complex128 passband coefficients of isotropic, vertically
             polarized elements in the devices' orientations.
         pol: ``[R, T, P, 2, 2]`` complex128 transfer matrices in the world
-            spherical bases (:mod:`engine.raytrace.polarization`).
+            spherical bases (:mod:`isac_twin.raytrace.polarization`).
         tau, doppler, theta_t, phi_t, theta_r, phi_r: ``[R, T, P]`` float64.
         interactions: ``[R, T, P, D]`` int32.
         vertices: ``[R, T, P, D, 3]`` float32.
@@ -148,7 +149,7 @@ def concat_targets(parts: list[RawPaths]) -> RawPaths:
 
 def link_paths(raw: RawPaths, r: int, t: int, tx: str, rx: str, tx_pose: DevicePose,
                rx_pose: DevicePose, frequency_hz: float) -> LinkPaths:
-    """The :class:`~engine.raytrace.base.LinkPaths` of receiver ``r`` and
+    """The :class:`~isac_twin.raytrace.base.LinkPaths` of receiver ``r`` and
     transmitter ``t`` of ``raw`` (devices ``tx``/``rx`` at the given poses),
     sorted by delay; an empty link when there is no path."""
     d = raw.link(r, t)
@@ -171,7 +172,7 @@ def grow_cap(trace: Callable[[int], RawPaths], cap: int, max_cap: int, *, what: 
     The one rule for truncation (Sionna drops candidates past
     ``max_num_paths_per_src`` without a word): a truncated result is never
     returned; the cap is doubled (with a warning) while it stays within
-    ``max_cap``, else :class:`~engine.raytrace.base.TruncationError`.
+    ``max_cap``, else :class:`~isac_twin.raytrace.base.TruncationError`.
 
     Args:
         trace: runs the solver with a given ``max_num_paths_per_src``.
@@ -209,7 +210,7 @@ MATCH_VERTEX_M = 1e-3
 
 def find_repeats(lp) -> list[tuple[int, int]]:
     """Pairs ``(i, j)``, ``i < j``, of paths of ``lp`` (a
-    :class:`~engine.raytrace.base.LinkPaths` or anything with ``tau [L]``,
+    :class:`~isac_twin.raytrace.base.LinkPaths` or anything with ``tau [L]``,
     ``interactions [L, D]``, ``vertices [L, D, 3]``) that are the same path
     (same interaction types, delays within :data:`REPEAT_DELAY_S`, vertices
     within :data:`REPEAT_VERTEX_M`). A correct tracer returns none."""

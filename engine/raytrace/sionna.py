@@ -3,12 +3,12 @@
 :class:`SionnaTracer` puts every device that appears in a requested link into
 the Sionna scene once (as a ``Transmitter`` and/or a ``Receiver`` with a
 single element at the array centre with the two isotropic basis patterns
-of :func:`~engine.raytrace.solver_core.basis_patterns`, ``synthetic_array=True``:
+of :func:`~isac_twin.raytrace.solver_core.basis_patterns`, ``synthetic_array=True``:
 every path's 2 x 2 transfer matrix), moves them on later calls instead of recreating
-them, and traces through :class:`~engine.raytrace.solver_core.SolverCore`
+them, and traces through :class:`~isac_twin.raytrace.solver_core.SolverCore`
 (Sionna's own stages; truncation detected and retried by
-:func:`~engine.raytrace.raw.grow_cap`) or, by default, through chain reuse
-(:mod:`engine.raytrace.chains`).
+:func:`~isac_twin.raytrace.raw.grow_cap`) or, by default, through chain reuse
+(:mod:`isac_twin.raytrace.chains`).
 """
 
 from __future__ import annotations
@@ -18,12 +18,12 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from engine.config import TracerConfig
-from engine.raytrace.base import DevicePose, Link, LinkPaths, resolve_links, \
-    sionna_orientation, validate_poses
-from engine.raytrace.chains import ChainTracer
-from engine.raytrace.raw import RawPaths, grow_cap, link_paths
-from engine.raytrace.solver_core import SolverCore, load_sionna_rt
+from ..scene.config import TracerConfig
+from .antenna_patterns import apply_elements
+from .base import DevicePose, Link, LinkPaths, resolve_links, sionna_orientation, validate_poses
+from .chains import ChainTracer
+from .raw import RawPaths, grow_cap, link_paths
+from .solver_core import SolverCore, load_sionna_rt
 
 __all__ = ["MAX_CAP_DOUBLINGS", "SionnaTracer"]
 
@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 MAX_CAP_DOUBLINGS = 6
 
 class SionnaTracer:
-    """Tracer backend on Sionna RT's ``PathSolver`` (see :class:`~engine.raytrace.base.Tracer`).
+    """Tracer backend on Sionna RT's ``PathSolver`` (see :class:`~isac_twin.raytrace.base.Tracer`).
 
     Args:
         config: ``[tracer]`` settings. ``deterministic=True`` selects Sionna's
@@ -42,10 +42,10 @@ class SionnaTracer:
         on_truncation: ``"grow"`` (default) retries a truncated trace with the
             cap doubled (up to ``2**MAX_CAP_DOUBLINGS`` times the configured cap)
             and logs a warning; ``"raise"`` raises
-            :class:`~engine.raytrace.base.TruncationError` at once.
+            :class:`~isac_twin.raytrace.base.TruncationError` at once.
 
     With ``config.uses_chains`` (the default) calls go through chain reuse
-    (:class:`~engine.raytrace.chains.ChainTracer`): uplinks to access points
+    (:class:`~isac_twin.raytrace.chains.ChainTracer`): uplinks to access points
     are traced as downlinks and reversed, and a call whose sources moved
     since the previous one is traced directly (:attr:`direct_calls`).
 
@@ -60,7 +60,7 @@ class SionnaTracer:
         self.config = config or TracerConfig()
         self.on_truncation = on_truncation
         self.core = SolverCore(self.config, legacy=legacy)
-        #: Chain reuse (``tracer.method``; see :mod:`engine.raytrace.chains`),
+        #: Chain reuse (``tracer.method``; see :mod:`isac_twin.raytrace.chains`),
         #: None when tracing directly.
         self.chains = None
         if self.config.uses_chains and not legacy:
@@ -187,4 +187,4 @@ class SionnaTracer:
             lp = link_paths(raw, tgt_names.index(tgt), src_names.index(src), src, tgt,
                             poses[src], poses[tgt], f)
             out[(tx, rx)] = lp.reversed() if (tx, rx) in flipped else lp
-        return out
+        return apply_elements(scene.config, out)

@@ -17,7 +17,7 @@ for every candidate, but only those below the cap are stored;
 generator and counts the stored candidates per source
 (``paths_buffer.source_indices[:paths_counter]``) before the image method
 runs: a source that stored exactly the cap may have lost candidates, and the
-trace is reported as truncated (:func:`engine.raytrace.raw.grow_cap` decides
+trace is reported as truncated (:func:`isac_twin.raytrace.raw.grow_cap` decides
 what happens then).
 
 Speed (see ``bench/bench_retrace.py``). :class:`SolverCore` differs from
@@ -48,9 +48,9 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from engine.config import TracerConfig
-from engine.raytrace.polarization import v_world
-from engine.raytrace.raw import RawPaths, to_points
+from ..scene.config import TracerConfig
+from .polarization import v_world
+from .raw import RawPaths, to_points
 
 __all__ = ["MIN_BUFFER_PER_SRC", "SolverCore", "arrays_to_raw", "basis_patterns",
            "buffer_arrays", "buffer_columns", "buffer_to_numpy", "chain_arrays",
@@ -92,9 +92,9 @@ def spec_table_default(cap: int) -> int:
 
 def load_sionna_rt():
     """``sionna.rt``, imported after Dr.Jit was pointed at an LLVM library."""
-    import engine._llvm
+    from ..utils import llvm
 
-    engine._llvm.configure_llvm()
+    llvm.configure_llvm()
     import sionna.rt as rt
 
     return rt
@@ -144,7 +144,7 @@ def _orient(v, n: int) -> np.ndarray:
 def _with_v(pol, tht, pht, thr, phr, src_i, tgt_i, src_o, tgt_o) -> np.ndarray:
     """Iso V coefficients ``[n]`` of paths with transfer matrices ``pol [n, 2, 2]``
     between devices of orientations ``src_o [S, 3]`` / ``tgt_o [T, 3]``."""
-    from engine.phy.arrays import r_hat
+    from ..phy.arrays import r_hat
 
     if not (np.any(src_o) or np.any(tgt_o)):
         return pol[:, 0, 0].copy()
@@ -194,7 +194,6 @@ def buffer_arrays(buf, src_vel, tgt_vel, wavelength) -> list:
     ``Paths._finalize_doppler_shift_compute``."""
     import drjit as dr
     import mitsuba as mi
-
     from sionna.rt.utils import theta_phi_from_unit_vec
 
     src_i, tgt_i = buf.source_indices, buf.target_indices
@@ -221,7 +220,7 @@ def arrays_to_raw(cols: list[np.ndarray], num_rx: int, num_tx: int, depth: int,
     (the buffer holds the coefficients of :func:`basis_patterns` at both ends
     at orientation zero); ``a`` is the iso V coefficient in the devices'
     orientations ``src_o [T, 3]`` / ``tgt_o [R, 3]`` (Sionna ``[yaw, pitch,
-    roll]``, default 0), see :mod:`engine.raytrace.polarization`.
+    roll]``, default 0), see :mod:`isac_twin.raytrace.polarization`.
     """
     d = max(1, depth)
     (src_i, tgt_i, tau, dop, tht, pht, thr, phr, inter, vx, vy, vz, *parts) = cols
@@ -322,7 +321,7 @@ def basis_patterns() -> list:
     vectors ``(C_theta, C_phi) = (1, 0)`` and ``(0, 1)`` of the local
     spherical basis (exactly; Sionna's ``"VH"`` computes ``cos(pi/2)`` in
     float32). Traced at orientation zero at both ends, the coefficients
-    ``a[i][j]`` are the path's transfer matrix (:mod:`engine.raytrace.polarization`)."""
+    ``a[i][j]`` are the path's transfer matrix (:mod:`isac_twin.raytrace.polarization`)."""
     import drjit as dr
     import mitsuba as mi
 
@@ -474,7 +473,6 @@ class SolverCore:
         from ``pol`` in numpy.
         """
         import drjit as dr
-        import mitsuba as mi
 
         pattern = self.basis_array.antenna_pattern.patterns
         buf = image_and_field(self.solver, buf, mi_scene, wavelength, src, tgt,
@@ -551,7 +549,6 @@ class SolverCore:
                                 cap: int) -> RawPaths:
         import drjit as dr
         import mitsuba as mi
-
         from sionna.rt.path_solvers.paths import Paths
 
         ns, nt = dr.width(src), dr.width(tgt)
@@ -607,7 +604,7 @@ class SolverCore:
             ``[keep, *arrays]``: ``keep`` ``mi.Bool [M (+ S T)]`` marks the
             entries that are paths; ``arrays`` are :func:`buffer_arrays` of all
             entries. Nothing here reads data back to the host, so the call can
-            be frozen (``drjit.freeze``; :class:`~engine.raytrace.chains.ChainTracer`
+            be frozen (``drjit.freeze``; :class:`~isac_twin.raytrace.chains.ChainTracer`
             does for live traces). Same paths, in the same order, as
             Sionna's candidate buffer after its LoS test and ``discard_invalid``.
         """
@@ -634,7 +631,6 @@ def chain_candidates(mi_scene, chains: dict, chain_idx, target_idx, src, tgt, ma
     """
     import drjit as dr
     import mitsuba as mi
-
     from sionna.rt.constants import MIN_SEGMENT_LENGTH
     from sionna.rt.path_solvers.sample_data import SampleData
     from sionna.rt.utils import spawn_ray_to
@@ -709,7 +705,6 @@ def chain_arrays(cols: dict[str, np.ndarray], max_depth: int) -> dict:
     chains when it does); :meth:`SolverCore.evaluate_chains` reads them."""
     import drjit as dr
     import mitsuba as mi
-
     from sionna.rt.constants import INVALID_PRIMITIVE, INVALID_SHAPE, InteractionType
 
     n = max(1024, 1 << len(cols["src"]).bit_length())
@@ -736,7 +731,6 @@ def _chain_buffer(chains: dict, max_depth: int):
     """A ``PathsBuffer`` of :func:`chain_arrays` ``chains``, none valid."""
     import drjit as dr
     import mitsuba as mi
-
     from sionna.rt.path_solvers.paths_buffer import PathsBuffer
 
     n = dr.width(chains["_src_indices"])

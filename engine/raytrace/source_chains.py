@@ -13,7 +13,7 @@ neither sampling nor targets: each ray *branches* at every interaction into
 its specular reflection and its refraction (where enabled), so one ray
 follows every type sequence its directions allow, and every prefix of every
 ray's chain is kept (a path may end after any interaction). A chain is
-identified as Sionna identifies it (:class:`~engine.raytrace.chains.ChainStore`):
+identified as Sionna identifies it (:class:`~isac_twin.raytrace.chains.ChainStore`):
 the interaction types and, per specular reflection, the reflection plane.
 The set is small (about 2,000 chains per access point in the bundled lab at
 depth 3: its 224 triangles form 59 planes) and does not depend on the
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.raytrace.base import INTERACTION_NONE, INTERACTION_REFRACTION, INTERACTION_SPECULAR
+from .base import INTERACTION_NONE, INTERACTION_REFRACTION, INTERACTION_SPECULAR
 
 __all__ = ["MirrorFilter", "fibonacci_directions", "shoot_chains"]
 
@@ -52,7 +52,7 @@ def shoot_chains(mi_scene, planes, sources: np.ndarray, rays: int, max_depth: in
 
     Args:
         mi_scene: the ``mitsuba.Scene``.
-        planes: its :class:`~engine.raytrace.planes.PlaneIndex`.
+        planes: its :class:`~isac_twin.raytrace.planes.PlaneIndex`.
         sources: ``[S, 3]`` m.
         rays: rays per source.
         max_depth: interactions per chain at most (``D``).
@@ -60,7 +60,7 @@ def shoot_chains(mi_scene, planes, sources: np.ndarray, rays: int, max_depth: in
 
     Returns:
         Columns of the chains (``C`` of them), in the layout
-        :meth:`~engine.raytrace.chains.ChainStore.add_columns` takes: ``src [C]``
+        :meth:`~isac_twin.raytrace.chains.ChainStore.add_columns` takes: ``src [C]``
         uint32; ``types, shapes, prims [C, D]`` uint32 (Sionna's shape ids and
         primitive indices of the first ray that followed the chain; unused
         depths are type NONE); ``probs [C, D]`` float32 (1 for each
@@ -70,7 +70,6 @@ def shoot_chains(mi_scene, planes, sources: np.ndarray, rays: int, max_depth: in
     """
     import drjit as dr
     import mitsuba as mi
-
     from sionna.rt.constants import INVALID_PRIMITIVE, INVALID_SHAPE
 
     d_max = max(1, int(max_depth))
@@ -192,10 +191,10 @@ class MirrorFilter:
     reflection always pass.
 
     Args:
-        planes: the scene's :class:`~engine.raytrace.planes.PlaneIndex`.
+        planes: the scene's :class:`~isac_twin.raytrace.planes.PlaneIndex`.
         sources: ``[S, 3]`` m.
         cols: chain columns (``src [C]``, ``types [C, D]``, ``shapes``,
-            ``prims``), e.g. a :class:`~engine.raytrace.chains.ChainStore`'s.
+            ``prims``), e.g. a :class:`~isac_twin.raytrace.chains.ChainStore`'s.
         margin: m added around each plane's box (float32 and Sionna's own
             offsets stay far below it).
     """

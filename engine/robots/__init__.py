@@ -6,18 +6,29 @@ Per twin step (paper, Algorithm 1)::
     msg = sensor.poll(t, state)        # sensors.*: 4. observations (None if not due)
     u = controller(state)              # control.PurePursuit / GoalReacher: 6. next u
 
-or all of it on the bus with :class:`~engine.robots.agent.RobotAgent`.
+or all of it on the bus with :class:`~isac_twin.robots.agent.RobotAgent`.
 """
 
-from engine.robots.agent import (OpenCRStep, RobotAgent, SensorOptions, build_robots,
-                                 cast_scans)
-from engine.robots.control import (CirclePath, FigureEightPath, GoalReacher, PathError,
-                                   PlanarPath, PolylinePath, PurePursuit,
-                                   controller_from_spec)
-from engine.robots.kinematics import (ROBOT_SPECS, DiffDriveRobot, ProcessNoise, RobotSpec,
-                                      KinematicState, SpeedLimitError, robot_spec)
-from engine.robots.sensors import (DepthCamera, ImuNoise, ImuSensor, Lidar2D, WheelEncoders,
-                                   WheelOdometry)
+from ..errors import PathError, SpeedLimitError
+from .agent import OpenCRStep, RobotAgent, SensorOptions, build_robots, cast_scans
+from .control import (
+           CirclePath,
+           FigureEightPath,
+           GoalReacher,
+           PlanarPath,
+           PolylinePath,
+           PurePursuit,
+           controller_from_spec,
+)
+from .kinematics import (
+           ROBOT_SPECS,
+           DiffDriveRobot,
+           KinematicState,
+           ProcessNoise,
+           RobotSpec,
+           robot_spec,
+)
+from .sensors import DepthCamera, ImuNoise, ImuSensor, Lidar2D, WheelEncoders, WheelOdometry
 
 __all__ = ["OpenCRStep", "RobotAgent", "SensorOptions", "build_robots", "cast_scans",
            "CirclePath",

@@ -4,7 +4,7 @@
 
     agent.step(t, dt)        # 1. s_t = f(s_{t-1}, u_{t-1}); 4. sensors -> topics
 
-The command ``u_{t-1}`` is the last :class:`~engine.msgs.Twist` received on
+The command ``u_{t-1}`` is the last :class:`~isac_twin.bus.msgs.Twist` received on
 ``/<name>/cmd_vel`` (from a controller, a teleop node or a real robot's
 bridge); :meth:`RobotAgent.drive` attaches a controller that publishes there
 from the agent's own controller node each step (step 6 of Algorithm 1).
@@ -23,7 +23,7 @@ topic                      type                            publisher
 /<name>/camera/depth       sensor_msgs/msg/Image           robot, when enabled
 =========================  ==============================  ======================
 
-Frame ids follow :mod:`engine.frames` (``<name>/`` prefixed when the twin has
+Frame ids follow :mod:`isac_twin.bus.frames` (``<name>/`` prefixed when the twin has
 several robots); the twin publishes their ``/tf`` and ``/tf_static``.
 """
 
@@ -35,12 +35,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from engine.bus import Bus
-from engine.frames import RobotFrames, robot_prefix
-from engine.msgs import Header, Pose, PoseStamped, Twist
-from engine.robots.kinematics import DiffDriveRobot, ProcessNoise, robot_spec
-from engine.robots.sensors import (DepthCamera, ImuNoise, ImuSensor, Lidar2D, WheelEncoders,
-                                   WheelOdometry, cast_rays)
+from ..bus.bus import Bus
+from ..bus.frames import RobotFrames, robot_prefix
+from ..bus.msgs import Header, Pose, PoseStamped, Twist
+from .kinematics import DiffDriveRobot, ProcessNoise, robot_spec
+from .sensors import (
+    DepthCamera,
+    ImuNoise,
+    ImuSensor,
+    Lidar2D,
+    WheelEncoders,
+    WheelOdometry,
+    cast_rays,
+)
 
 log = logging.getLogger(__name__)
 
@@ -71,16 +78,16 @@ class RobotAgent:
         name: device name (also the topic namespace).
         model: ``"burger"`` or ``"waffle"``.
         pose: initial ``[x, y, z, roll, pitch, yaw]`` (m, rad).
-        bus: the :class:`~engine.bus.Bus` to publish on.
-        scene: the :class:`~engine.scene.TwinScene` (LiDAR/camera ray casting);
+        bus: the :class:`~isac_twin.bus.bus.Bus` to publish on.
+        scene: the :class:`~isac_twin.scene.twin_scene.TwinScene` (LiDAR/camera ray casting);
             ``None`` disables them.
         seed: one seed; the robot and each sensor derive their own streams from it.
         options: :class:`SensorOptions`.
-        frame_prefix: prefix of its frame ids (``"robot1/"``; see :mod:`engine.frames`).
+        frame_prefix: prefix of its frame ids (``"robot1/"``; see :mod:`isac_twin.bus.frames`).
         render_unheard: ray cast the scene sensors (LiDAR, depth camera) even when
             nobody subscribes to their topic. ``False`` (the twin's choice, issue
-            #19): a due scan nobody receives (:meth:`engine.bus.Bus.has_subscribers`)
-            is skipped (:meth:`~engine.robots.sensors.Sensor.skip`: schedule and
+            #19): a due scan nobody receives (:meth:`isac_twin.bus.bus.Bus.has_subscribers`)
+            is skipped (:meth:`~isac_twin.robots.sensors.Sensor.skip`: schedule and
             noise stream advance as if sampled, so a subscriber arriving later gets
             the very scans an always-rendering agent publishes) and is neither
             published nor in :attr:`last`.
@@ -187,7 +194,7 @@ class RobotAgent:
         self.robot.step(self.command, dt)
 
     def place(self, state, t: float) -> dict[str, object]:
-        """Put the robot at ``state`` (a :class:`~engine.robots.kinematics.KinematicState`
+        """Put the robot at ``state`` (a :class:`~isac_twin.robots.kinematics.KinematicState`
         from an outside source, e.g. a recording) at time ``t`` s and publish what a
         placed robot can measure: ``ground_truth`` and the scene sensors (LiDAR, depth
         camera). Wheel encoders, odometry and IMU are not simulated for a placed robot.
@@ -267,12 +274,12 @@ class RobotAgent:
 class OpenCRStep:
     """The twin's robot as the ``step(v, w, dt)`` an emulated OpenCR board drives.
 
-    :class:`engine.devices.emulated_opencr.EmulatedOpenCR` takes a callable
+    :class:`isac_twin.devices.emulated_opencr.EmulatedOpenCR` takes a callable
     ``step(v, w, dt) -> (left_pos, right_pos, left_vel, right_vel, gyro[3],
     accel[3], quat[4])`` (rad, rad/s, rad/s, m/s^2 with gravity, ``[x, y, z, w]``);
     this adapter runs :meth:`DiffDriveRobot.step` (same firmware clamping,
     acceleration limits and process noise as the twin) and reads the IMU
-    through an :class:`~engine.robots.sensors.ImuSensor` (noise-free if none given)::
+    through an :class:`~isac_twin.robots.sensors.ImuSensor` (noise-free if none given)::
 
         board = EmulatedOpenCR(step=OpenCRStep(DiffDriveRobot("burger")), model="burger")
 
@@ -337,9 +344,9 @@ def build_robots(config, bus: Bus, scene=None, *, seed: int = 0,
     """A :class:`RobotAgent` for each ``robot`` device of a twin config.
 
     Args:
-        config: :class:`~engine.config.TwinConfig`.
+        config: :class:`~isac_twin.scene.config.TwinConfig`.
         bus: where the agents' nodes register.
-        scene: :class:`~engine.scene.TwinScene` for LiDAR/camera, or ``None``.
+        scene: :class:`~isac_twin.scene.twin_scene.TwinScene` for LiDAR/camera, or ``None``.
         render_unheard: see :class:`RobotAgent`.
     """
     agents = {}

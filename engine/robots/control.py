@@ -33,15 +33,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from engine.msgs import Twist
-from engine.robots.kinematics import (RobotSpec, KinematicState, SpeedLimitError, make_twist,
-                                      robot_spec, wrap_angle)
+from ..bus.msgs import Twist
+from ..errors import PathError, SpeedLimitError
+from .kinematics import KinematicState, RobotSpec, make_twist, robot_spec, wrap_angle
 
 log = logging.getLogger(__name__)
-
-
-class PathError(ValueError):
-    """A path is malformed, leaves the room, or cannot be followed by the robot."""
 
 
 def _finite_point(p, what: str, n: int = 2) -> np.ndarray:

@@ -45,9 +45,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from engine.addon_shared import schema
-from engine.msgs import Twist
-from engine.pose import rotation_matrix
+from ..bus.msgs import Twist
+from ..contract import schema
+from ..errors import SpeedLimitError
+from ..utils.geometry import rotation_matrix
 
 log = logging.getLogger(__name__)
 
@@ -57,10 +58,6 @@ TICK_RAD = 0.001533981
 MAX_WHEEL_RATE = 337 * 0.229 * 2 * math.pi / 60.0
 #: Standard gravity, m/s^2.
 GRAVITY = 9.80665
-
-
-class SpeedLimitError(ValueError):
-    """A command asked explicitly for a speed or rate the robot cannot reach."""
 
 
 @dataclass(frozen=True)
@@ -113,7 +110,7 @@ class RobotSpec:
 
 def _spec(model: str, **mounts) -> RobotSpec:
     """A model's spec: the body (wheels, footprint, firmware limits) is the shared
-    schema's (``addon/schema.py``), the sensor mounts are the engine's."""
+    schema's (``addon/contract/schema.py``), the sensor mounts are the engine's."""
     body = schema.ROBOT_MODELS[model]
     return RobotSpec(model, body.wheel_radius, body.wheel_separation, body.max_linear,
                      body.max_angular, footprint_radius=body.footprint_radius, **mounts)
@@ -260,7 +257,7 @@ class ProcessNoise:
 
 
 def as_command(u) -> tuple[float, float]:
-    """``(v, w)`` from a :class:`~engine.msgs.Twist` or a 2-sequence (m/s, rad/s)."""
+    """``(v, w)`` from a :class:`~isac_twin.bus.msgs.Twist` or a 2-sequence (m/s, rad/s)."""
     if isinstance(u, Twist):
         v, w = float(u.linear[0]), float(u.angular[2])
     else:
@@ -274,7 +271,7 @@ def as_command(u) -> tuple[float, float]:
 
 
 def make_twist(v: float, w: float) -> Twist:
-    """A :class:`~engine.msgs.Twist` with ``linear.x = v``, ``angular.z = w``."""
+    """A :class:`~isac_twin.bus.msgs.Twist` with ``linear.x = v``, ``angular.z = w``."""
     return Twist(linear=np.array([v, 0.0, 0.0]), angular=np.array([0.0, 0.0, w]))
 
 
@@ -347,7 +344,7 @@ class DiffDriveRobot:
         """Advance the state by ``dt`` s under command ``u`` (eq. 5).
 
         Args:
-            u: a :class:`~engine.msgs.Twist` or ``(v m/s, w rad/s)``; values above
+            u: a :class:`~isac_twin.bus.msgs.Twist` or ``(v m/s, w rad/s)``; values above
                 the limits are clamped like the firmware does.
             dt: step, s (> 0).
             validate: raise :class:`SpeedLimitError` for a command above a limit.
@@ -428,7 +425,7 @@ class PoseObservation:
     """A simple observation model ``g`` (eq. 6): the pose with Gaussian noise.
 
     Stands in for any absolute position fix (e.g. a localization estimate);
-    the richer observations are in :mod:`engine.robots.sensors`.
+    the richer observations are in :mod:`isac_twin.robots.sensors`.
 
     Attributes:
         xy_std: m; yaw_std: rad.

@@ -1,8 +1,8 @@
 """Simulated robot sensors: the observation side ``g`` (paper, eq. 6).
 
 Every sensor has its own rate and its own seeded ``numpy.random.Generator``
-and turns the true :class:`~engine.robots.kinematics.KinematicState` into a ROS
-message (:mod:`engine.msgs`). The common call is::
+and turns the true :class:`~isac_twin.robots.kinematics.KinematicState` into a ROS
+message (:mod:`isac_twin.bus.msgs`). The common call is::
 
     msg = sensor.poll(t, state)   # a message when the sensor is due at t, else None
 
@@ -39,9 +39,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from engine.msgs import Header, Image, Imu, JointState, LaserScan, Odometry, Pose, Twist
-from engine.robots.kinematics import (GRAVITY, TICK_RAD, RobotSpec, KinematicState,
-                                      euler_to_quaternion, robot_spec, wrap_angle)
+from ..bus.msgs import Header, Image, Imu, JointState, LaserScan, Odometry, Pose, Twist
+from .kinematics import (
+    GRAVITY,
+    TICK_RAD,
+    KinematicState,
+    RobotSpec,
+    euler_to_quaternion,
+    robot_spec,
+    wrap_angle,
+)
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +140,7 @@ class WheelEncoders(Sensor):
         ticks: ``[2]`` int64, left/right ``present_position`` (ticks).
         velocity_units: ``[2]`` int64, left/right ``present_velocity`` (0.229 rpm units).
 
-    Message: :class:`~engine.msgs.JointState` with names ``wheel_left_joint``,
+    Message: :class:`~isac_twin.bus.msgs.JointState` with names ``wheel_left_joint``,
     ``wheel_right_joint``, positions in rad (``ticks * TICK_RAD``), velocities in rad/s.
     """
 
@@ -341,7 +348,7 @@ def cast_rays(scene, origins: np.ndarray, directions: np.ndarray
     """Cast ``N`` rays into the scene's geometry in one Mitsuba call.
 
     Args:
-        scene: a :class:`~engine.scene.TwinScene`, ``sionna.rt.Scene`` or Mitsuba scene.
+        scene: a :class:`~isac_twin.scene.twin_scene.TwinScene`, ``sionna.rt.Scene`` or Mitsuba scene.
         origins: ``[N, 3]`` or ``[3]`` (shared), m.
         directions: ``[N, 3]`` unit vectors.
 
@@ -396,7 +403,7 @@ class Lidar2D(Sensor):
     grazing incidence (``cos_inc < min_cos_incidence``) are lost.
 
     Args:
-        scene: :class:`~engine.scene.TwinScene` (or sionna/Mitsuba scene); the
+        scene: :class:`~isac_twin.scene.twin_scene.TwinScene` (or sionna/Mitsuba scene); the
             Mitsuba scene is first used at the first scan, so a scene loaded
             with ``load_sionna=False`` is fine until then.
         spec: robot model (for the mount).
@@ -475,7 +482,7 @@ class DepthCamera(Sensor):
     """A small pinhole depth camera (OAK-D stereo-depth-like), off by default.
 
     When ``enabled``, each sample ray-casts a ``height x width`` image in one
-    Mitsuba call and returns a ``16UC1`` :class:`~engine.msgs.Image` of depth
+    Mitsuba call and returns a ``16UC1`` :class:`~isac_twin.bus.msgs.Image` of depth
     along the optical axis in millimetres (0 = no return / beyond
     ``range_max``), as the OAK-D publishes depth. Disabled, :meth:`poll`
     returns ``None`` and costs nothing. No RGB image is rendered.

@@ -6,9 +6,9 @@
 ``docs/scaleout.md``.
 """
 
-from engine.scaleout.checkpoint import TileCheckpoints, checkpoint_dir, checkpoint_key
-from engine.scaleout.cluster import check_cluster_args, cluster_client, trace_grid_tiled
-from engine.scaleout.tiles import GridPlan, TileJob, plan_grid, trace_tile
+from .checkpoint import TileCheckpoints, checkpoint_dir, checkpoint_key
+from .cluster import check_cluster_args, cluster_client, trace_grid_tiled
+from .tiles import GridPlan, TileJob, plan_grid, trace_tile
 
 __all__ = ["trace_grid_tiled", "cluster_client", "check_cluster_args",
            "TileCheckpoints", "checkpoint_dir", "checkpoint_key",

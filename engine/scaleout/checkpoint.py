@@ -8,7 +8,7 @@ state or other settings is never mixed in: it lives under another key. A rerun
 with the same key loads the finished tiles and traces only the missing ones.
 The folder is removed when the output file is written.
 
-Tile files are written atomically (:func:`engine.npzfile.write_npz`), so an
+Tile files are written atomically (:func:`isac_twin.utils.npzfile.write_npz`), so an
 interrupted write leaves no half tile; a tile file that cannot be read (or
 holds another tile's points) is traced again, with a warning naming it.
 """
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.npzfile import read_npz, write_npz
+from ..utils.npzfile import read_npz, write_npz
 
 log = logging.getLogger(__name__)
 

@@ -1,9 +1,9 @@
 """Trace a floor grid on a Dask cluster: tiles out, arrays back, one grid file.
 
-:func:`trace_grid_tiled` is :func:`engine.raytrace.grid.trace_grid` (chain
-reuse) with the free points split into tiles (:mod:`engine.scaleout.tiles`)
+:func:`trace_grid_tiled` is :func:`isac_twin.raytrace.grid.trace_grid` (chain
+reuse) with the free points split into tiles (:mod:`isac_twin.scaleout.tiles`)
 that the workers of a ``distributed.Client`` trace; the client assembles the
-same :class:`~engine.raytrace.grid.PathGrid` (arrays and metadata) that the
+same :class:`~isac_twin.raytrace.grid.PathGrid` (arrays and metadata) that the
 single-process trace gives. :func:`cluster_client` starts a local cluster of
 ``N`` spawned single-threaded worker processes or connects to a scheduler.
 
@@ -14,13 +14,13 @@ Nothing is lost:
   deaths per task, then ``KilledWorker``); a local cluster's nanny restarts
   the dead worker process;
 - every finished tile is written to a checkpoint folder
-  (:mod:`engine.scaleout.checkpoint`), so a build that was interrupted
+  (:mod:`isac_twin.scaleout.checkpoint`), so a build that was interrupted
   (Ctrl-C, the client machine rebooted) resumes with the missing tiles only;
 - a tqdm progress bar counts finished tiles.
 
 Each AP's chains are enumerated once, by one worker, and sent to every
-worker (:mod:`engine.scaleout.shared_chains`). The ``verify`` re-trace runs on
-the workers too, point by point (:func:`~engine.raytrace.grid.verify_point`:
+worker (:mod:`isac_twin.scaleout.shared_chains`). The ``verify`` re-trace runs on
+the workers too, point by point (:func:`~isac_twin.raytrace.grid.verify_point`:
 the points ``trace_grid`` picks, the same counts in ``meta["verification"]``),
 each point's task submitted as soon as its tile is back.
 
@@ -43,21 +43,37 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.config import TracerConfig
-from engine.raytrace.chains import CHAIN_REUSE_VERSION
-from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_SPEC_TABLE_SIZE, VERIFY_TOP_N,
-                                  PathGrid, assemble_grid, grid_metadata, save_grid,
-                                  verification_summary, verify_pick)
-from engine.scaleout.checkpoint import TileCheckpoints, checkpoint_key
-from engine.scaleout.tiles import (DEFAULT_WORKER_THREADS, GridPlan, TileJob, plan_grid,
-                                   point_paths, scene_folder, shoot_source, trace_tile,
-                                   verify_points)
+from ..raytrace.chains import CHAIN_REUSE_VERSION
+from ..raytrace.grid import (
+    CHAIN_CHUNK_SIZE,
+    GRID_SPEC_TABLE_SIZE,
+    VERIFY_TOP_N,
+    PathGrid,
+    assemble_grid,
+    grid_metadata,
+    save_grid,
+    verification_summary,
+    verify_pick,
+)
+from ..scene.config import TracerConfig
+from .checkpoint import TileCheckpoints, checkpoint_key
+from .tiles import (
+    DEFAULT_WORKER_THREADS,
+    GridPlan,
+    TileJob,
+    plan_grid,
+    point_paths,
+    scene_folder,
+    shoot_source,
+    trace_tile,
+    verify_points,
+)
 
 log = logging.getLogger(__name__)
 
-#: The worker preload module (:mod:`engine.scaleout.preload`): local workers
+#: The worker preload module (:mod:`isac_twin.scaleout.preload`): local workers
 #: import the tracer stack when they start, not in their first tile.
-PRELOAD = "engine.scaleout.preload"
+PRELOAD = "isac_twin.scaleout.preload"
 
 
 def check_cluster_args(workers: int | None, scheduler: str | None) -> None:
@@ -143,11 +159,11 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
     """Trace a floor grid on the workers of ``client`` (see the module doc).
 
     Args:
-        scene: the :class:`~engine.scene.TwinScene`; workers load its folder
+        scene: the :class:`~isac_twin.scene.twin_scene.TwinScene`; workers load its folder
             (same path on every worker) and must get the same content hash.
         tx_names, spacing (m), height (m), margin (m), config, keep_strongest,
             method, deterministic, chunk_size: as
-            :func:`~engine.raytrace.grid.trace_grid` (``method`` must be chain reuse).
+            :func:`~isac_twin.raytrace.grid.trace_grid` (``method`` must be chain reuse).
         max_cap: accepted for ``trace_grid``'s signature; chain reuse has no
             candidate buffer, so there is no cap to grow.
         client: a ``distributed.Client`` (see :func:`cluster_client`).
@@ -157,22 +173,22 @@ def trace_grid_tiled(scene, tx_names: Sequence[str] | None = None, spacing: floa
             3-6 of 6,144 links differ by a path when 3,072 points are traced
             in calls of other points), so tiles keep ``trace_grid``'s chunks,
             and the last full chunk is split between tiles only at
-            image-method call boundaries (:data:`~engine.scaleout.tiles.TAIL_PARTS`).
+            image-method call boundaries (:data:`~isac_twin.scaleout.tiles.TAIL_PARTS`).
         checkpoints: the checkpoint folder (None: no checkpoints); finished
             tiles are kept there until the grid is complete.
         progress: tqdm progress bar over tiles.
         worker_threads: Dr.Jit threads per worker process.
         verify, verify_top: as ``trace_grid``'s (the same points re-traced
-            directly and compared, :func:`~engine.raytrace.grid.verify_point`,
+            directly and compared, :func:`~isac_twin.raytrace.grid.verify_point`,
             on the workers: a point's task is submitted when its tile is
             back); default 0 (none).
         out: also write the grid NPZ there.
         on_tile: called in the client with each finished tile's summary
             (``index``, ``pid``, ``chains``, ``setup_s``, ``trace_s``, ``start``,
-            ``end``: see :func:`~engine.scaleout.tiles.trace_tile`) as it arrives.
+            ``end``: see :func:`~isac_twin.scaleout.tiles.trace_tile`) as it arrives.
 
     Returns:
-        The :class:`~engine.raytrace.grid.PathGrid`.
+        The :class:`~isac_twin.raytrace.grid.PathGrid`.
 
     Raises:
         ValueError: bad arguments, an ``sbr`` method, or a worker whose scene
@@ -334,7 +350,7 @@ def worker_runs(runs: list[dict]) -> list[dict]:
 
 def assemble(plan: GridPlan, tiles: list[tuple[np.ndarray, list[dict]]],
              depth: int) -> dict[str, np.ndarray]:
-    """The grid arrays (:data:`~engine.raytrace.grid.GRID_ARRAYS`) from traced tiles.
+    """The grid arrays (:data:`~isac_twin.raytrace.grid.GRID_ARRAYS`) from traced tiles.
 
     Args:
         plan: the raster.

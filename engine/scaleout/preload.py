@@ -8,10 +8,10 @@ workers (it lowers the N-vs-1 speed-up). Imported at worker start, it is part
 of starting the worker instead, which a long-lived cluster pays once for all
 grids.
 
-:func:`engine.scaleout.cluster.cluster_client` starts local workers with this
+:func:`isac_twin.scaleout.cluster.cluster_client` starts local workers with this
 preload; on a cluster of your own, give it to every worker::
 
-    dask worker tcp://head:8786 --nworkers 1 --nthreads 1 --preload engine.scaleout.preload
+    dask worker tcp://head:8786 --nworkers 1 --nthreads 1 --preload isac_twin.scaleout.preload
 
 (without it the tiles are the same, the first one only slower). Dask calls
 :func:`dask_setup` with the worker after importing this module.
@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import time
 
-from engine.scaleout.tiles import DEFAULT_WORKER_THREADS
+from .tiles import DEFAULT_WORKER_THREADS
 
 log = logging.getLogger(__name__)
 
@@ -32,7 +32,7 @@ def warm(threads: int = DEFAULT_WORKER_THREADS) -> float:
 
     Args:
         threads: Dr.Jit worker threads of this process (a tile's
-            :class:`~engine.scaleout.tiles.TileJob` sets its own again).
+            :class:`~isac_twin.scaleout.tiles.TileJob` sets its own again).
 
     Returns:
         Seconds it took.
@@ -40,8 +40,8 @@ def warm(threads: int = DEFAULT_WORKER_THREADS) -> float:
     t = time.perf_counter()
     import drjit as dr
 
-    from engine.raytrace import chains, grid, solver_core  # noqa: F401
-    from engine.scene import load_scene  # noqa: F401
+    from ..raytrace import chains, grid, solver_core  # noqa: F401
+    from ..scene.twin_scene import load_scene  # noqa: F401
 
     solver_core.load_sionna_rt()
     dr.set_thread_count(int(threads))

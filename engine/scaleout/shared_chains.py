@@ -1,22 +1,22 @@
 """The transmitters' chains of a tiled grid: each AP's shot once, on one worker, used by all.
 
-Chain reuse (:mod:`engine.raytrace.chains`) enumerates every specular chain
+Chain reuse (:mod:`isac_twin.raytrace.chains`) enumerates every specular chain
 of the sources before it evaluates any receiver: ~0.65 s per AP in the bundled
 lab on one core. When every worker enumerated every AP's chains, that was
 time on a 2-worker build's critical path that a 1-worker build pays only
 once (the lab's 2 APs: ~1.3 s of a ~17 s build). Now the client submits one
-task per AP (:func:`~engine.scaleout.tiles.shoot_source`), which a worker runs after loading the
+task per AP (:func:`~isac_twin.scaleout.tiles.shoot_source`), which a worker runs after loading the
 scene; every tile task takes all of their results, so Dask sends each AP's
 chains to each worker once (and keeps them there while the build runs), and
-the worker hands them to its :class:`~engine.raytrace.chains.ChainTracer`
-(:meth:`~engine.raytrace.chains.ChainTracer.use_chains`) instead of shooting.
+the worker hands them to its :class:`~isac_twin.raytrace.chains.ChainTracer`
+(:meth:`~isac_twin.raytrace.chains.ChainTracer.use_chains`) instead of shooting.
 
 A chain names the triangle of each specular reflection by Mitsuba's shape id,
 which is a number of the *process* (the registry id of the shape object: a
 process that loaded another scene before numbers shapes otherwise). Between
 processes chains travel *portable* (:func:`portable`): each specular
 interaction by its reflection plane's index in the scene's
-:class:`~engine.raytrace.planes.PlaneIndex` (scene order, the same in every
+:class:`~isac_twin.raytrace.planes.PlaneIndex` (scene order, the same in every
 process that loads the same scene folder), turned back into the receiving
 process's canonical triangle of that plane (:func:`local`). The plane table's
 signature travels with them, and a worker whose planes differ refuses them.
@@ -34,13 +34,13 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from engine.raytrace.base import INTERACTION_SPECULAR
+from ..raytrace.base import INTERACTION_SPECULAR
 
 __all__ = ["local", "merge", "plane_signature", "portable"]
 
 
 def plane_signature(planes) -> str:
-    """A digest of a :class:`~engine.raytrace.planes.PlaneIndex`'s planes in
+    """A digest of a :class:`~isac_twin.raytrace.planes.PlaneIndex`'s planes in
     order (count, canonical points, normals, offsets): equal in two processes
     that loaded the same scene."""
     h = hashlib.sha1(str(planes.num_planes).encode())
@@ -51,7 +51,7 @@ def plane_signature(planes) -> str:
 
 
 def portable(columns: dict[str, np.ndarray], planes) -> dict:
-    """Chains of this process (:meth:`~engine.raytrace.chains.ChainStore.columns`
+    """Chains of this process (:meth:`~isac_twin.raytrace.chains.ChainStore.columns`
     layout, specular interactions on their plane's canonical triangle) in a
     form any process with the same scene can use.
 

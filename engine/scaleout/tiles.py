@@ -1,6 +1,6 @@
 """Tiles of a floor grid and how one worker process traces a tile.
 
-The client lays out the same raster as :func:`engine.raytrace.grid.trace_grid`
+The client lays out the same raster as :func:`isac_twin.raytrace.grid.trace_grid`
 (:func:`plan_grid`: cell-centred points of the room's bounding box, the free
 ones found by Mitsuba's up/down ray test) and splits the free points, in
 index order, into tiles of ``tile_size`` points (:attr:`GridPlan.tiles`).
@@ -10,18 +10,18 @@ with whole chunks only, the lab's 5 cm grid (16 chunks and one of 764 points)
 keeps one of 2 workers busy for 8.75 chunks while the other is idle after 8.
 
 A worker traces a tile with :func:`trace_tile`: the scene folder is loaded
-once per worker process and kept with its :class:`~engine.raytrace.chains.ChainTracer`
+once per worker process and kept with its :class:`~isac_twin.raytrace.chains.ChainTracer`
 in a module-level cache keyed by the scene's content hash and the tracer
 settings (:func:`worker_state`); a folder on the worker that hashes otherwise
 than the client's scene is refused. The tile is traced exactly as
 ``trace_grid`` traces a chunk with chain reuse: the same
-:class:`~engine.raytrace.solver_core.SolverCore` settings,
+:class:`~isac_twin.raytrace.solver_core.SolverCore` settings,
 ``ChainTracer.trace`` over chunks of
-:data:`~engine.raytrace.grid.CHAIN_CHUNK_SIZE` points, then
-:func:`~engine.raytrace.grid.sorted_chunk`. Chain reuse gives every receiver
+:data:`~isac_twin.raytrace.grid.CHAIN_CHUNK_SIZE` points, then
+:func:`~isac_twin.raytrace.grid.sorted_chunk`. Chain reuse gives every receiver
 every chain of the transmitters (each AP's enumerated once, without sampling,
 by one worker's :func:`shoot_source`, and used by every worker:
-:mod:`engine.scaleout.shared_chains`), so a point's paths do not depend on
+:mod:`isac_twin.scaleout.shared_chains`), so a point's paths do not depend on
 which other tiles the process traced before; tiles are whole ``trace_grid`` chunks so that every point
 shares its image-method calls with the same points as in one process (the
 equality test in ``tests/engine/scaleout/test_cluster.py`` checks it against
@@ -30,7 +30,7 @@ the single-process grid). Shoot-and-bounce per receiver (``method = "sbr"``) is 
 
 Worker processes must be *spawned*, not forked, after Dr.Jit initialised
 (Dask's default ``distributed.worker.multiprocessing-method`` is ``spawn``;
-:func:`engine.scaleout.cluster.local_cluster` sets it explicitly).
+:func:`isac_twin.scaleout.cluster.local_cluster` sets it explicitly).
 """
 
 from __future__ import annotations
@@ -44,12 +44,17 @@ from pathlib import Path
 
 import numpy as np
 
-from engine.config import TracerConfig
-from engine.raytrace.base import device_poses, sionna_orientation, validate_poses
-from engine.raytrace.chains import MAX_PAIRS_PER_CALL
-from engine.raytrace.grid import (CHAIN_CHUNK_SIZE, GRID_ARRAYS, GRID_SPEC_TABLE_SIZE, grid_points,
-                                  sorted_chunk)
-from engine.scaleout.shared_chains import local, merge, portable
+from ..raytrace.base import device_poses, sionna_orientation, validate_poses
+from ..raytrace.chains import MAX_PAIRS_PER_CALL
+from ..raytrace.grid import (
+    CHAIN_CHUNK_SIZE,
+    GRID_ARRAYS,
+    GRID_SPEC_TABLE_SIZE,
+    grid_points,
+    sorted_chunk,
+)
+from ..scene.config import TracerConfig
+from .shared_chains import local, merge, portable
 
 log = logging.getLogger(__name__)
 
@@ -68,12 +73,12 @@ class TileJob:
 
     Attributes:
         scene_folder: the scene folder (the same path on every worker).
-        scene_hash: the client's :meth:`~engine.scene.TwinScene.content_hash`.
+        scene_hash: the client's :meth:`~isac_twin.scene.twin_scene.TwinScene.content_hash`.
         config: tracer settings.
         src: ``[S, 3]`` m transmitter positions.
         src_orient: ``[S, 3]`` rad Sionna ``[yaw, pitch, roll]`` of the transmitters.
         deterministic: ``SolverCore(deterministic=...)``.
-        spec_table_size: see :func:`~engine.raytrace.grid.trace_grid`.
+        spec_table_size: see :func:`~isac_twin.raytrace.grid.trace_grid`.
         keep_strongest: paths kept per point and transmitter (None: all).
         chunk_size: points per ``ChainTracer.trace`` call.
         worker_threads: Dr.Jit threads of a worker process.
@@ -177,7 +182,7 @@ def plan_grid(scene, tx_names: Sequence[str] | None, spacing: float, height: flo
         ValueError: bad spacing or tile size, no transmitters, a bad pose, or a
             method other than chain reuse (``"sbr"`` is traced in one process only).
     """
-    from engine.raytrace.raw import free_points
+    from ..raytrace.raw import free_points
 
     cfg = scene.config
     if not (spacing > 0 and np.isfinite(spacing)):
@@ -237,9 +242,9 @@ def worker_state(job: TileJob):
     _STATE.clear()
     import drjit as dr
 
-    from engine.raytrace.chains import ChainTracer
-    from engine.raytrace.solver_core import SolverCore
-    from engine.scene import load_scene
+    from ..raytrace.chains import ChainTracer
+    from ..raytrace.solver_core import SolverCore
+    from ..scene.twin_scene import load_scene
 
     dr.set_thread_count(int(job.worker_threads))
     scene = load_scene(job.scene_folder)
@@ -258,7 +263,7 @@ def worker_state(job: TileJob):
 
 def shoot_source(job: TileJob, source: int) -> dict:
     """Enumerate the chains of transmitter ``source`` of ``job`` in this worker
-    process, for every worker's tiles (:mod:`engine.scaleout.shared_chains`).
+    process, for every worker's tiles (:mod:`isac_twin.scaleout.shared_chains`).
 
     The chains are those ``ChainTracer.trace`` enumerates for this source in a
     grid trace: the same tracer settings, the source at its float32 position
@@ -274,7 +279,7 @@ def shoot_source(job: TileJob, source: int) -> dict:
     """
     import time
 
-    from engine.raytrace.chains import ChainTracer
+    from ..raytrace.chains import ChainTracer
 
     start, t = time.time(), time.perf_counter()
     s = int(source)
@@ -297,7 +302,7 @@ def shoot_source(job: TileJob, source: int) -> dict:
 def use_shipped_chains(scene, ct, job: TileJob, shot: Sequence[dict]) -> None:
     """Give the chain tracer ``ct`` of this process the chains of every
     transmitter of ``job`` (:func:`shoot_source`'s results, any order)."""
-    from engine.raytrace.planes import PlaneIndex
+    from ..raytrace.planes import PlaneIndex
 
     have = sorted(int(r["source"]) for r in shot)
     if have != list(range(len(job.src))):
@@ -396,7 +401,7 @@ def point_paths(parts: Sequence[dict], j: int) -> dict[str, np.ndarray]:
 def verify_points(job: TileJob, index: Sequence[int], points: np.ndarray,
                   stored: Sequence[dict], top_n: int) -> dict:
     """Re-trace grid points directly in this worker process and compare with
-    their traced paths (:func:`~engine.raytrace.grid.verify_point`, as
+    their traced paths (:func:`~isac_twin.raytrace.grid.verify_point`, as
     ``trace_grid``'s verification: the same solver settings).
 
     Args:
@@ -412,7 +417,7 @@ def verify_points(job: TileJob, index: Sequence[int], points: np.ndarray,
     """
     import time
 
-    from engine.raytrace.grid import verify_point
+    from ..raytrace.grid import verify_point
 
     t = time.perf_counter()
     scene, ct = worker_state(job)
@@ -444,8 +449,8 @@ def image_method_calls(pairs: Sequence[int], max_pairs: int) -> list[tuple[int, 
 
 
 def storage_dtypes(part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """A :func:`~engine.raytrace.grid.sorted_chunk` part cast to the dtypes of
-    the grid file (:data:`~engine.raytrace.grid.GRID_ARRAYS`: ``a`` complex64,
+    """A :func:`~isac_twin.raytrace.grid.sorted_chunk` part cast to the dtypes of
+    the grid file (:data:`~isac_twin.raytrace.grid.GRID_ARRAYS`: ``a`` complex64,
     angles float32, ``interactions`` uint8), as the assembly casts it anyway:
     the same values, ~30 % fewer bytes to send and to checkpoint."""
     return {k: v.astype(GRID_ARRAYS[k][0], copy=False) if k in GRID_ARRAYS else v

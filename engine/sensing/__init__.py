@@ -1,28 +1,27 @@
 """ISAC sensing: radar on the twin's OFDM resource grid (issue #8).
 
-Modules: :mod:`~engine.sensing.radar` (OFDM radar processing: range-Doppler
+Modules: :mod:`~isac_twin.sensing.radar` (OFDM radar processing: range-Doppler
 map, CA-CFAR, super-resolution refinement, angle of arrival),
-:mod:`~engine.sensing.link` (sensing links, sensing REs, ``y = H x + z``),
-:mod:`~engine.sensing.tracer` (echo / clutter paths with Sionna's RCS
-solver), :mod:`~engine.sensing.clutter` (background subtraction),
-:mod:`~engine.sensing.geometry` (range ellipse x angle),
-:mod:`~engine.sensing.tracker` (constant-velocity Kalman tracker),
-:mod:`~engine.sensing.estimator` (``RadarEstimator`` for ``Twin``),
-:mod:`~engine.sensing.isac` (rate vs sensing trade-off),
-:mod:`~engine.sensing.msgs` (``isac_twin_msgs/msg/Detections``),
-:mod:`~engine.sensing.config` (``[[sensing]]`` tables).
+:mod:`~isac_twin.sensing.link` (sensing links, sensing REs, ``y = H x + z``),
+:mod:`~isac_twin.sensing.tracer` (echo / clutter paths with Sionna's RCS
+solver), :mod:`~isac_twin.sensing.clutter` (background subtraction),
+:mod:`~isac_twin.sensing.geometry` (range ellipse x angle),
+:mod:`~isac_twin.sensing.tracker` (constant-velocity Kalman tracker),
+:mod:`~isac_twin.sensing.estimator` (``RadarEstimator`` for ``Twin``),
+:mod:`~isac_twin.sensing.isac` (rate vs sensing trade-off),
+:mod:`~isac_twin.sensing.msgs` (``isac_twin_msgs/msg/Detections``),
+:mod:`~isac_twin.sensing.config` (``[[sensing]]`` tables).
 
-Only :mod:`~engine.sensing.tracer` and the estimator need Sionna.
+Only :mod:`~isac_twin.sensing.tracer` and the estimator need Sionna.
 """
 
-from engine.sensing.clutter import BackgroundSubtractor
-from engine.sensing.geometry import locate
-from engine.sensing.link import (SensingLinkSpec, SensingReceiver, echo_channel,
-                                 sensing_resource_set)
-from engine.sensing.msgs import DETECTIONS_TOPIC, Detections
-from engine.sensing.radar import (Detection, OFDMRadar, RangeDopplerMap, SensingError, ca_cfar,
-                                  os_cfar)
-from engine.sensing.tracker import KalmanTracker, Track
+from ..errors import SensingError
+from .clutter import BackgroundSubtractor
+from .geometry import locate
+from .link import SensingLinkSpec, SensingReceiver, echo_channel, sensing_resource_set
+from .msgs import DETECTIONS_TOPIC, Detections
+from .radar import Detection, OFDMRadar, RangeDopplerMap, ca_cfar, os_cfar
+from .tracker import KalmanTracker, Track
 
 __all__ = [
     "OFDMRadar", "RangeDopplerMap", "Detection", "SensingError", "ca_cfar", "os_cfar",
@@ -34,7 +33,7 @@ __all__ = [
 
 def __getattr__(name):  # lazy: the estimator imports the Sionna tracer
     if name == "RadarEstimator":
-        from engine.sensing.estimator import RadarEstimator
+        from .estimator import RadarEstimator
 
         return RadarEstimator
     raise AttributeError(name)

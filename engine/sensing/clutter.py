@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.sensing.radar import SensingError
+from ..errors import SensingError
 
 __all__ = ["BackgroundSubtractor"]
 

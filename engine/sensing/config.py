@@ -1,7 +1,7 @@
 """Typed ``[[sensing]]`` tables -> :class:`SensingLinkSpec` list.
 
-The tables are parsed and validated once, by :mod:`engine.config`, into
-:class:`engine.config.SensingConfig` (``TwinConfig.sensing``); this module only
+The tables are parsed and validated once, by :mod:`isac_twin.scene.config`, into
+:class:`isac_twin.scene.config.SensingConfig` (``TwinConfig.sensing``); this module only
 adds what the radar needs from the devices (the receive array and its
 orientation). Keys of one table::
 
@@ -21,9 +21,9 @@ orientation). Keys of one table::
 
 from __future__ import annotations
 
-from engine.config import SENSING_KEYS, SensingConfig, TwinConfig
-from engine.phy.arrays import PlanarArray
-from engine.sensing.link import SensingLinkSpec
+from ..phy.arrays import PlanarArray
+from ..scene.config import SENSING_KEYS, SensingConfig, TwinConfig
+from .link import SensingLinkSpec
 
 __all__ = ["parse_sensing", "link_spec", "SENSING_KEYS"]
 

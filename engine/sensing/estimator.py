@@ -2,14 +2,14 @@
 
 Each step, for every sensing link: robots (and tagged objects) are posed as
 sensing targets, echo + clutter paths are traced
-(:class:`~engine.sensing.tracer.SensingTracer`), the eq.-4 channel is
+(:class:`~isac_twin.sensing.tracer.SensingTracer`), the eq.-4 channel is
 synthesised, the sensing REs are received with noise (``y = H x + z``),
 divided by the known symbols, background-subtracted and processed by
-:class:`~engine.sensing.radar.OFDMRadar`; detections are geolocated
+:class:`~isac_twin.sensing.radar.OFDMRadar`; detections are geolocated
 (range ellipse x azimuth) and fed to one multi-target
-:class:`~engine.sensing.tracker.KalmanTracker`. Detections and confirmed
+:class:`~isac_twin.sensing.tracker.KalmanTracker`. Detections and confirmed
 tracks are published on ``/sensing/detections``
-(:class:`~engine.sensing.msgs.Detections`) and stored on the step result as
+(:class:`~isac_twin.sensing.msgs.Detections`) and stored on the step result as
 ``result.sensing`` (a :class:`SensingStep`).
 """
 
@@ -20,16 +20,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.phy.ofdm import ResourceGrid
-from engine.phy.threads import one_blas_thread
-from engine.pose import DevicePose, sionna_orientation
-from engine.sensing.clutter import BackgroundSubtractor
-from engine.sensing.geometry import locate
-from engine.sensing.link import SensingLinkSpec, SensingReceiver, echo_channel
-from engine.sensing.msgs import DETECTIONS_TOPIC, Detections, advertise
-from engine.sensing.radar import OFDMRadar, SensingError
-from engine.sensing.tracer import BURGER_SIZE, SensingTracer, TargetSpec
-from engine.sensing.tracker import KalmanTracker, Track
+from ..errors import SensingError
+from ..phy.ofdm import ResourceGrid
+from ..utils.geometry import DevicePose, sionna_orientation
+from ..utils.threads import one_blas_thread
+from .clutter import BackgroundSubtractor
+from .geometry import locate
+from .link import SensingLinkSpec, SensingReceiver, echo_channel
+from .msgs import DETECTIONS_TOPIC, Detections, advertise
+from .radar import OFDMRadar
+from .tracer import BURGER_SIZE, SensingTracer, TargetSpec
+from .tracker import KalmanTracker, Track
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +55,7 @@ class SensingStep:
         truth: target name -> ``[3]`` centre (m) used for the echo.
         step, time_s: the twin step that was sensed and its time (s); a frame
             computed off the stepping thread is delivered on a later step
-            (:class:`~engine.sensing.worker.SensingWorker`).
+            (:class:`~isac_twin.sensing.worker.SensingWorker`).
     """
 
     detections: dict = field(default_factory=dict)
@@ -156,12 +157,12 @@ class RadarEstimator:
     # ------------------------------------------------------------------ setup
 
     def setup(self, scene) -> None:
-        """Trace on ``scene`` (a :class:`~engine.scene.TwinScene`; its config
+        """Trace on ``scene`` (a :class:`~isac_twin.scene.twin_scene.TwinScene`; its config
         names the devices and the grid): a new tracer, receivers and
         background per link (called by the first :meth:`prepare` with the
         twin's scene, and by the radar's process with its replica)."""
         if self.links is None:
-            from engine.sensing.config import parse_sensing
+            from .config import parse_sensing
 
             self.links = parse_sensing(scene.config)
         if not self.links:

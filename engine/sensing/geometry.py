@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.optimize
 
-from engine.phy.arrays import r_hat
+from ..phy.arrays import r_hat
 
 __all__ = ["locate"]
 

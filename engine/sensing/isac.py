@@ -1,9 +1,9 @@
 """ISAC trade-off: a share ``rho`` of the REs carries sensing symbols, the rest data.
 
 For a transmitter whose REs are split into a sensing comb
-(:func:`~engine.sensing.link.sensing_resource_set`) and data (the
+(:func:`~isac_twin.sensing.link.sensing_resource_set`) and data (the
 complement), :func:`data_rate` gives the achievable rate of a
-communication link on the data REs (``engine.phy.AchievableRate``, MRT
+communication link on the data REs (``isac_twin.phy.AchievableRate``, MRT
 beamforming, the per-RE power ``P / (K N)`` of the whole grid, so sensing
 and data share one power spectral density) and :func:`sensing_rmse`
 the position error of the radar on the sensing REs.
@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from engine.phy.arrays import PlanarArray
-from engine.phy.channel import OFDMChannel, baseband_gains
-from engine.phy.link import AchievableRate, MRTPrecoder
-from engine.phy.ofdm import ResourceGrid
-from engine.phy.units import dbm_to_watt, thermal_noise_power
-from engine.pose import sionna_orientation
-from engine.raytrace.base import LinkPaths
-from engine.sensing.link import sensing_resource_set
+from ..phy.arrays import PlanarArray
+from ..phy.channel import OFDMChannel, baseband_gains
+from ..phy.link import AchievableRate, MRTPrecoder
+from ..phy.ofdm import ResourceGrid
+from ..phy.units import dbm_to_watt, thermal_noise_power
+from ..raytrace.base import LinkPaths
+from ..utils.geometry import sionna_orientation
+from .link import sensing_resource_set
 
 __all__ = ["data_rate", "comm_channel"]
 

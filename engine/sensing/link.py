@@ -18,13 +18,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.phy.arrays import PlanarArray
-from engine.phy.channel import OFDMChannel, baseband_gains
-from engine.phy.ofdm import ResourceGrid, ResourceSet
-from engine.phy.units import dbm_to_watt, thermal_noise_power
-from engine.pose import sionna_orientation
-from engine.raytrace.base import LinkPaths
-from engine.sensing.radar import SensingError
+from ..errors import SensingError
+from ..phy.arrays import PlanarArray
+from ..phy.channel import OFDMChannel, baseband_gains
+from ..phy.ofdm import ResourceGrid, ResourceSet
+from ..phy.units import dbm_to_watt, thermal_noise_power
+from ..raytrace.base import LinkPaths
+from ..utils.geometry import sionna_orientation
 
 __all__ = ["SensingLinkSpec", "sensing_resource_set", "echo_channel", "SensingReceiver"]
 
@@ -67,7 +67,7 @@ class SensingLinkSpec:
         target_height_m: geolocate on the plane ``z = target_height_m``
             (robots drive on the floor; None: use the full 3-D direction).
         every: sense every this many twin steps (1: every step).
-        range_method: :class:`~engine.sensing.radar.OFDMRadar` range method
+        range_method: :class:`~isac_twin.sensing.radar.OFDMRadar` range method
             (``radar_kw`` of the estimator overrides it).
     """
 

@@ -3,9 +3,9 @@
 ``isac_twin_msgs/msg/Detections``: one step's radar detections and the
 tracker's confirmed tracks, published by the twin's ``[[sensing]]`` radar on
 :data:`DETECTIONS_TOPIC`. :func:`register` adds it to
-:data:`engine.msgs.MESSAGE_TYPES` (so :func:`engine.bus.resolve_type` accepts
-the class and its ROS name) without editing ``engine/msgs.py``; its CDR
-mapping (MCAP, zenoh) is :mod:`engine.transport.sensing_cdr`, which registers
+:data:`isac_twin.bus.msgs.MESSAGE_TYPES` (so :func:`isac_twin.bus.bus.resolve_type` accepts
+the class and its ROS name) without editing ``engine/bus/msgs.py``; its CDR
+mapping (MCAP, zenoh) is :mod:`isac_twin.transport.sensing_cdr`, which registers
 it on import. :func:`advertise` puts the topic on a bus.
 """
 
@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.msgs import MESSAGE_TYPES, Header
+from ..bus.msgs import MESSAGE_TYPES, Header
 
 __all__ = ["Detections", "DETECTIONS_TOPIC", "MSG_DEFINITION", "register", "advertise"]
 
@@ -53,7 +53,7 @@ class Detections:
     track_velocity: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
-#: ROS 2 ``.msg`` text of :class:`Detections` (for ``engine.transport.twin_msgs``).
+#: ROS 2 ``.msg`` text of :class:`Detections` (for ``isac_twin.bus.twin_msgs``).
 MSG_DEFINITION = """\
 # Radar detections of the twin's sensing links and the tracker's confirmed tracks.
 std_msgs/Header header
@@ -71,7 +71,7 @@ float64[] track_velocity    # [T * 2] row-major vx, vy, m/s
 
 
 def register() -> None:
-    """Add :class:`Detections` to :data:`engine.msgs.MESSAGE_TYPES` (idempotent)."""
+    """Add :class:`Detections` to :data:`isac_twin.bus.msgs.MESSAGE_TYPES` (idempotent)."""
     MESSAGE_TYPES.setdefault(Detections.ROS_TYPE, Detections)
 
 

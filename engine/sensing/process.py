@@ -1,6 +1,6 @@
 """``SensingProcess``: the twin's radar frames computed in a child process.
 
-The :class:`~engine.sensing.worker.SensingWorker` computes a frame on a thread
+The :class:`~isac_twin.sensing.worker.SensingWorker` computes a frame on a thread
 of the twin's process. It shares the twin's Python interpreter (the GIL) and
 Dr.Jit's one thread pool, so while a frame is out the twin's own steps wait
 behind it: on the lab with 4 robots and its radar, the step after a frame is
@@ -9,21 +9,21 @@ submitted took 136 ms on average against 31 ms without a radar (unpaced,
 
 ``SensingProcess`` has the worker's interface (``submit``, ``due``,
 ``collect``, ``wait``, ``close``, ``latency``) but computes in a child process
-(``python -m engine.sensing.process``): its own interpreter, its own Dr.Jit, its own
+(``python -m isac_twin.sensing.process``): its own interpreter, its own Dr.Jit, its own
 replica of the twin's scene, at a lower CPU priority (``nice``), so the
 operating system gives the twin's steps the cores first and the frame the
 time left between them.
 
 The replica. The child loads the scene from the twin's folder and replays the
-scene's edits (:attr:`engine.scene.TwinScene.edits`: those made before the
+scene's edits (:attr:`isac_twin.scene.twin_scene.TwinScene.edits`: those made before the
 twin was built and, with every job, those made since); each job carries the
-twin's :meth:`~engine.scene.TwinScene.content_hash`, and a child whose replica
+twin's :meth:`~isac_twin.scene.twin_scene.TwinScene.content_hash`, and a child whose replica
 hashes otherwise refuses the frame (an error raised on the twin's thread by
 :meth:`collect`) rather than sensing another room. The robot targets of a
 frame are posed in the replica from the job (``SensingJob.targets``), as the
 twin posed them in its own scene.
 
-Determinism: the child runs the same :class:`~engine.sensing.estimator.
+Determinism: the child runs the same :class:`~isac_twin.sensing.estimator.
 RadarEstimator` (same links, same seed) on the same jobs in the same order, so
 it computes the frames the synchronous radar computes, delivered on the
 worker's schedule (tested, bit for bit).
@@ -62,9 +62,9 @@ class SensingProcess:
     delivered ``latency`` steps after the step they sense.
 
     Args:
-        scene: the twin's :class:`~engine.scene.TwinScene` (the child loads its
+        scene: the twin's :class:`~isac_twin.scene.twin_scene.TwinScene` (the child loads its
             folder, ``scene.config.path``, and replays ``scene.edits``).
-        links: the radar's :class:`~engine.sensing.link.SensingLinkSpec` list.
+        links: the radar's :class:`~isac_twin.sensing.link.SensingLinkSpec` list.
         seed: the radar's seed (as the twin's own ``RadarEstimator``).
         latency: steps between the sensed step and the step that delivers it (>= 1).
         nice: niceness of the child process (0..19, at least the twin's own).
@@ -83,7 +83,7 @@ class SensingProcess:
         self.latency = int(latency)
         self._sent_edits = len(scene.edits)
         self._pending: int | None = None  # delivery step of the frame out
-        # A child of its own interpreter (``python -m engine.sensing.process``), not
+        # A child of its own interpreter (``python -m isac_twin.sensing.process``), not
         # multiprocessing's spawn, which runs the parent's main script again in the
         # child (a script without a ``__main__`` guard would build a second twin).
         ours, theirs = socket.socketpair()
@@ -91,7 +91,7 @@ class SensingProcess:
         root = str(Path(__file__).resolve().parents[2])  # the engine's folder on sys.path
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "engine.sensing.process", str(theirs.fileno())],
+            [sys.executable, "-m", "isac_twin.sensing.process", str(theirs.fileno())],
             pass_fds=(theirs.fileno(),), env=env, stdin=subprocess.DEVNULL)
         theirs.close()
         self._conn = Connection(ours.detach())
@@ -110,7 +110,7 @@ class SensingProcess:
         return self._pending is not None and step >= self._pending
 
     def submit(self, job, step: int) -> None:
-        """Send ``job`` (a :class:`~engine.sensing.estimator.SensingJob`) to the
+        """Send ``job`` (a :class:`~isac_twin.sensing.estimator.SensingJob`) to the
         child, with the scene's edits since the last job; due on ``step + latency``."""
         if self._pending is not None:
             raise RuntimeError("SensingProcess.submit: collect the frame out first")
@@ -209,9 +209,8 @@ def _child_main(conn) -> None:
     _, scene_path, edits, links, seed, nice = conn.recv()
     os.nice(max(0, nice - os.nice(0)))  # before Dr.Jit starts its threads: they inherit it
     try:
-        import engine  # noqa: F401  (the LLVM library Dr.Jit needs, before Dr.Jit loads)
-        from engine.scene import load_scene
-        from engine.sensing.estimator import RadarEstimator
+        from ..scene.twin_scene import load_scene
+        from .estimator import RadarEstimator
 
         scene = load_scene(scene_path)
         scene.replay(edits)
@@ -262,5 +261,5 @@ def _portable(exc: BaseException) -> BaseException:
         return RuntimeError(f"{type(exc).__name__}: {exc}")
 
 
-if __name__ == "__main__":  # the child: python -m engine.sensing.process FD
+if __name__ == "__main__":  # the child: python -m isac_twin.sensing.process FD
     _child_main(Connection(int(sys.argv[1])))

@@ -11,7 +11,7 @@ Processing chain (:class:`OFDMRadar`):
 1. element-wise division by the known symbols: ``H_hat = y / x``
    (zero-forcing "reciprocal filter"; removes the data dependence);
 2. optional background subtraction (done by the caller, see
-   :class:`~engine.sensing.clutter.BackgroundSubtractor`);
+   :class:`~isac_twin.sensing.clutter.BackgroundSubtractor`);
 3. windowed 2-D FFT: IFFT over subcarriers -> delay (path length
    ``d = c tau``), FFT over symbols -> Doppler ``nu`` (signed, fftshifted);
    power summed non-coherently over the receive antennas -> range-Doppler
@@ -29,7 +29,7 @@ Processing chain (:class:`OFDMRadar`):
    front hemisphere of the array, refined by a local Nelder-Mead search.
 
 Conventions: subcarrier offsets ``f_n`` and symbol times ``t_k`` follow
-:class:`engine.phy.ofdm.ResourceGrid`; sensing REs must be a uniform comb
+:class:`isac_twin.phy.ofdm.ResourceGrid`; sensing REs must be a uniform comb
 on both axes (``ResourceSet`` with equally spaced indices). Path length
 ``d`` is the bistatic range sum ``|T - tx| + |T - rx|`` (monostatic: twice
 the range); ``range_rate = dd/dt = -lambda nu``.
@@ -45,17 +45,14 @@ import scipy.fft
 import scipy.ndimage
 import scipy.optimize
 
-from engine.phy.arrays import PlanarArray, r_hat, rotation_matrix
-from engine.phy.ofdm import ResourceSet
-from engine.phy.units import SPEED_OF_LIGHT
+from ..errors import SensingError
+from ..phy.arrays import PlanarArray, r_hat, rotation_matrix
+from ..phy.ofdm import ResourceSet
+from ..phy.units import SPEED_OF_LIGHT
 
 log = logging.getLogger(__name__)
 
 __all__ = ["OFDMRadar", "RangeDopplerMap", "Detection", "ca_cfar", "os_cfar", "SensingError"]
-
-
-class SensingError(ValueError):
-    """Invalid sensing setup or input; the message names the sensing link."""
 
 
 @dataclass
@@ -182,7 +179,7 @@ class OFDMRadar:
         carrier_frequency_hz: f_c [Hz] (for range rate and array phases).
         rx_array: receive array (``None`` or one element: no angles).
         rx_orientation: receive array orientation ``[yaw, pitch, roll]`` [rad]
-            (``engine.phy`` / Sionna order).
+            (``isac_twin.phy`` / Sionna order).
         estimate_angles: estimate azimuth/zenith (needs >= 2 receive elements).
         range_oversampling, doppler_oversampling: zero-padding factors of the FFTs.
         window: ``"hann"`` or ``"rect"`` taper for the FFTs.
@@ -198,7 +195,7 @@ class OFDMRadar:
         range_method: ``"nls"`` (single-target ML refinement, best for an
             isolated point target) or ``"first_arrival"``: after NLS and
             angle, TLS-ESPRIT + least squares
-            (:class:`engine.phy.estimation.MdpEstimator`) on the
+            (:class:`isac_twin.phy.estimation.MdpEstimator`) on the
             beamformed, Doppler-compensated subcarrier response resolves the
             echo's multipath (e.g. floor bounces, unresolvable at 80 MHz)
             and the earliest component within ``first_arrival_db`` of the
@@ -224,7 +221,7 @@ class OFDMRadar:
         self.esprit_paths = int(esprit_paths)
         self.first_arrival_db = float(first_arrival_db)
         if not isinstance(resource_set, ResourceSet):
-            raise SensingError("resource_set must be an engine.phy.ResourceSet")
+            raise SensingError("resource_set must be an isac_twin.phy.ResourceSet")
         self.name = resource_set.name
         self.rs = resource_set
         self.fc = float(carrier_frequency_hz)
@@ -401,7 +398,7 @@ class OFDMRadar:
 
     def _first_arrival(self, h, d, nu, az, ze) -> float:
         """Earliest multipath component near ``d`` (see ``range_method``)."""
-        from engine.phy.estimation import MdpEstimator
+        from ..phy.estimation import MdpEstimator
 
         ek = np.exp(-2j * np.pi * self.t * nu)
         if self.estimate_angles:

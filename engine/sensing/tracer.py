@@ -36,16 +36,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.addon_shared import schema
-from engine.pose import DevicePose, sionna_orientation
-from engine.raytrace.base import LinkPaths, empty_link
-from engine.raytrace.solver_core import load_sionna_rt
+from ..contract import schema
+from ..raytrace.base import LinkPaths, empty_link
+from ..raytrace.solver_core import load_sionna_rt
+from ..utils.geometry import DevicePose, sionna_orientation
 
 log = logging.getLogger(__name__)
 
 __all__ = ["TargetSpec", "EchoPaths", "SensingTracer", "BURGER_SIZE"]
 
-#: TurtleBot3 Burger footprint and height (length, width, height) [m] (addon/schema.py).
+#: TurtleBot3 Burger footprint and height (length, width, height) [m] (addon/contract/schema.py).
 BURGER_SIZE = schema.ROBOT_MODELS["burger"].size
 
 SENSING_INTERACTION = 16
@@ -138,7 +138,7 @@ class SensingTracer:
     """Traces echo (RCS solver) and clutter (path solver) paths of sensing links.
 
     Args:
-        scene: the :class:`~engine.scene.TwinScene` (its Sionna scene is shared
+        scene: the :class:`~isac_twin.scene.twin_scene.TwinScene` (its Sionna scene is shared
             with the twin's tracer; devices are re-synced on every call).
         max_depth: echo paths: total interactions incl. the scattering event
             (1 = direct tx -> target -> rx only); clutter: reflections.
@@ -221,7 +221,7 @@ class SensingTracer:
         sensing solvers read those from the scene they are given, and the
         twin's tracer sets the scene's arrays to its own. So tracing the sensing
         links never writes to the twin's scene, and it may run on another
-        thread while the twin's tracer runs (:class:`~engine.sensing.worker.SensingWorker`).
+        thread while the twin's tracer runs (:class:`~isac_twin.sensing.worker.SensingWorker`).
         """
         rt = load_sionna_rt()
         sc = self.scene.sionna

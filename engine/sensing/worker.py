@@ -1,6 +1,6 @@
 """``SensingWorker``: the twin's radar frames computed off the stepping thread.
 
-A radar frame (:class:`~engine.sensing.estimator.RadarEstimator`) costs far more
+A radar frame (:class:`~isac_twin.sensing.estimator.RadarEstimator`) costs far more
 than a twin step (the lab with 4 robots: ~0.2 s of CPU against a 50 ms period at
 20 Hz), so a paced twin that sensed on its stepping thread overran on every
 sensing step. With the worker the stepping thread only *prepares* a frame (the
@@ -42,7 +42,7 @@ class SensingWorker:
     """One thread computing radar frames, delivered ``latency`` steps later.
 
     Args:
-        radar: the :class:`~engine.sensing.estimator.RadarEstimator` (its
+        radar: the :class:`~isac_twin.sensing.estimator.RadarEstimator` (its
             ``compute`` runs on the worker).
         latency: steps between the sensed step and the step that delivers it (>= 1).
     """
@@ -70,7 +70,7 @@ class SensingWorker:
         return self._pending is not None and step >= self._pending[0]
 
     def submit(self, job, step: int) -> None:
-        """Compute ``job`` (a :class:`~engine.sensing.estimator.SensingJob`) on the
+        """Compute ``job`` (a :class:`~isac_twin.sensing.estimator.SensingJob`) on the
         worker; it is due on ``step + latency``. Only one frame is out at a time."""
         if self._pending is not None:
             raise RuntimeError("SensingWorker.submit: collect the frame out first")

@@ -1,19 +1,15 @@
 """Network transport, CDR codec and the twin/robot bridge.
 
-* :mod:`engine.transport.cdr` -- engine.msgs dataclasses <-> ROS 2 CDR (rosbags);
-* :mod:`engine.transport.twin_msgs` -- ``isac_twin_msgs`` custom types (paths, link
-  metrics, fingerprints, CSI, path commands, clock pings);
-* :mod:`engine.transport.keyexpr` -- rmw_zenoh key expressions and attachments;
-* :mod:`engine.transport.zenoh_transport` -- :class:`ZenohTransport` (a bus transport);
-* :mod:`engine.transport.clock` -- clock offsets between peers;
-* :mod:`engine.transport.bridge` -- :class:`TwinBridge`, real robots mirrored into a twin.
+* :mod:`isac_twin.transport.cdr` -- isac_twin.bus.msgs dataclasses <-> ROS 2 CDR (rosbags);
+* :mod:`isac_twin.transport.record` -- MCAP recording and replay;
+* :mod:`isac_twin.transport.keyexpr` -- rmw_zenoh key expressions and attachments;
+* :mod:`isac_twin.transport.zenoh_transport` -- :class:`ZenohTransport` (a bus transport);
+* :mod:`isac_twin.transport.clock` -- clock offsets between peers;
+* :mod:`isac_twin.transport.bridge` -- :class:`TwinBridge`, real robots mirrored into a twin.
 
-Importing this package registers the ``isac_twin_msgs`` types on the bus
-(:data:`engine.msgs.MESSAGE_TYPES`). Zenoh is imported lazily (only by
+The ``isac_twin_msgs`` types themselves are bus messages
+(:mod:`isac_twin.bus.twin_msgs`). Zenoh is imported lazily (only by
 ``zenoh_transport``/``bridge``), so the codec works without it.
 """
 
-from engine.transport import twin_msgs  # noqa: F401  (registers isac_twin_msgs types)
-
-#: import the modules above by name (``zenoh_transport`` and ``bridge`` need zenoh)
-__all__ = ["twin_msgs"]
+__all__: list[str] = []  # import the modules by name (zenoh loads lazily)

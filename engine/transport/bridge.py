@@ -1,11 +1,11 @@
-"""The twin's side of the network: mirror real robots into a :class:`~engine.twin.Twin`.
+"""The twin's side of the network: mirror real robots into a :class:`~isac_twin.twin.twin.Twin`.
 
 :class:`TwinBridge` attaches to a twin without changing ``twin.py``. It owns
 a second bus whose transport is the network (zenoh) and, per real robot
 ``<name>`` (a robot device of the twin with the same name):
 
 * **receives** ``/<name>/pose_estimate``, ``/<name>/odom`` and ``/<name>/scan``
-  from the robot runtime (:mod:`engine.runtime`), re-publishes them on the
+  from the robot runtime (:mod:`isac_twin.devices.runtime`), re-publishes them on the
   twin's bus as ``/<name>/real/pose_estimate``, ``/<name>/real/odom`` and
   ``/<name>/real/scan`` (beside the twin's synthetic ``/<name>/odom``,
   ``/<name>/scan``; recorders and the live view see both), and the robots'
@@ -55,11 +55,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from engine.bus import Bus
-from engine.msgs import (DiagnosticArray, Header, LaserScan, Odometry, PoseStamped, Twist,
-                         quaternion_to_yaw, shift_stamps)
-from engine.transport.clock import ClockProbe
-from engine.transport.twin_msgs import Fingerprint, PathCommand
+from ..bus.bus import Bus
+from ..bus.msgs import (
+    DiagnosticArray,
+    Header,
+    LaserScan,
+    Odometry,
+    PoseStamped,
+    Twist,
+    quaternion_to_yaw,
+    shift_stamps,
+)
+from ..bus.twin_msgs import Fingerprint, PathCommand
+from .clock import ClockProbe
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +122,7 @@ class TwinBridge:
     """Mirror real robots into a twin over a network transport.
 
     Args:
-        twin: an :class:`engine.twin.Twin` (or anything with ``agents``, ``bus``, ``step``).
+        twin: an :class:`isac_twin.twin.twin.Twin` (or anything with ``agents``, ``bus``, ``step``).
         transport: the network transport (e.g. :class:`ZenohTransport`); the bridge owns it.
         robots: names of the twin's robots that have a real counterpart (default all).
         fusion: :class:`FusionConfig`.

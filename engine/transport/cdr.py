@@ -1,8 +1,8 @@
-"""CDR codec: :mod:`engine.msgs` dataclasses <-> ROS 2 messages, through rosbags.
+"""CDR codec: :mod:`isac_twin.bus.msgs` dataclasses <-> ROS 2 messages, through rosbags.
 
 The wire form is what ``rmw_zenoh`` and ``ros2 bag`` carry: XCDR1 little
 endian with the 4-byte encapsulation header ``00 01 00 00``. The typestore is
-rosbags' ROS 2 Jazzy store plus the :mod:`engine.transport.twin_msgs` types
+rosbags' ROS 2 Jazzy store plus the :mod:`isac_twin.bus.twin_msgs` types
 (registered from their ``.msg`` text).
 
 Conversions at this edge (and only here):
@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from engine import msgs as m
-from engine.transport import sensing_cdr
-from engine.transport import twin_msgs as tm
+from ..bus import msgs as m
+from ..bus import twin_msgs as tm
+from . import sensing_cdr
 
 #: XCDR1 little-endian encapsulation header (what rmw_zenoh and ros2 bag carry).
 CDR_HEADER = b"\x00\x01\x00\x00"
@@ -171,7 +171,7 @@ def _transform_from(o) -> m.TransformStamped:
 # ------------------------------------------------------------------ to ROS
 
 def to_ros(msg: Any):
-    """The rosbags message object for an :mod:`engine.msgs` / ``twin_msgs`` dataclass."""
+    """The rosbags message object for an :mod:`isac_twin.bus.msgs` / ``twin_msgs`` dataclass."""
     R = _t(msg.ROS_TYPE)
     if isinstance(msg, m.Vector3):
         return R(x=float(msg.x), y=float(msg.y), z=float(msg.z))

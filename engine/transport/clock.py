@@ -22,8 +22,8 @@ import threading
 import time
 from collections import deque
 
-from engine.bus import Bus
-from engine.transport.twin_msgs import ClockPing
+from ..bus.bus import Bus
+from ..bus.twin_msgs import ClockPing
 
 log = logging.getLogger(__name__)
 

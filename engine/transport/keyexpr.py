@@ -31,7 +31,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from engine.transport.cdr import dds_type_name, type_hash
+from .cdr import dds_type_name, type_hash
 
 HUMBLE_HASH = "TypeHashNotSupported"
 #: bytes of a GID (RMW_GID_STORAGE_SIZE on Jazzy) and of a whole attachment

@@ -10,7 +10,7 @@ Format (rmw_zenoh ``docs/design.md``, "Graph Cache"; ``liveliness_utils.cpp``)::
   within the session (rmw_zenoh counts them per context);
 * names are *mangled*: every ``/`` becomes ``%`` (empty namespace and enclave: ``%``;
   ``/robot1/scan`` -> ``%robot1%scan``);
-* ``<qos>``: :meth:`engine.transport.qos.QosProfile.to_keyexpr`.
+* ``<qos>``: :meth:`isac_twin.transport.qos.QosProfile.to_keyexpr`.
 
 A token exists while its entity does; zenoh removes it when the session closes,
 so the graph follows processes that die.
@@ -21,8 +21,8 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from engine.transport.cdr import dds_type_name
-from engine.transport.qos import QosProfile
+from .cdr import dds_type_name
+from .qos import QosProfile
 
 ADMIN_SPACE = "@ros2_lv"
 KINDS = {"NN": "node", "MP": "publisher", "MS": "subscription", "SS": "service",

@@ -1,8 +1,8 @@
 """CDR mapping of the sensing layer's ``isac_twin_msgs/msg/Detections``.
 
-Self-contained beside :mod:`engine.transport.cdr`: the ``.msg`` text
+Self-contained beside :mod:`isac_twin.transport.cdr`: the ``.msg`` text
 (:data:`MSG_DEFINITIONS`) goes into the typestore, :func:`to_ros` /
-:func:`from_ros` convert the :class:`~engine.sensing.msgs.Detections`
+:func:`from_ros` convert the :class:`~isac_twin.sensing.msgs.Detections`
 dataclass (``position [M, 3]`` and ``track_* [T, 2]`` flattened row-major).
 Importing this module registers the type on the topic bus.
 """
@@ -13,7 +13,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from engine.sensing.msgs import MSG_DEFINITION, Detections, register
+from ..sensing.msgs import MSG_DEFINITION, Detections, register
 
 __all__ = ["MSG_DEFINITIONS", "to_ros", "from_ros"]
 
@@ -28,7 +28,7 @@ def _f64(a) -> np.ndarray:
 
 def to_ros(msg: Any, R: Callable, header: Callable):
     """The rosbags object for ``msg`` (``R``: its rosbags class, ``header``: the
-    Header converter of :mod:`engine.transport.cdr`), or None if not a sensing type."""
+    Header converter of :mod:`isac_twin.transport.cdr`), or None if not a sensing type."""
     if not isinstance(msg, Detections):
         return None
     return R(header=header(msg.header), link=msg.link, path_length=_f64(msg.path_length),

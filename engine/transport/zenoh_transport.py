@@ -1,8 +1,8 @@
-"""A zenoh network transport for :class:`engine.bus.Bus`, wire-compatible with rmw_zenoh.
+"""A zenoh network transport for :class:`isac_twin.bus.bus.Bus`, wire-compatible with rmw_zenoh.
 
 Each bus topic maps to one zenoh key expression (see
-:mod:`engine.transport.keyexpr`), payloads are CDR with the 4-byte
-encapsulation header (:mod:`engine.transport.cdr`), and every sample carries
+:mod:`isac_twin.transport.keyexpr`), payloads are CDR with the 4-byte
+encapsulation header (:mod:`isac_twin.transport.cdr`), and every sample carries
 the rmw_zenoh attachment (sequence number, source timestamp, GID).
 
 Sessions default to **peer mode on loopback with multicast scouting off**:
@@ -12,12 +12,12 @@ router (``rmw_zenohd`` / ``zenohd``) is just a ``connect`` endpoint; ``mode``
 may be ``"client"`` to go through it only.
 
 Graph: the transport is one ROS 2 node (``name`` in ``config.namespace``) and
-declares rmw_zenoh liveliness tokens (:mod:`engine.transport.liveliness`) for
+declares rmw_zenoh liveliness tokens (:mod:`isac_twin.transport.liveliness`) for
 the node and for every publisher and subscriber, so ``ros2 node list`` and
 ``ros2 topic list`` on an rmw_zenoh machine show it; it also follows every
 token of its domain (:meth:`ZenohTransport.graph`), so it sees ROS 2 nodes.
 
-QoS (:mod:`engine.transport.qos`, per topic by convention or
+QoS (:mod:`isac_twin.transport.qos`, per topic by convention or
 ``config.qos``): reliability goes to the zenoh publisher, KEEP_ALL + RELIABLE
 blocks on congestion (otherwise samples are dropped), TRANSIENT_LOCAL topics
 (``/tf_static``) use zenoh-ext's advanced publisher with a cache of ``depth``
@@ -46,10 +46,10 @@ from typing import Any
 import zenoh
 import zenoh.ext
 
-from engine.transport import cdr
-from engine.transport import liveliness as lv
-from engine.transport.keyexpr import Attachment, parse_topic_key, topic_key
-from engine.transport.qos import QosProfile, qos_for
+from . import cdr
+from . import liveliness as lv
+from .keyexpr import Attachment, parse_topic_key, topic_key
+from .qos import QosProfile, qos_for
 
 log = logging.getLogger(__name__)
 
@@ -125,7 +125,7 @@ class TopicStats:
 
 
 class ZenohTransport:
-    """:class:`engine.bus.Transport` over zenoh (rmw_zenoh key expressions, CDR).
+    """:class:`isac_twin.bus.bus.Transport` over zenoh (rmw_zenoh key expressions, CDR).
 
     Example::
 

@@ -1,5 +1,5 @@
 """addon/calibration.py and custom radio materials: export of custom materials, and a
-calibration folder written by the engine (engine.calibrate_run.write_calibrated_scene)
+calibration folder written by the engine (isac_twin.calibration.run.write_calibrated_scene)
 applied to the open scene in headless bpy."""
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ def _room(scene):
 def test_custom_material_is_exported_and_loaded_by_the_engine(scene, tmp_path):
     from addon import materials
     from addon.exporter import ExportError, export_scene
-    from engine.scene import load_scene
+    from isac_twin.scene.twin_scene import load_scene
 
     cab = _room(scene)
     materials.set_custom_material(scene, "damp_chipboard",
@@ -55,12 +55,11 @@ def test_custom_material_is_exported_and_loaded_by_the_engine(scene, tmp_path):
 
 
 def test_apply_calibration_moves_objects_and_sets_materials(scene, tmp_path):
-    from addon import calibration
     from addon.exporter import export_scene
-    from engine.calibrate_run import write_calibrated_scene
-    from engine.calibration import CalibrationResult
-    from engine.meshes import read_ply
-    from engine.scene import load_scene
+    from isac_twin.calibration.calibrator import CalibrationResult
+    from isac_twin.calibration.run import write_calibrated_scene
+    from isac_twin.scene.meshes import read_ply
+    from isac_twin.scene.twin_scene import load_scene
 
     cab = _room(scene)
     export_scene(scene, tmp_path / "twin", interchange=False)

@@ -32,7 +32,7 @@ def small_scene(scene):
 
 
 def read_ply(path):
-    from addon.exporter.geometry import read_ply as rp
+    from addon.contract.writers.geometry import read_ply as rp
 
     return rp(path)
 
@@ -96,7 +96,7 @@ def test_export_small_scene(scene, tmp_path):
 
 def test_twin_toml_loads_in_engine_config(scene, tmp_path):
     """Cross-check with the engine's loader (tests may import the engine; the add-on never does)."""
-    config = pytest.importorskip("engine.config")
+    config = pytest.importorskip("isac_twin.scene.config")
     from addon.exporter import export_scene
 
     export_scene(small_scene(scene), tmp_path, interchange=False)
@@ -278,7 +278,7 @@ def test_refuses_empty_resource_range(scene, tmp_path):
 
 def test_sensing_links_export_and_load_in_engine(scene, tmp_path):
     """A sensing link set in Blender becomes a [[sensing]] table the engine types."""
-    config = pytest.importorskip("engine.config")
+    config = pytest.importorskip("isac_twin.scene.config")
     from addon import devices
     from addon.exporter import export_scene
 
@@ -303,8 +303,8 @@ def test_every_path_kind_reaches_twin_toml_and_the_engine(scene, tmp_path):
     exported as [devices.path] and accepted by the engine's loader, free space included."""
     from addon import devices
     from addon.exporter import export_scene
-    from engine import config
-    from engine.scene import load_scene
+    from isac_twin.scene import config
+    from isac_twin.scene.twin_scene import load_scene
 
     small_scene(scene)
     robot = scene.objects["robot1"]
@@ -334,8 +334,8 @@ def test_every_path_kind_reaches_twin_toml_and_the_engine(scene, tmp_path):
 
 def test_room_part_tags_are_exported_and_read_by_the_engine(scene, tmp_path):
     from addon.exporter import export_scene
-    from engine.room import room_parts
-    from engine.scene import load_scene
+    from isac_twin.scene.room import room_parts
+    from isac_twin.scene.twin_scene import load_scene
 
     small_scene(scene)
     scene.objects["Room_Wall_2"].name = "north side"  # a user's own name: the tag stays

@@ -56,6 +56,10 @@ def test_build_zip_contents(built_zip):
     names = zipfile.ZipFile(built_zip).namelist()
     assert "blender_manifest.toml" in names and "__init__.py" in names
     assert "exporter/__init__.py" in names
+    # the contract the engine imports too, with its Apache-2.0 files
+    for name in ("contract/__init__.py", "contract/schema.py", "contract/wire.py",
+                 "contract/errors.py", "contract/writers/mitsuba_xml.py"):
+        assert name in names, name
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc")]
 
 

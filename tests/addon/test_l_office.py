@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
+import runpy
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -20,10 +21,7 @@ ROOM_DIR = ROOT / "blend_scenes" / "l_office"
 def office(addon_module, reset_scene, tmp_path_factory):
     from addon.exporter import export_scene
 
-    spec = importlib.util.spec_from_file_location("build_l_office",
-                                                  ROOM_DIR / "build_l_office.py")
-    build = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(build)
+    build = SimpleNamespace(**runpy.run_path(str(ROOM_DIR / "build_l_office.py")))
     scene = build.build(bpy.context.scene)
     folder = tmp_path_factory.mktemp("l_office")
     export_scene(scene, folder)
@@ -55,8 +53,8 @@ def test_office_is_an_l_at_5_8_ghz_with_tags_and_a_curve_path(office):
     robot = next(d for d in data["devices"] if d["name"] == "robot1")
     assert robot["path"] == {"kind": "polyline", "closed": True,
                              "waypoints": [list(p) for p in build.PATH]}
-    from engine.room import room_parts
-    from engine.scene import load_scene
+    from isac_twin.scene.room import room_parts
+    from isac_twin.scene.twin_scene import load_scene
 
     s = load_scene(folder, load_sionna=False)  # free space checked: devices and the path
     p = room_parts(s)

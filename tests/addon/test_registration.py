@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import tomllib
 from pathlib import Path
 from types import SimpleNamespace
@@ -30,10 +31,13 @@ def test_addon_never_imports_the_engine():
     """Standard library and what Blender ships only: numpy is part of every Blender's
     Python (and of the bpy module), and only the live view uses it (the packed rays of
     wire 1.3 go from the socket's bytes into the curves with numpy.frombuffer); the
-    modules the engine loads by path (wire, schema) stay stdlib-only."""
+    contract package the engine imports too stays stdlib-only, with relative imports."""
     for path in ADDON_DIR.rglob("*.py"):
         text = path.read_text()
+        assert not re.search(r"^\s*(from|import)\s+isac_twin", text, re.M), path
         assert "import engine" not in text and "from engine" not in text, path
+        if "contract" in path.parts:
+            assert "import bpy" not in text and "from addon" not in text, path
         for heavy in ("sionna", "mitsuba"):
             assert f"import {heavy}" not in text and f"from {heavy}" not in text, path
         if path.name != "live_view.py":

@@ -3,8 +3,9 @@ sequence (Blender's own FFmpeg, read back as a movie clip)."""
 
 from __future__ import annotations
 
-import importlib.util
+import runpy
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -15,9 +16,7 @@ SCRIPT = Path(__file__).resolve().parents[2] / "addon" / "scripts" / "render_liv
 
 @pytest.fixture(scope="module")
 def render_live():
-    spec = importlib.util.spec_from_file_location("render_live", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = SimpleNamespace(**runpy.run_path(str(SCRIPT)))
     return mod
 
 

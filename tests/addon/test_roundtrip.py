@@ -7,12 +7,13 @@ no subprocess is needed; tests/conftest.py sets DRJIT_LIBLLVM_PATH first.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
+import runpy
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -26,9 +27,7 @@ SPEED_OF_LIGHT = 299_792_458.0
 
 
 def load_build_script():
-    spec = importlib.util.spec_from_file_location("build_aces_lab", LAB_DIR / "build_aces_lab.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = SimpleNamespace(**runpy.run_path(str(LAB_DIR / "build_aces_lab.py")))
     return module
 
 

@@ -1,4 +1,4 @@
-"""addon/schema.py is the one definition of the scene-folder vocabulary.
+"""addon/contract/schema.py is the one definition of the scene-folder vocabulary.
 
 Three kinds of check: the add-on's registered enums are the schema's tables (in
 order: a .blend stores the index); every value the add-on offers goes through
@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def schema():
-    from addon import schema as s
+    from addon.contract import schema as s
 
     return s
 
@@ -62,7 +62,7 @@ def test_operator_enums_are_the_schema_tables(addon_module, schema):
                                           schema.DEFAULT_POLARIZATION)
     assert _enum(rna, "role")[0] == list(schema.ROLES)
     # the live panel's command buttons are wire commands
-    from addon import wire
+    from addon.contract import wire
 
     ops, _ = _enum(bpy.ops.isac.live_command.get_rna_type(), "op")
     assert set(ops) <= set(wire.COMMAND_OPS)
@@ -80,7 +80,7 @@ def _lab(scene, **robot):
 
 def _export_and_load(scene, folder):
     from addon.exporter import export_scene
-    from engine.config import load_config
+    from isac_twin.scene.config import load_config
 
     export_scene(scene, folder, interchange=False)
     return load_config(folder / "twin.toml")
@@ -90,9 +90,10 @@ def test_every_offered_value_loads_in_the_engine(addon_module, reset_scene, sche
     """Each pattern, polarization, robot model and path direction the add-on offers is
     exported and either accepted by the engine (and modelled by it) or refused at load
     with one line naming the key."""
-    from engine.config import MODELLED_POLARIZATIONS, ConfigError
-    from engine.phy.patterns import PATTERNS as MODELLED_PATTERNS
-    from engine.robots.kinematics import robot_spec
+    from isac_twin.errors import ConfigError
+    from isac_twin.raytrace.antenna_patterns import PATTERNS as MODELLED_PATTERNS
+    from isac_twin.robots.kinematics import robot_spec
+    from isac_twin.scene.config import MODELLED_POLARIZATIONS
 
     rna = addon_module.properties.ISAC_ObjectProps.bl_rna
     cases = [("pattern", v) for v in _enum(rna, "pattern")[0]]
@@ -137,7 +138,7 @@ def test_every_offered_value_loads_in_the_engine(addon_module, reset_scene, sche
     assert accepted["polarization"] == [p for p in schema.POLARIZATIONS
                                         if p in MODELLED_POLARIZATIONS]
     # and the engine accepts nothing the add-on does not offer
-    from engine import config
+    from isac_twin.scene import config
 
     assert set(config.PATTERNS) == set(_enum(rna, "pattern")[0])
     assert set(config.POLARIZATIONS) == set(_enum(rna, "polarization")[0])
@@ -247,7 +248,7 @@ def _copies(path: Path, rel: str, vocab: dict, numbers: dict, offset) -> list[st
 
 
 def test_no_module_copies_the_schema(schema):
-    from addon import wire
+    from addon.contract import wire
 
     vocab = _vocabularies(schema, wire)
     numbers = _body_numbers(schema)
@@ -257,17 +258,17 @@ def test_no_module_copies_the_schema(schema):
     for top in ("addon", "engine"):
         for path in sorted((ROOT / top).rglob("*.py")):
             rel = path.relative_to(ROOT).as_posix()
-            if rel == "addon/schema.py":
+            if rel == "addon/contract/schema.py":
                 continue
             v = {k: s for k, s in vocab.items()
-                 if not (rel == "addon/wire.py" and k.startswith("wire."))}
+                 if not (rel == "addon/contract/wire.py" and k.startswith("wire."))}
             found += _copies(path, rel, v, numbers, offset)
-    assert not found, "copies of the shared schema (use addon/schema.py):\n" + "\n".join(found)
+    assert not found, "copies of the shared schema (use addon/contract/schema.py):\n" + "\n".join(found)
 
 
 def test_the_scan_finds_a_copy(schema, tmp_path):
     """The scan is not vacuous: each kind of copy it looks for is found."""
-    from addon import wire
+    from addon.contract import wire
 
     f = tmp_path / "m.py"
     f.write_text('MODELS = ("burger", "waffle")\nSIZE = (0.138, 0.178, 0.192)\n'
@@ -286,5 +287,5 @@ def test_the_scan_finds_a_copy(schema, tmp_path):
 def test_allowed_tables_cover_every_model(schema):
     """The one table keyed by model that is allowed (the firmware's model numbers)
     still names every model, so a model added to the schema cannot miss it."""
-    opencr = pytest.importorskip("engine.devices.opencr")
+    opencr = pytest.importorskip("isac_twin.devices.opencr")
     assert set(opencr.MODEL_INFORMATION) == set(schema.ROBOT_MODELS)

@@ -1,6 +1,6 @@
-"""pyserial URL handlers (``serial.serial_for_url``) registered by :mod:`engine.devices.ptyserial`.
+"""pyserial URL handlers (``serial.serial_for_url``) registered by :mod:`isac_twin.devices.ptyserial`.
 
-No public names: pyserial finds :mod:`~engine.devices.urlhandler.protocol_pty` by
+No public names: pyserial finds :mod:`~isac_twin.devices.urlhandler.protocol_pty` by
 its module name (``pty://``).
 """
 

@@ -2,7 +2,7 @@
 modem lines (DTR, RTS) are recorded instead of raising ``ENOTTY``.
 
 ``serial.serial_for_url("pty:///tmp/x/ttyUSB0")`` finds this module because
-:mod:`engine.devices.ptyserial` adds ``engine.devices.urlhandler`` to
+:mod:`isac_twin.devices.ptyserial` adds ``isac_twin.devices.urlhandler`` to
 ``serial.protocol_handler_packages``. Each change is appended to
 :attr:`Serial.modem_log` and forwarded to the emulator serving the pty.
 """
@@ -14,7 +14,7 @@ import time
 import serial
 from serial import serialposix
 
-from engine.devices.ptyserial import notify_modem
+from ..ptyserial import notify_modem
 
 SCHEME = "pty://"
 

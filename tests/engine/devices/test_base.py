@@ -5,8 +5,8 @@ from __future__ import annotations
 import logging
 import time
 
-from engine.devices.emulated_rplidar import EmulatedRPLidar
-from engine.devices.rplidar import RPLidar
+from isac_twin.devices.emulated_rplidar import EmulatedRPLidar
+from isac_twin.devices.rplidar import RPLidar
 
 
 def test_never_present_device_is_a_warning_and_the_summary_says_so(tmp_path, caplog):
@@ -15,7 +15,7 @@ def test_never_present_device_is_a_warning_and_the_summary_says_so(tmp_path, cap
     the device never connected."""
     url = str(tmp_path / "ttyUSB9")
     lidar = RPLidar(url, connect_warn_s=0.3, backoff_max=0.1)
-    with caplog.at_level(logging.WARNING, logger="engine.devices"):
+    with caplog.at_level(logging.WARNING, logger="isac_twin.devices"):
         lidar.start()
         try:
             time.sleep(0.8)
@@ -42,7 +42,7 @@ def test_summary_of_a_device_that_connected():
 
 
 def _diag(msgs):
-    from engine.msgs import DiagnosticArray
+    from isac_twin.bus.msgs import DiagnosticArray
 
     out = [m for t, m in msgs if t == "diagnostics"]
     assert all(isinstance(m, DiagnosticArray) and len(m.status) == 1 for m in out)
@@ -53,7 +53,7 @@ def test_diagnostics_say_what_happened(tmp_path):
     """diagnostic_msgs/DiagnosticArray on ``diagnostics`` whether connected or not:
     ERROR naming the error while the device never connected, OK with the counters
     once it is, ERROR 'lost' after an unplug, OK again after the replug."""
-    from engine.msgs import DiagnosticStatus
+    from isac_twin.bus.msgs import DiagnosticStatus
 
     got: list = []
     with EmulatedRPLidar() as emu:

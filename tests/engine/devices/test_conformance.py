@@ -3,17 +3,16 @@ and on deliberately broken drivers (the checker must catch them)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-import numpy as np
-
-from engine.devices import rplidar as rp
-from engine.devices.conformance import check_driver
-from engine.devices.emulated_opencr import EmulatedOpenCR
-from engine.devices.emulated_rplidar import EmulatedRPLidar
-from engine.devices.opencr import OpenCR
-from engine.devices.rplidar import RPLidar
-from engine.msgs import BatteryState
+from isac_twin.bus.msgs import BatteryState
+from isac_twin.devices import rplidar as rp
+from isac_twin.devices.conformance import check_driver
+from isac_twin.devices.emulated_opencr import EmulatedOpenCR
+from isac_twin.devices.emulated_rplidar import EmulatedRPLidar
+from isac_twin.devices.opencr import OpenCR
+from isac_twin.devices.rplidar import RPLidar
 
 FAST = dict(stale_timeout=0.4, backoff_initial=0.05, backoff_max=0.3)
 
@@ -131,8 +130,8 @@ def test_oakd_conforms():
     frames are dropped and counted (not a lost device), unplug/silence noticed,
     every published image one the camera sent, diagnostics truthful."""
     pytest.importorskip("depthai", reason="depthai (optional extra 'oakd') is not installed")
-    from engine.devices.emulated_oakd import EmulatedOakD
-    from engine.devices.oakd import OakD
+    from isac_twin.devices.emulated_oakd import EmulatedOakD
+    from isac_twin.devices.oakd import OakD
 
     emu = EmulatedOakD()
     report = check_driver(lambda url, pub: OakD(publish=pub, replay=emu, stale_timeout=0.4, backoff_initial=0.05,

@@ -8,8 +8,8 @@ import time
 import numpy as np
 import pytest
 
-from engine.devices import oakd
-from engine.msgs import Image, Imu
+from isac_twin.bus.msgs import Image, Imu
+from isac_twin.devices import oakd
 
 from .test_rplidar import run_with_timeout
 
@@ -186,8 +186,8 @@ def test_emulated_runtime_runs_the_camera_on_generated_frames(tmp_path):
     generated frames through the driver, and /diagnostics says it is connected."""
     import socket
 
-    from engine.msgs import DiagnosticArray
-    from engine.runtime import RobotRuntime, robot_config_from_dict
+    from isac_twin.bus.msgs import DiagnosticArray
+    from isac_twin.devices.runtime import RobotRuntime, robot_config_from_dict
 
     with socket.socket() as sk:
         sk.bind(("127.0.0.1", 0))

@@ -10,10 +10,16 @@ import time
 import numpy as np
 import pytest
 
-from engine.devices import opencr as oc
-from engine.devices.emulated_opencr import (DiffDriveRobot, EmulatedOpenCR, build_packet, crc16, stuff,
-                                            unstuff)
-from engine.msgs import BatteryState, Imu, Odometry, Twist, quaternion_to_yaw
+from isac_twin.bus.msgs import BatteryState, Imu, Odometry, Twist, quaternion_to_yaw
+from isac_twin.devices import opencr as oc
+from isac_twin.devices.emulated_opencr import (
+    DiffDriveRobot,
+    EmulatedOpenCR,
+    build_packet,
+    crc16,
+    stuff,
+    unstuff,
+)
 
 from .test_rplidar import run_with_timeout
 

@@ -7,7 +7,7 @@ import os
 import pytest
 import serial
 
-from engine.devices.ptyserial import PtyPort, register_modem_listener, unregister_modem_listener
+from isac_twin.devices.ptyserial import PtyPort, register_modem_listener, unregister_modem_listener
 
 
 def test_unplug_replug_keeps_the_path(tmp_path):

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import serial
 
-from engine.devices import rplidar as rp
-from engine.devices.base import DriverStats
-from engine.devices.emulated_rplidar import EmulatedRPLidar, laser_scan_source, room_scan_source
+from isac_twin.devices import rplidar as rp
+from isac_twin.devices.base import DriverStats
+from isac_twin.devices.emulated_rplidar import EmulatedRPLidar, laser_scan_source, room_scan_source
 
 pyrplidar = pytest.importorskip("pyrplidar")
 import pyrplidar_serial  # noqa: E402  (pyrplidar's own serial module)
@@ -193,7 +193,7 @@ def test_pyrplidar_motor_pwm_and_dtr_at_the_pty_edge(monkeypatch):
     """pyrplidar's set_motor_pwm clears DTR first: on a bare pty that raises ENOTTY.
     Only the pty edge is patched: pyrplidar's ``serial.Serial`` becomes the
     ``pty://`` port class, which records DTR and tells the emulator."""
-    from engine.devices.urlhandler import protocol_pty
+    from isac_twin.devices.urlhandler import protocol_pty
 
     class PtySerial(protocol_pty.Serial):
         def __init__(self, port=None, *args, **kwargs):

@@ -3,12 +3,21 @@
 import numpy as np
 import pytest
 
-from engine.localization.baselines import (MCA, KnnCsi, PdpMatch, cluster_lengths,
-                                           observe_database_point)
-from engine.localization.measurements import (FeatureSpec, PilotSettings, observe_pilots,
-                                              observe_tracer)
-from engine.raytrace.base import SPEED_OF_LIGHT, LinkPaths
-from engine.scene import load_scene
+from isac_twin.localization.baselines import (
+    MCA,
+    KnnCsi,
+    PdpMatch,
+    cluster_lengths,
+    observe_database_point,
+)
+from isac_twin.localization.measurements import (
+    FeatureSpec,
+    PilotSettings,
+    observe_pilots,
+    observe_tracer,
+)
+from isac_twin.raytrace.base import SPEED_OF_LIGHT, LinkPaths
+from isac_twin.scene.twin_scene import load_scene
 
 
 @pytest.mark.slow
@@ -35,7 +44,7 @@ def _link(lengths, amps, tx="AP1", rx="robot1"):
 
 
 def test_pilot_mdp_matches_tracer_delays_at_high_snr(lab):
-    from engine.phy.network import NetworkPHY
+    from isac_twin.phy.network import NetworkPHY
 
     cfg = load_scene(lab, load_sionna=False).config
     spec = FeatureSpec.from_config(cfg)
@@ -65,7 +74,7 @@ def test_cluster_lengths_merges_close_paths():
 
 
 def test_resource_allocation_helpers(lab):
-    from engine.casestudy import allocation, disjoint_config, shared_config
+    from isac_twin.experiments.casestudy import allocation, disjoint_config, shared_config
 
     cfg = load_scene(lab, load_sionna=False).config
     assert allocation(cfg) == "disjoint"
@@ -80,7 +89,7 @@ def test_resource_allocation_helpers(lab):
 
 
 def test_front_directions_fold_the_mirror_image_behind_the_array():
-    from engine.localization.measurements import front_directions
+    from isac_twin.localization.measurements import front_directions
 
     k = np.array([[0.6, 0.8, 0.0], [-0.6, 0.8, 0.0], [0.0, 0.0, 1.0]])
     np.testing.assert_allclose(front_directions(k), [[0.6, 0.8, 0], [0.6, 0.8, 0], [0, 0, 1]])
@@ -93,7 +102,7 @@ def test_front_directions_fold_the_mirror_image_behind_the_array():
 
 @pytest.mark.slow
 def test_mca_angles_finds_database_points_on_noise_free_data(lab, lab_db):
-    from engine.localization.baselines import MCAAngles
+    from isac_twin.localization.baselines import MCAAngles
 
     spec = FeatureSpec.from_config(load_scene(lab, load_sionna=False).config)
     loc = MCAAngles(lab_db, spec, k=1)
@@ -107,7 +116,7 @@ def test_mca_angles_finds_database_points_on_noise_free_data(lab, lab_db):
 @pytest.fixture(scope="module")
 def fine_db(lab, tmp_path_factory):
     """A 0.15 m database of the small lab."""
-    from engine.localization.fingerprints import cached_database
+    from isac_twin.localization.fingerprints import cached_database
 
     return cached_database(load_scene(lab), spacing=0.15, verify=0,
                            cache_dir=tmp_path_factory.mktemp("fine"))
@@ -119,9 +128,9 @@ def test_mca_angles_on_pilots_beats_delay_only_mca_off_the_tuned_path(lab, fine_
     demo's circle in the bundled lab, not here; this AP1 has only 2x2
     antennas), pilots at 20 dB, fixed seed: AP1's directions halve delay-only
     MCA's median error at least."""
-    from engine.localization.baselines import MCAAngles
-    from engine.phy.network import NetworkPHY
-    from engine.raytrace import DevicePose, device_poses, make_tracer
+    from isac_twin.localization.baselines import MCAAngles
+    from isac_twin.phy.network import NetworkPHY
+    from isac_twin.raytrace import DevicePose, device_poses, make_tracer
 
     lab_db = fine_db
     scene = load_scene(lab)
@@ -154,7 +163,7 @@ def test_mca_angles_on_pilots_beats_delay_only_mca_off_the_tuned_path(lab, fine_
 
 def _tiny_db(ap1_pos=(0.05, 3.0, 2.0), height=0.25):
     """A 2-point database (real FingerprintDB) carrying only what LosFix reads."""
-    from engine.localization.fingerprints import FingerprintDB
+    from isac_twin.localization.fingerprints import FingerprintDB
 
     meta = {"ap_names": ["AP1", "AP2"], "ap_positions": [list(ap1_pos), [4.0, 0.05, 2.0]],
             "height": height}
@@ -164,10 +173,10 @@ def _tiny_db(ap1_pos=(0.05, 3.0, 2.0), height=0.25):
 
 
 def test_los_fix_is_range_and_azimuth_from_the_shortest_strong_path():
-    from engine.localization.baselines import LosFix
-    from engine.localization.measurements import Observation
-    from engine.phy.arrays import PlanarArray
-    from engine.phy.directions import DelayDirectionProfile
+    from isac_twin.localization.baselines import LosFix
+    from isac_twin.localization.measurements import Observation
+    from isac_twin.phy.arrays import PlanarArray
+    from isac_twin.phy.directions import DelayDirectionProfile
 
     db = _tiny_db()
     spec = FeatureSpec(None, 2.4e9, {"AP1": PlanarArray(4, 8), "AP2": PlanarArray(1, 1),
@@ -206,10 +215,10 @@ def test_los_fix_from_pilots_in_the_bundled_lab_off_the_circle():
     every fix within 10 cm of the truth (measured: 0.3-5.4 cm)."""
     from pathlib import Path
 
-    from engine.localization.baselines import LosFix
-    from engine.localization.fingerprints import FingerprintDB
-    from engine.phy.network import NetworkPHY
-    from engine.raytrace import DevicePose, device_poses, make_tracer
+    from isac_twin.localization.baselines import LosFix
+    from isac_twin.localization.fingerprints import FingerprintDB
+    from isac_twin.phy.network import NetworkPHY
+    from isac_twin.raytrace import DevicePose, device_poses, make_tracer
 
     folder = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"
     scene = load_scene(folder)
@@ -241,8 +250,8 @@ def test_pilot_features_do_not_change_the_mdp_and_directions(lab):
     for (the interpolated full-grid estimate costs ~90 ms per fix on the lab): the MDP and
     directions are the same as with every feature, for the same noise; "mdp_fallback"
     skips the delay-only MDP exactly at the APs that got directions."""
-    from engine.phy.network import NetworkPHY
-    from engine.raytrace import DevicePose, device_poses, make_tracer
+    from isac_twin.phy.network import NetworkPHY
+    from isac_twin.raytrace import DevicePose, device_poses, make_tracer
 
     scene = load_scene(lab)
     cfg = scene.config

@@ -5,9 +5,10 @@ import shutil
 import numpy as np
 import pytest
 
-from engine.config import ConfigError, load_config
-from engine.scene import load_scene
-from engine.twin import Twin
+from isac_twin.errors import ConfigError
+from isac_twin.scene.config import load_config
+from isac_twin.scene.twin_scene import load_scene
+from isac_twin.twin.twin import Twin
 
 
 def _with_localization(lab, tmp_path, table: str):
@@ -61,7 +62,7 @@ def test_a_twin_with_localization_fills_the_estimate_every_step(lab, tmp_path):
 def test_record_stores_the_twins_fixes(lab, tmp_path):
     """`record` writes every topic of the twin's bus: with [localization] that
     includes /robot1/fingerprint, one per step, decodable from the MCAP file."""
-    from engine.record import read_messages, record_twin
+    from isac_twin.transport.record import read_messages, record_twin
 
     folder = _with_localization(lab, tmp_path, 'method = "LOS-fix"\nspacing_m = 0.4\n'
                                 'fusion = "none"\ncache_dir = "cache"\n')
@@ -101,10 +102,10 @@ def test_record_connect_delivers_the_twins_fixes_to_a_robot(tmp_path):
     import sys
     import time
 
-    from engine.record import read_messages
-    from engine.runtime import RobotRuntime, robot_config_from_dict
-    from engine.synthetic import l_room
-    from engine.transport.twin_msgs import Fingerprint
+    from isac_twin.bus.twin_msgs import Fingerprint
+    from isac_twin.devices.runtime import RobotRuntime, robot_config_from_dict
+    from isac_twin.scene.synthetic import l_room
+    from isac_twin.transport.record import read_messages
 
     folder = l_room(tmp_path / "l", robot=(1.0, 1.0, 0.0),
                     tracer={"samples_per_src": 4000, "max_depth": 1})
@@ -128,7 +129,7 @@ def test_record_connect_delivers_the_twins_fixes_to_a_robot(tmp_path):
     out = tmp_path / "run.mcap"
     try:
         proc = subprocess.run(
-            [sys.executable, "-m", "engine.cli", "record", str(folder), "--steps", "50",
+            [sys.executable, "-m", "isac_twin.cli", "record", str(folder), "--steps", "50",
              "--rate", "10", "--out", str(out), "--connect", f"tcp/127.0.0.1:{port}"],
             capture_output=True, text=True, timeout=240)
         assert proc.returncode == 0, proc.stderr

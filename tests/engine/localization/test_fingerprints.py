@@ -5,11 +5,17 @@ import dataclasses
 import numpy as np
 import pytest
 
-from engine.localization.fingerprints import (DB_ARRAYS, DatabaseMismatchError, attach,
-                                              cache_path, cached_database, load_database,
-                                              save_database)
-from engine.scene import load_scene
-from engine.state import Edit
+from isac_twin.errors import DatabaseMismatchError
+from isac_twin.localization.fingerprints import (
+    DB_ARRAYS,
+    attach,
+    cache_path,
+    cached_database,
+    load_database,
+    save_database,
+)
+from isac_twin.scene.twin_scene import load_scene
+from isac_twin.twin.state import Edit
 
 pytestmark = pytest.mark.slow
 
@@ -55,7 +61,7 @@ def test_round_trip_and_cache(lab, lab_db, tmp_path):
                          ids=["shoot-and-bounce", "older-chain-reuse", "other-ray-count",
                               "other-depth", "no-refraction", "probe-lattice-v2"])
 def test_cache_traced_another_way_is_rebuilt(lab, lab_db, tmp_path, tracer):
-    from engine.raytrace.chains import CHAIN_REUSE_VERSION
+    from isac_twin.raytrace.chains import CHAIN_REUSE_VERSION
 
     scene = load_scene(lab)
     assert lab_db.meta["tracer"]["method"] == "chains"
@@ -78,7 +84,7 @@ def test_refuses_other_frequency(lab_db, tmp_path, make_lab):
 
 
 def test_refuses_edited_room_and_twin_flags_it_stale(lab, lab_db):
-    from engine.twin import Twin
+    from isac_twin.twin.twin import Twin
 
     twin = Twin.from_scene(lab, phy=False)
     attach(twin, lab_db)
@@ -156,7 +162,7 @@ def test_malformed_cache_is_refused_with_a_reason_and_rebuilt(tmp_path, lab, lab
 def test_cache_writes_are_atomic(tmp_path, lab_db):
     """A write that fails half-way leaves the old file whole and no temporary behind
     (before, the file was written in place: a crash left half a database)."""
-    from engine.npzfile import write_npz
+    from isac_twin.utils.npzfile import write_npz
 
     class DiskFull:  # fails when np.savez reaches it, after the other arrays are written
         def __array__(self, *args, **kwargs):

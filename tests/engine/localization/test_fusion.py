@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from engine.localization.fusion import PoseEKF
+from isac_twin.localization.fusion import PoseEKF
 
 
 def _lap(n=160, radius=1.5, centre=(4.0, 3.0)):

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from engine.localization.mca import MCALocalizer
+from isac_twin.localization.mca import MCALocalizer
 
 
 def _room_db(rng, nx=40, ny=30, aps=((0.1, 3.0, 2.0), (7.9, 1.0, 2.0)), L=12):

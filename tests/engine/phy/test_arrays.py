@@ -1,9 +1,9 @@
-"""Tests for engine.phy.arrays: Sionna's PlanarArray geometry and steering."""
+"""Tests for isac_twin.phy.arrays: Sionna's PlanarArray geometry and steering."""
 
 import numpy as np
 import pytest
 
-from engine.phy.arrays import PlanarArray, r_hat, rotation_matrix
+from isac_twin.phy.arrays import PlanarArray, r_hat, rotation_matrix
 
 
 def test_element_order_and_positions_match_sionna_planar_array():

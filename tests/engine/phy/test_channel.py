@@ -1,13 +1,13 @@
-"""Tests for engine.phy.channel (eq. 4) against analytic cases and an
+"""Tests for isac_twin.phy.channel (eq. 4) against analytic cases and an
 independent per-path re-implementation of Sionna's cir/cfr formulas."""
 
 import numpy as np
 import pytest
 
-from engine.phy.arrays import PlanarArray, r_hat
-from engine.phy.channel import OFDMChannel, baseband_gains, cfr_from_antenna_gains
-from engine.phy.ofdm import ResourceGrid
-from engine.phy.units import SPEED_OF_LIGHT
+from isac_twin.phy.arrays import PlanarArray, r_hat
+from isac_twin.phy.channel import OFDMChannel, baseband_gains, cfr_from_antenna_gains
+from isac_twin.phy.ofdm import ResourceGrid
+from isac_twin.phy.units import SPEED_OF_LIGHT
 
 GRID = ResourceGrid(64, 78125.0, 4, cyclic_prefix_samples=8)
 
@@ -179,7 +179,7 @@ def test_per_antenna_pair_delays_variant():
 
 def test_cfr_at_is_the_ofdm_channel_at_t0_on_chosen_subcarriers():
     """The snapshot variant (fingerprint CSI) is eq. 4 of OFDMChannel at t = 0."""
-    from engine.phy.channel import cfr_at
+    from isac_twin.phy.channel import cfr_at
     rng = np.random.default_rng(4)
     L = 5
     b = rng.normal(size=L) + 1j * rng.normal(size=L)

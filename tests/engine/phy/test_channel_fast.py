@@ -1,12 +1,12 @@
-"""engine.phy.channel fast synthesis (factored delay phases, Taylor-in-time Doppler)
+"""isac_twin.phy.channel fast synthesis (factored delay phases, Taylor-in-time Doppler)
 against a direct full-kernel evaluation of eq. 4."""
 
 import numpy as np
 import pytest
 
-from engine.phy.arrays import PlanarArray
-from engine.phy.channel import OFDMChannel, _delay_phase, _taylor_order
-from engine.phy.ofdm import ResourceGrid
+from isac_twin.phy.arrays import PlanarArray
+from isac_twin.phy.channel import OFDMChannel, _delay_phase, _taylor_order
+from isac_twin.phy.ofdm import ResourceGrid
 
 
 def _direct(grid, rx, tx, p, times=None):

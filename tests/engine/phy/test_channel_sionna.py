@@ -1,9 +1,9 @@
-"""Cross-check of engine.phy.channel against Sionna RT's own Paths.cfr().
+"""Cross-check of isac_twin.phy.channel against Sionna RT's own Paths.cfr().
 
 Traces a bundled Sionna scene twice -- with single-element arrays (for the
 path gains at the array centres) and with 4x8 / 1x2 synthetic arrays (for
 the reference) -- and synthesises eq. 4 from the first trace. Only the test
-imports Sionna; engine.phy never does.
+imports Sionna; isac_twin.phy never does.
 """
 
 import numpy as np
@@ -11,7 +11,7 @@ import pytest
 
 rt = pytest.importorskip("sionna.rt")
 
-from engine.phy import OFDMChannel, PlanarArray, ResourceGrid, baseband_gains  # noqa: E402
+from isac_twin.phy import OFDMChannel, PlanarArray, ResourceGrid, baseband_gains  # noqa: E402
 
 pytestmark = pytest.mark.slow
 

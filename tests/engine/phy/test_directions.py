@@ -1,16 +1,16 @@
-"""Tests for engine.phy.directions: joint delay-direction estimation at an AP.
+"""Tests for isac_twin.phy.directions: joint delay-direction estimation at an AP.
 
-The CSI is synthesised with the eq.-4 channel (:func:`engine.phy.channel.cfr_at`)
+The CSI is synthesised with the eq.-4 channel (:func:`isac_twin.phy.channel.cfr_at`)
 at each port's comb subcarriers, as the PHY's comb pilots place them."""
 
 import numpy as np
 import pytest
 
-from engine.phy.arrays import PlanarArray, r_hat
-from engine.phy.channel import cfr_at
-from engine.phy.directions import DelayDirectionEstimator
-from engine.phy.estimation import MdpEstimator
-from engine.phy.units import SPEED_OF_LIGHT as C
+from isac_twin.phy.arrays import PlanarArray, r_hat
+from isac_twin.phy.channel import cfr_at
+from isac_twin.phy.directions import DelayDirectionEstimator
+from isac_twin.phy.estimation import MdpEstimator
+from isac_twin.phy.units import SPEED_OF_LIGHT as C
 
 DF = 78125.0
 N = 1024

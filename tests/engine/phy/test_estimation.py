@@ -1,15 +1,20 @@
-"""Tests for engine.phy.estimation: pilots, LS estimation, MDPs."""
+"""Tests for isac_twin.phy.estimation: pilots, LS estimation, MDPs."""
 
 import numpy as np
 import pytest
 
-from engine.phy.arrays import PlanarArray
-from engine.phy.channel import OFDMChannel
-from engine.phy.estimation import (LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp,
-                                   noise_power_from_delay_tail)
-from engine.phy.link import receive
-from engine.phy.ofdm import ResourceGrid, ResourceSet
-from engine.phy.units import SPEED_OF_LIGHT as C
+from isac_twin.phy.arrays import PlanarArray
+from isac_twin.phy.channel import OFDMChannel
+from isac_twin.phy.estimation import (
+    LSChannelEstimator,
+    MdpEstimator,
+    PilotPattern,
+    ideal_mdp,
+    noise_power_from_delay_tail,
+)
+from isac_twin.phy.link import receive
+from isac_twin.phy.ofdm import ResourceGrid, ResourceSet
+from isac_twin.phy.units import SPEED_OF_LIGHT as C
 
 DF = 78125.0
 PAPER_GRID = ResourceGrid(1024, DF, 14, cyclic_prefix_samples=72)
@@ -237,7 +242,7 @@ def test_mdp_with_64_antenna_snapshots_uses_them_all():
 
 def test_mdp_small_subband_is_widened_not_crashed():
     """A subband shorter than 2k+1 used to crash TLS-ESPRIT (LinAlgError)."""
-    from engine.phy.estimation import MdpEstimator
+    from isac_twin.phy.estimation import MdpEstimator
 
     df, n = 78125.0, 64
     f = (np.arange(n) - n // 2) * df

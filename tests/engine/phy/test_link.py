@@ -1,14 +1,30 @@
-"""Tests for engine.phy.link: eqs. 1-2, precoding, power allocation, rates."""
+"""Tests for isac_twin.phy.link: eqs. 1-2, precoding, power allocation, rates."""
 
 import numpy as np
 import pytest
 
-from engine.phy.link import (AchievableRate, EqualPower, Interferer, MRTPrecoder, SVDPrecoder,
-                             WaterFilling, channel_gains, receive, transmit, transmit_power,
-                             water_filling)
-from engine.phy.ofdm import ResourceGrid, ResourceSet
-from engine.phy.units import (BOLTZMANN, db_to_linear, dbm_to_watt, linear_to_db,
-                              thermal_noise_power, watt_to_dbm)
+from isac_twin.phy.link import (
+    AchievableRate,
+    EqualPower,
+    Interferer,
+    MRTPrecoder,
+    SVDPrecoder,
+    WaterFilling,
+    channel_gains,
+    receive,
+    transmit,
+    transmit_power,
+    water_filling,
+)
+from isac_twin.phy.ofdm import ResourceGrid, ResourceSet
+from isac_twin.phy.units import (
+    BOLTZMANN,
+    db_to_linear,
+    dbm_to_watt,
+    linear_to_db,
+    thermal_noise_power,
+    watt_to_dbm,
+)
 
 
 def _crandn(rng, *shape):

@@ -1,13 +1,23 @@
-"""Exact fast paths of engine.phy.link (closed-form 2 x 2 SVD / log-det / SINR)
+"""Exact fast paths of isac_twin.phy.link (closed-form 2 x 2 SVD / log-det / SINR)
 against the np.linalg reference, incl. rank-deficient and near-singular channels."""
 
 import numpy as np
 import pytest
 
-from engine.phy.link import (AchievableRate, Interferer, MRTPrecoder, SVDPrecoder,
-                             WaterFilling, water_level, water_levels, channel_gains, rate_per_re,
-                             svd_streams, water_filling)
-from engine.phy.ofdm import ResourceGrid
+from isac_twin.phy.link import (
+    AchievableRate,
+    Interferer,
+    MRTPrecoder,
+    SVDPrecoder,
+    WaterFilling,
+    channel_gains,
+    rate_per_re,
+    svd_streams,
+    water_filling,
+    water_level,
+    water_levels,
+)
+from isac_twin.phy.ofdm import ResourceGrid
 
 NTS = (1, 2, 3, 4, 8, 16, 32)
 

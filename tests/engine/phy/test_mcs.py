@@ -6,11 +6,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-import engine
-from engine.config import ConfigError, LinkAdaptationConfig, load_config, parse_config
-from engine.phy.mcs import TABLES, McsRate
-from engine.phy.network import NetworkPHY
-from engine.raytrace.base import LinkPaths
+import isac_twin
+from isac_twin.errors import ConfigError
+from isac_twin.phy.mcs import TABLES, McsRate
+from isac_twin.phy.network import NetworkPHY
+from isac_twin.raytrace.base import LinkPaths
+from isac_twin.scene.config import LinkAdaptationConfig, load_config, parse_config
 
 
 def test_tables_match_the_standards():
@@ -75,7 +76,7 @@ def test_many_links_at_once_equal_one_at_a_time(weighted):
 
 
 def test_bad_link_adaptation_is_refused_at_load():
-    cfg = load_config(engine.bundled_scene_dir())
+    cfg = load_config(isac_twin.bundled_scene_dir())
     assert cfg.link_adaptation == LinkAdaptationConfig("he", -35.0)
     for table, msg in [({"table": "lte"}, r"link_adaptation\.table: expected one of he, "
                                           r"nr_cqi2"),
@@ -102,7 +103,7 @@ def _paths(rng, tx, rx, scale):
 
 @pytest.mark.parametrize("scale", [3e-4, 3e-7])
 def test_network_modem_rate_below_shannon_and_fast_equals_reference(scale):
-    cfg = load_config(engine.bundled_scene_dir())
+    cfg = load_config(isac_twin.bundled_scene_dir())
     cfg = dataclasses.replace(cfg, ofdm=dataclasses.replace(cfg.ofdm, num_subcarriers=128),
                               devices=tuple(dataclasses.replace(d, subcarriers=(0, 128))
                                             for d in cfg.devices))

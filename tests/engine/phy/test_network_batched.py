@@ -7,10 +7,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-import engine
-from engine.phy.network import METHODS, NetworkPHY
-from engine.raytrace.base import LinkPaths
-from engine.scene import load_scene
+import isac_twin
+from isac_twin.phy.network import METHODS, NetworkPHY
+from isac_twin.raytrace.base import LinkPaths
+from isac_twin.scene.twin_scene import load_scene
 
 
 def _paths(rng, tx, rx, num_paths, doppler_hz, rx_yaw):
@@ -31,7 +31,7 @@ def many_robots():
     """The lab (256 subcarriers) with 5 robots: robot1 (1 x 2) and copies with
     1 x 2 and 1 x 1 arrays, each heard by both APs (10 links); path counts differ
     per link (0 paths on one link)."""
-    cfg = load_scene(engine.bundled_scene_dir()).config
+    cfg = load_scene(isac_twin.bundled_scene_dir()).config
     ofdm = dataclasses.replace(cfg.ofdm, num_subcarriers=256)
     devs = [dataclasses.replace(d, subcarriers=(0, 256)) for d in cfg.devices]
     robot = next(d for d in devs if d.name == "robot1")
@@ -125,7 +125,7 @@ def test_channel_off_the_allocation_is_computed_on_read(many_robots, kw):
     sig = phy(lp)
     g = sig[("AP1", "robot1")].group
     times = None if g is None else np.bincount(g, weights=phy.grid.symbol_times) / np.bincount(g)
-    lp = phy.patterns(lp)  # (iso here) as the PHY applies them
+
     every = phy.channels(lp, times)
     for lk, s in sig.items():
         assert "h_by_group" not in vars(s)

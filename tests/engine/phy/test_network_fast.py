@@ -6,15 +6,15 @@ import dataclasses
 import numpy as np
 import pytest
 
-import engine
-from engine.phy.network import NetworkPHY
-from engine.raytrace.base import LinkPaths
-from engine.scene import load_scene
+import isac_twin
+from isac_twin.phy.network import NetworkPHY
+from isac_twin.raytrace.base import LinkPaths
+from isac_twin.scene.twin_scene import load_scene
 
 
 @pytest.fixture(scope="module")
 def lab_config():
-    cfg = load_scene(engine.bundled_scene_dir()).config
+    cfg = load_scene(isac_twin.bundled_scene_dir()).config
     ofdm = dataclasses.replace(cfg.ofdm, num_subcarriers=256)
     devs = []
     for d in cfg.devices:

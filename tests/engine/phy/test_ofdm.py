@@ -1,9 +1,9 @@
-"""Tests for engine.phy.ofdm: numerology, Sionna's frequency grid, allocations."""
+"""Tests for isac_twin.phy.ofdm: numerology, Sionna's frequency grid, allocations."""
 
 import numpy as np
 import pytest
 
-from engine.phy.ofdm import ResourceGrid, ResourceSet, allocation_masks
+from isac_twin.phy.ofdm import ResourceGrid, ResourceSet, allocation_masks
 
 PAPER = dict(num_subcarriers=1024, subcarrier_spacing_hz=78125.0,
              num_symbols=14, cyclic_prefix_samples=72)

@@ -1,16 +1,21 @@
 """Polarized elements (V, H, VH, cross) on traced paths: the tracer's 2 x 2
 transfer matrices (engine/raytrace/polarization.py) and the per-port
-coefficients of engine/phy/patterns.py, checked against Sionna RT's own
+coefficients of engine/raytrace/antenna_patterns.py, checked against Sionna RT's own
 ``Paths.a`` / ``Paths.cfr`` traced with the same arrays, and against free
 space (Friis, cross-polar isolation)."""
 
 import numpy as np
 import pytest
 
-from engine.config import TracerConfig
-from engine.phy import OFDMChannel, PlanarArray, ResourceGrid, baseband_gains
-from engine.phy.patterns import AntennaPatterns, element_fields, num_ports, port_coefficients
-from engine.raytrace.base import DevicePose, LinkPaths
+from isac_twin.phy import OFDMChannel, PlanarArray, ResourceGrid, baseband_gains
+from isac_twin.raytrace.antenna_patterns import (
+    AntennaPatterns,
+    element_fields,
+    num_ports,
+    port_coefficients,
+)
+from isac_twin.raytrace.base import DevicePose, LinkPaths
+from isac_twin.scene.config import TracerConfig
 
 FC = 2.4e9
 LAM = 299_792_458.0 / FC
@@ -55,8 +60,8 @@ def test_link_without_transfer_matrix_refuses_h():
 def test_port_pairs_in_eq4_and_the_snapshot_cfr():
     """[L, Pr, Pt] gains: antenna p * E + e is port p of element e (Sionna's
     order); cfr_at and OFDMChannel agree; one port pair reduces to [L] gains."""
-    from engine.phy import cfr_at
-    from engine.phy.channel import port_pair_gains
+    from isac_twin.phy import cfr_at
+    from isac_twin.phy.channel import port_pair_gains
 
     rng = np.random.default_rng(3)
     n = 5
@@ -87,8 +92,8 @@ rt = pytest.importorskip("sionna.rt")
 def test_slants_are_sionnas_for_every_offered_polarization():
     from sionna.rt.antenna_pattern import polarization_registry
 
-    from engine.addon_shared import schema
-    from engine.phy.patterns import SLANTS
+    from isac_twin.contract import schema
+    from isac_twin.raytrace.antenna_patterns import SLANTS
 
     assert list(SLANTS) == list(schema.POLARIZATIONS)
     assert [p for p in SLANTS if num_ports(p) == 2] == list(schema.DUAL_POLARIZATIONS)
@@ -98,15 +103,15 @@ def test_slants_are_sionnas_for_every_offered_polarization():
 
 @pytest.fixture(scope="module")
 def lab_xml():
-    import engine
+    import isac_twin
 
-    return str(engine.bundled_scene_dir() / "scene.xml")
+    return str(isac_twin.bundled_scene_dir() / "scene.xml")
 
 
 @pytest.fixture(scope="module")
 def free_space():
     """An empty Sionna scene (LOS only)."""
-    from engine.raytrace.solver_core import SolverCore
+    from isac_twin.raytrace.solver_core import SolverCore
 
     scene = rt.load_scene()
     scene.frequency = FC
@@ -114,7 +119,7 @@ def free_space():
 
 
 def _our_link(sc, core, tx_p, rx_p, tx_o, rx_o) -> LinkPaths:
-    from engine.raytrace.raw import link_paths
+    from isac_twin.raytrace.raw import link_paths
 
     raw = core.solve_endpoints(sc, [tx_p], [rx_p], 10_000, source_orientations=[tx_o],
                                target_orientations=[rx_o])
@@ -163,7 +168,7 @@ def _sionna(xml, tx, rx):
 
 @pytest.fixture(scope="module")
 def lab_link(lab_xml):
-    from engine.raytrace.solver_core import SolverCore
+    from isac_twin.raytrace.solver_core import SolverCore
 
     sc = rt.load_scene(lab_xml, merge_shapes=False)
     sc.frequency = FC
@@ -211,7 +216,7 @@ def test_polarized_ports_match_sionna_a_and_cfr(lab_xml, lab_link, et, er):
 
 @pytest.fixture
 def room(tmp_path):
-    from engine.synthetic import box_room
+    from isac_twin.scene.synthetic import box_room
 
     return box_room(tmp_path / "room")
 
@@ -231,8 +236,8 @@ def test_twin_step_with_dual_polarized_arrays(room, tmp_path):
     channel equals eq. 4 from the per-port coefficients."""
     import shutil
 
-    from engine.phy.network import NetworkPHY
-    from engine.twin import Twin
+    from isac_twin.phy.network import NetworkPHY
+    from isac_twin.twin.twin import Twin
 
     other = tmp_path / "v"
     shutil.copytree(room, other)

@@ -7,13 +7,17 @@ import math
 import numpy as np
 import pytest
 
-from engine.config import load_config
-from engine.raytrace.base import (DevicePose, LinkPaths, device_poses, resolve_links,
-                                  sionna_orientation, validate_poses)
-from engine.scene import load_scene
-
-from .conftest import ROBOT_EXTRA, furnished_room
-from engine.synthetic import SyntheticDevice
+from isac_twin.raytrace.base import (
+    DevicePose,
+    LinkPaths,
+    device_poses,
+    resolve_links,
+    sionna_orientation,
+    validate_poses,
+)
+from isac_twin.scene.config import load_config
+from isac_twin.scene.synthetic import ROBOT_EXTRA, SyntheticDevice, furnished_room
+from isac_twin.scene.twin_scene import load_scene
 
 
 def test_device_poses_rotate_antenna_offset_by_yaw(tmp_path):

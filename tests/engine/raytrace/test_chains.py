@@ -7,16 +7,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from engine.config import ConfigError, load_config
-from engine.raytrace.base import DevicePose, device_poses
-from engine.raytrace.chains import ChainTracer
-from engine.raytrace.conformance import find_repeats, grazing, match_paths, scene_edges
-from engine.raytrace.raw import free_points
-from engine.raytrace.sionna import SionnaTracer
-from engine.raytrace.solver_core import SolverCore
-from engine.scene import load_scene
-
-from .conftest import furnished_room
+from isac_twin.errors import ConfigError
+from isac_twin.raytrace.base import DevicePose, device_poses
+from isac_twin.raytrace.chains import ChainTracer
+from isac_twin.raytrace.conformance import find_repeats, grazing, match_paths, scene_edges
+from isac_twin.raytrace.raw import free_points
+from isac_twin.raytrace.sionna import SionnaTracer
+from isac_twin.raytrace.solver_core import SolverCore
+from isac_twin.scene.config import load_config
+from isac_twin.scene.synthetic import furnished_room
+from isac_twin.scene.twin_scene import load_scene
 
 POSITIONS = [(2.1, 1.5, 0.25), (1.05, 0.62, 0.25), (3.3, 2.6, 0.25)]
 
@@ -105,9 +105,9 @@ def test_box_room_chains_follow_mirror_geometry(tmp_path):
     without an immediate repeat are followed: the 24 impossible ones and 12
     that the box's proportions rule out (e.g. wall -> ceiling -> floor from a
     source 0.4 m under the ceiling)."""
-    from engine.raytrace.planes import PlaneIndex
-    from engine.raytrace.source_chains import shoot_chains
-    from engine.synthetic import SyntheticDevice, room_objects, write_scene_folder
+    from isac_twin.raytrace.planes import PlaneIndex
+    from isac_twin.raytrace.source_chains import shoot_chains
+    from isac_twin.scene.synthetic import SyntheticDevice, room_objects, write_scene_folder
 
     devs = [SyntheticDevice("AP1", "access_point", "tx", (1.1, 0.7, 2.1)),
             SyntheticDevice("robot1", "robot", "rx", (2.0, 1.5, 0.0))]
@@ -382,10 +382,9 @@ def test_mirror_filter_on_a_single_reflector(tmp_path):
     reflection is a chain for a target above the plane whose mirror segment hits
     the plane inside its extent, not for a target beyond the plane's edge
     (the segment from the image (0, 0, -1) meets z = 0 outside [-10, 10])."""
-    from engine.raytrace.planes import PlaneIndex
-    from engine.raytrace.source_chains import MirrorFilter
-
-    from .conftest import reflector_scene
+    from isac_twin.raytrace.planes import PlaneIndex
+    from isac_twin.raytrace.source_chains import MirrorFilter
+    from isac_twin.scene.synthetic import reflector_scene
 
     sc = load_scene(reflector_scene(tmp_path / "r")).sionna
     planes = PlaneIndex(sc.mi_scene)
@@ -422,10 +421,10 @@ _FROZEN_CHECK = """
 import sys
 from dataclasses import replace
 import numpy as np
-import engine
-from engine.raytrace.base import DevicePose, device_poses
-from engine.raytrace.sionna import SionnaTracer
-from engine.scene import load_scene
+import isac_twin
+from isac_twin.raytrace.base import DevicePose, device_poses
+from isac_twin.raytrace.sionna import SionnaTracer
+from isac_twin.scene.twin_scene import load_scene
 
 room_scene = load_scene(sys.argv[1])
 if sys.argv[2] == "second":  # the real room beside the twin's, a material replaced
@@ -464,7 +463,7 @@ assert live.chains.freeze_error is None, live.chains.freeze_error
 # the mirror filter's pair counts are padded to a few sizes, each recorded
 # once with the buckets either side (and Dr.Jit records the first call's size a
 # second time, as before)
-from engine.raytrace.chains import neighbour_buckets
+from isac_twin.raytrace.chains import neighbour_buckets
 sizes = live.chains.frozen_sizes
 extra = 1 if sys.argv[2] == "one" else 2
 assert len(sizes) <= live.chains.recordings <= len(sizes) + extra, (live.chains.recordings, sizes)

@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from engine.raytrace.base import device_poses
-from engine.raytrace.conformance import check_shapes, check_tracer, grazing, scene_edges
-from engine.raytrace.sionna import SionnaTracer
+from isac_twin.raytrace.base import device_poses
+from isac_twin.raytrace.conformance import check_shapes, check_tracer, grazing, scene_edges
+from isac_twin.raytrace.sionna import SionnaTracer
 
 
 class _Broken:
@@ -47,7 +47,7 @@ def test_checker_catches(good, room_scene, how, failing):
 
 
 def test_check_shapes_flags_bad_arrays(good, room_scene):
-    from engine.raytrace.base import device_poses
+    from isac_twin.raytrace.base import device_poses
 
     lp = good(room_scene, device_poses(room_scene.config))[("AP1", "robot1")]
     assert check_shapes(lp) == []
@@ -99,7 +99,7 @@ class _Mangled:
 
 @pytest.mark.slow
 def test_path_set_checker_catches_repeated_missing_and_invented_paths(good, room_scene):
-    from engine.raytrace.conformance import SionnaReference, check_path_sets, compare_path_sets
+    from isac_twin.raytrace.conformance import SionnaReference, check_path_sets, compare_path_sets
 
     ref = SionnaReference(room_scene, room_scene.config.tracer.samples_per_src)
     # Chain reuse enumerates chains a direct 2e4-ray trace misses (weak, e.g.
@@ -119,10 +119,10 @@ def test_path_set_checker_catches_repeated_missing_and_invented_paths(good, room
 
 @pytest.fixture(scope="module")
 def lab_scene():
-    import engine
-    from engine.scene import load_scene
+    import isac_twin
+    from isac_twin.scene.twin_scene import load_scene
 
-    return load_scene(engine.bundled_scene_dir())
+    return load_scene(isac_twin.bundled_scene_dir())
 
 
 @pytest.mark.slow
@@ -136,10 +136,9 @@ def test_every_backend_returns_sionnas_path_set_in_the_lab(lab_scene):
     extra: chain reuse enumerates every chain of the APs, and at these points
     Sionna's 1e5 and 1e6-ray traces miss paths down to -25 dB that 1e7 rays
     find (all such paths were confirmed that way; none was invented)."""
-    from engine.raytrace.conformance import (SionnaReference, check_path_sets,
-                                             compare_path_sets)
-    from engine.raytrace.grid import trace_grid
-    from engine.raytrace.grid_backend import GridTracer
+    from isac_twin.raytrace.conformance import SionnaReference, check_path_sets, compare_path_sets
+    from isac_twin.raytrace.grid import trace_grid
+    from isac_twin.raytrace.grid_backend import GridTracer
 
     scene = lab_scene
     cfg = scene.config.tracer

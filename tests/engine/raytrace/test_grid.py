@@ -8,11 +8,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from engine.raytrace.base import device_poses
-from engine.raytrace.raw import free_points
-from engine.raytrace.grid import (GRID_ARRAYS, GRID_FORMAT_VERSION, grid_points,
-                                  load_grid, save_grid, trace_grid)
-from engine.raytrace.sionna import SionnaTracer
+from isac_twin.raytrace.base import device_poses
+from isac_twin.raytrace.grid import (
+    GRID_ARRAYS,
+    GRID_FORMAT_VERSION,
+    grid_points,
+    load_grid,
+    save_grid,
+    trace_grid,
+)
+from isac_twin.raytrace.raw import free_points
+from isac_twin.raytrace.sionna import SionnaTracer
 
 
 def test_grid_points_cell_centred():
@@ -103,7 +109,7 @@ def test_truncation_detected_and_split(room_scene, caplog):
     assert g.meta["tracer"]["truncation_retries"] > 0
     assert g.meta["tracer"]["method"] == "sbr"
     np.testing.assert_array_equal(g.num_paths, ref.num_paths)
-    from engine.raytrace.base import TruncationError
+    from isac_twin.errors import TruncationError
     with pytest.raises(TruncationError, match="single receiver"):
         trace_grid(room_scene, spacing=1.4, progress=False, config=tiny, max_cap=150,
                    method="sbr")
@@ -130,9 +136,9 @@ def test_verification_tells_an_invented_path_from_a_real_one(room_scene, room_gr
     true delay and vertices is one missing and one extra path, and the 10x-ray
     confirmation (which turns real paths the direct trace's rays missed into
     ``paths_found_more``) does not vouch for it."""
-    from engine.raytrace import grid as G
-    from engine.raytrace.base import sionna_orientation
-    from engine.raytrace.solver_core import SolverCore
+    from isac_twin.raytrace import grid as G
+    from isac_twin.raytrace.base import sionna_orientation
+    from isac_twin.raytrace.solver_core import SolverCore
 
     g = room_grid
     poses = device_poses(room_scene.config)
@@ -172,7 +178,7 @@ def test_verification_tells_an_invented_path_from_a_real_one(room_scene, room_gr
 def test_pipelined_grid_equals_sequential(room_scene, monkeypatch):
     """Chunks arranged in numpy by a second thread while the next is evaluated
     (PIPELINE_DEPTH) give the same arrays, in the same order, as one thread."""
-    import engine.raytrace.grid as grid_mod
+    import isac_twin.raytrace.grid as grid_mod
 
     monkeypatch.setattr(grid_mod, "PIPELINE_DEPTH", 0)
     seq = grid_mod.trace_grid(room_scene, spacing=0.25, progress=False, verify=0,

@@ -7,12 +7,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from engine.raytrace.base import SPEED_OF_LIGHT, DevicePose, device_poses
-from engine.raytrace.conformance import check_tracer
-from engine.raytrace.grid_backend import GridTracer
-from engine.scene import load_scene
-
-from .conftest import furnished_room
+from isac_twin.raytrace.base import SPEED_OF_LIGHT, DevicePose, device_poses
+from isac_twin.raytrace.conformance import check_tracer
+from isac_twin.raytrace.grid_backend import GridTracer
+from isac_twin.scene.synthetic import furnished_room
+from isac_twin.scene.twin_scene import load_scene
 
 
 def test_conformance(room_grid, room_scene):

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import pytest
 
-from engine.config import ConfigError, load_config
-from engine.raytrace import make_tracer
-from engine.raytrace.grid import save_grid
-from engine.raytrace.grid_backend import GridTracer
-from engine.raytrace.sionna import SionnaTracer
-
-from .conftest import furnished_room
+from isac_twin.errors import ConfigError
+from isac_twin.raytrace import make_tracer
+from isac_twin.raytrace.grid import save_grid
+from isac_twin.raytrace.grid_backend import GridTracer
+from isac_twin.raytrace.sionna import SionnaTracer
+from isac_twin.scene.config import load_config
+from isac_twin.scene.synthetic import furnished_room
 
 
 def test_tracer_keys(tmp_path):
@@ -24,7 +24,7 @@ def test_tracer_keys(tmp_path):
 
 
 def test_grid_backend_from_config(tmp_path, room_grid, capsys):
-    from engine.cli import main
+    from isac_twin.cli import main
 
     folder = furnished_room(tmp_path / "g", tracer={"backend": "grid",
                                                    "grid_file": "grid.npz"})

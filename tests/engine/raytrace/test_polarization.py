@@ -1,13 +1,13 @@
-"""engine.raytrace.polarization: the element's V vector in world components."""
+"""isac_twin.raytrace.polarization: the element's V vector in world components."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-import engine.raytrace.polarization as pol
-from engine.phy.arrays import r_hat
-from engine.pose import rotation_matrix
+import isac_twin.raytrace.polarization as pol
+from isac_twin.phy.arrays import r_hat
+from isac_twin.utils.geometry import rotation_matrix
 
 
 @pytest.mark.parametrize("gather", [0, 10 ** 9])

@@ -1,4 +1,4 @@
-"""Cross-check: eq. 4 synthesized by engine.phy from our LinkPaths equals Sionna's
+"""Cross-check: eq. 4 synthesized by isac_twin.phy from our LinkPaths equals Sionna's
 own ``Paths.cfr`` for the same scene with the real arrays (independent reference).
 
 Setup: furnished room (cabinet, table), AP 4x8 (and 1x1) with a yawed and tilted
@@ -15,15 +15,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from engine.raytrace.base import DevicePose, device_poses, sionna_orientation
-from engine.raytrace.sionna import SionnaTracer
-from engine.scene import load_scene
+from isac_twin.raytrace.base import DevicePose, device_poses, sionna_orientation
+from isac_twin.raytrace.sionna import SionnaTracer
+from isac_twin.scene.synthetic import furnished_room
+from isac_twin.scene.twin_scene import load_scene
 
-from .conftest import furnished_room
-
-phy_channel = pytest.importorskip("engine.phy.channel")
-from engine.phy.arrays import PlanarArray  # noqa: E402
-from engine.phy.ofdm import ResourceGrid  # noqa: E402
+phy_channel = pytest.importorskip("isac_twin.phy.channel")
+from isac_twin.phy.arrays import PlanarArray  # noqa: E402
+from isac_twin.phy.ofdm import ResourceGrid  # noqa: E402
 
 AP_ORIENT = (0.0, 0.3, 0.7)  # roll, pitch (down-tilt), yaw
 ROBOT_VEL = (0.4, -0.25, 0.0)

@@ -6,9 +6,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from engine.raytrace.base import DevicePose, device_poses
-from engine.raytrace.grid import trace_grid
-from engine.raytrace.sionna import SionnaTracer
+from isac_twin.raytrace.base import DevicePose, device_poses
+from isac_twin.raytrace.grid import trace_grid
+from isac_twin.raytrace.sionna import SionnaTracer
 
 FIELDS = ("a", "tau", "doppler", "theta_t", "phi_t", "theta_r", "phi_r", "interactions",
           "vertices")
@@ -28,7 +28,7 @@ def test_fast_path_bit_identical_to_legacy(room_scene):
 
 
 def test_small_buffer_regrows_to_same_result(room_scene, monkeypatch):
-    import engine.raytrace.solver_core as S
+    import isac_twin.raytrace.solver_core as S
 
     cfg = replace(room_scene.config.tracer, method="sbr")
     poses = device_poses(room_scene.config)

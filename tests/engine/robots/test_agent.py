@@ -5,10 +5,16 @@ import math
 import numpy as np
 import pytest
 
-from engine.bus import Bus
-from engine.robots import (CirclePath, PurePursuit, RobotAgent, SensorOptions, build_robots,
-                           cast_scans)
-from engine.synthetic import SyntheticDevice, box_room
+from isac_twin.bus.bus import Bus
+from isac_twin.robots import (
+    CirclePath,
+    PurePursuit,
+    RobotAgent,
+    SensorOptions,
+    build_robots,
+    cast_scans,
+)
+from isac_twin.scene.synthetic import SyntheticDevice, box_room
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +33,7 @@ def folder(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def scene(folder):
-    from engine.scene import load_scene
+    from isac_twin.scene.twin_scene import load_scene
 
     return load_scene(folder)
 
@@ -175,7 +181,7 @@ def test_cmd_vel_from_another_node_drives_the_robot(scene):
                        options=SensorOptions(noise=False))
     tele = bus.node("teleop")
     tele.advertise("/tb/cmd_vel", "geometry_msgs/msg/Twist")
-    from engine.robots.kinematics import make_twist
+    from isac_twin.robots.kinematics import make_twist
 
     tele.publish("/tb/cmd_vel", make_twist(0.1, 0.0))
     for k in range(40):
@@ -185,7 +191,7 @@ def test_cmd_vel_from_another_node_drives_the_robot(scene):
 
 
 def test_topics_cli_prints_the_real_registry(folder, capsys):
-    from engine.cli import main
+    from isac_twin.cli import main
 
     assert main(["topics", str(folder)]) == 0
     out = capsys.readouterr().out
@@ -196,8 +202,8 @@ def test_topics_cli_prints_the_real_registry(folder, capsys):
 
 
 def test_opencr_step_adapter_matches_the_emulator_contract():
-    from engine.robots import DiffDriveRobot, OpenCRStep
-    from engine.robots.kinematics import robot_spec
+    from isac_twin.robots import DiffDriveRobot, OpenCRStep
+    from isac_twin.robots.kinematics import robot_spec
 
     step = OpenCRStep(DiffDriveRobot("burger", (0, 0, 0)))
     for _ in range(100):
@@ -210,7 +216,7 @@ def test_opencr_step_adapter_matches_the_emulator_contract():
     assert quat == pytest.approx(step.robot.state.quaternion())
     assert rp > lp > 0
     try:
-        from engine.devices.emulated_opencr import EmulatedOpenCR  # noqa: F401
+        from isac_twin.devices.emulated_opencr import EmulatedOpenCR  # noqa: F401
     except ImportError:  # the devices package is optional here
         return
     import inspect

@@ -5,9 +5,15 @@ import math
 import numpy as np
 import pytest
 
-from engine.robots.control import (CirclePath, FigureEightPath, GoalReacher, PathError,
-                                   PolylinePath, PurePursuit)
-from engine.robots.kinematics import DiffDriveRobot, ProcessNoise, SpeedLimitError
+from isac_twin.errors import PathError, SpeedLimitError
+from isac_twin.robots.control import (
+    CirclePath,
+    FigureEightPath,
+    GoalReacher,
+    PolylinePath,
+    PurePursuit,
+)
+from isac_twin.robots.kinematics import DiffDriveRobot, ProcessNoise
 
 ROOM = ((0.0, 0.0), (8.0, 6.0))  # the bundled lab's floor
 DT = 0.05  # 20 Hz, the OpenCR control period

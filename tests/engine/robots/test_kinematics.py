@@ -6,10 +6,18 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from engine.msgs import Twist
-from engine.robots.kinematics import (MAX_WHEEL_RATE, ROBOT_SPECS, DiffDriveRobot,
-                                      PoseObservation, ProcessNoise, SpeedLimitError,
-                                      arc_step, make_twist, robot_spec)
+from isac_twin.bus.msgs import Twist
+from isac_twin.errors import SpeedLimitError
+from isac_twin.robots.kinematics import (
+    MAX_WHEEL_RATE,
+    ROBOT_SPECS,
+    DiffDriveRobot,
+    PoseObservation,
+    ProcessNoise,
+    arc_step,
+    make_twist,
+    robot_spec,
+)
 
 
 def moving(model, pose, v, w, **kw):

@@ -5,17 +5,25 @@ import math
 import numpy as np
 import pytest
 
-from engine.robots.kinematics import TICK_RAD, DiffDriveRobot, KinematicState, robot_spec
-from engine.robots.sensors import (DXL_VELOCITY_UNIT, DepthCamera, ImuNoise, ImuSensor,
-                                   Lidar2D, WheelEncoders, WheelOdometry, cast_rays)
-from engine.synthetic import box_room
+from isac_twin.robots.kinematics import TICK_RAD, DiffDriveRobot, KinematicState, robot_spec
+from isac_twin.robots.sensors import (
+    DXL_VELOCITY_UNIT,
+    DepthCamera,
+    ImuNoise,
+    ImuSensor,
+    Lidar2D,
+    WheelEncoders,
+    WheelOdometry,
+    cast_rays,
+)
+from isac_twin.scene.synthetic import box_room
 
 SIZE = (8.0, 6.0, 3.0)  # the bundled lab's extent
 
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    from engine.scene import load_scene
+    from isac_twin.scene.twin_scene import load_scene
 
     return load_scene(box_room(tmp_path_factory.mktemp("room"), size=SIZE))
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-import engine  # noqa: F401 - sets DRJIT_LIBLLVM_PATH before mitsuba loads
-from engine.synthetic import (ROBOT_EXTRA, SyntheticDevice, room_objects, write_scene_folder)
+import isac_twin  # noqa: F401 - sets DRJIT_LIBLLVM_PATH before mitsuba loads
+from isac_twin.scene.synthetic import ROBOT_EXTRA, SyntheticDevice, room_objects, write_scene_folder
 
 #: the grid the tests trace (coarse) and a chunking that splits it into several
 #: chunks and tiles (as a 5 cm grid does with 1024 points)
@@ -32,7 +32,7 @@ def room_folder(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def room_scene(room_folder):
-    from engine.scene import load_scene
+    from isac_twin.scene.twin_scene import load_scene
 
     return load_scene(room_folder)
 
@@ -40,7 +40,7 @@ def room_scene(room_folder):
 @pytest.fixture(scope="module")
 def single_grid(room_scene):
     """The single-process reference: ``trace_grid`` with the default tracer."""
-    from engine.raytrace.grid import trace_grid
+    from isac_twin.raytrace.grid import trace_grid
 
     return trace_grid(room_scene, spacing=SPACING, chunk_size=CHUNK, progress=False, verify=0)
 
@@ -48,7 +48,7 @@ def single_grid(room_scene):
 @pytest.fixture(scope="package")
 def client():
     """One local cluster for the whole package (a start costs seconds)."""
-    from engine.scaleout.cluster import cluster_client
+    from isac_twin.scaleout.cluster import cluster_client
 
     with cluster_client(workers=2) as c:
         yield c

@@ -6,7 +6,7 @@ import logging
 
 import numpy as np
 
-from engine.scaleout.checkpoint import TileCheckpoints, checkpoint_dir, checkpoint_key
+from isac_twin.scaleout.checkpoint import TileCheckpoints, checkpoint_dir, checkpoint_key
 
 
 def _part(n):

@@ -18,8 +18,8 @@ import signal
 import numpy as np
 import pytest
 
-from engine.scaleout.checkpoint import checkpoint_dir
-from engine.scaleout.cluster import trace_grid_tiled
+from isac_twin.scaleout.checkpoint import checkpoint_dir
+from isac_twin.scaleout.cluster import trace_grid_tiled
 
 from .conftest import CHUNK, SPACING, TILE
 
@@ -50,7 +50,7 @@ def tiled(scene, client, tile_size=TILE, **kw):
 
 def test_tiled_grid_and_database_equal_the_single_process_ones(room_scene, single_grid,
                                                                 client):
-    from engine.localization.fingerprints import from_grid
+    from isac_twin.localization.fingerprints import from_grid
 
     summaries = []
     got = tiled(room_scene, client, on_tile=summaries.append)
@@ -88,7 +88,7 @@ def test_local_workers_import_the_tracer_stack_at_start_up(client):
                 dr.thread_count(), dask.config.get("distributed.worker.profile.enabled"))
 
     for preloads, sionna_imported, threads, profiler in client.run(state).values():
-        assert preloads == ["engine.scaleout.preload"]
+        assert preloads == ["isac_twin.scaleout.preload"]
         assert sionna_imported and threads == 1
         assert profiler is False
 
@@ -143,7 +143,7 @@ def test_an_interrupted_build_resumes_with_the_missing_tiles(room_scene, single_
 
 
 def test_a_worker_with_another_scene_state_is_refused(room_folder, client):
-    from engine.scene import load_scene
+    from isac_twin.scene.twin_scene import load_scene
 
     scene = load_scene(room_folder)
     scene.move_object("cabinet", position=(2.5, 0.6, 0.0))  # the folder on disk is unchanged
@@ -155,7 +155,7 @@ def test_the_verification_runs_on_the_workers_as_in_one_process(room_scene, clie
     """``verify`` re-traces the same points on the workers and records the same
     ``meta["verification"]`` as ``trace_grid`` (the direct traces use the grid's
     seed)."""
-    from engine.raytrace.grid import trace_grid
+    from isac_twin.raytrace.grid import trace_grid
 
     ref = trace_grid(room_scene, spacing=SPACING, chunk_size=CHUNK, progress=False, verify=3)
     got = tiled(room_scene, client, verify=3)

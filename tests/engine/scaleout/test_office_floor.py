@@ -6,18 +6,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from engine.paths import bundled_scene_dir
+from isac_twin.scene.bundled import bundled_scene_dir
 
 
 @pytest.fixture(scope="module")
 def floor():
-    from engine.scene import load_scene
+    from isac_twin.scene.twin_scene import load_scene
 
     return load_scene(bundled_scene_dir("office_floor"))
 
 
 def test_rooms_doors_and_aps(floor):
-    from engine.raytrace.raw import free_points
+    from isac_twin.raytrace.raw import free_points
 
     cfg = floor.config
     assert [d.name for d in cfg.devices if d.kind == "access_point"] == ["AP1", "AP2", "AP3",
@@ -37,8 +37,8 @@ def test_rooms_doors_and_aps(floor):
 
 @pytest.mark.slow
 def test_a_coarse_grid_of_the_floor_traces_on_the_cluster(floor, client):
-    from engine.scaleout.cluster import trace_grid_tiled
-    from engine.scaleout.tiles import TAIL_PARTS
+    from isac_twin.scaleout.cluster import trace_grid_tiled
+    from isac_twin.scaleout.tiles import TAIL_PARTS
 
     g = trace_grid_tiled(floor, spacing=4.0, client=client, tile_size=4, chunk_size=4,
                          progress=False)

@@ -19,8 +19,8 @@ pytestmark = pytest.mark.slow
 def setup(room_scene):
     import drjit as dr
 
-    from engine.raytrace.grid import GRID_SPEC_TABLE_SIZE
-    from engine.scaleout.tiles import TileJob, plan_grid, scene_folder
+    from isac_twin.raytrace.grid import GRID_SPEC_TABLE_SIZE
+    from isac_twin.scaleout.tiles import TileJob, plan_grid, scene_folder
 
     cfg = room_scene.config.tracer
     plan = plan_grid(room_scene, None, SPACING, None, 0.0, cfg, None, CHUNK, chunk_size=CHUNK)
@@ -33,17 +33,17 @@ def setup(room_scene):
 
 
 def tracer(cfg):
-    from engine.raytrace.chains import ChainTracer
-    from engine.raytrace.grid import GRID_SPEC_TABLE_SIZE
-    from engine.raytrace.solver_core import SolverCore
+    from isac_twin.raytrace.chains import ChainTracer
+    from isac_twin.raytrace.grid import GRID_SPEC_TABLE_SIZE
+    from isac_twin.raytrace.solver_core import SolverCore
 
     return ChainTracer(SolverCore(cfg, spec_table_size=GRID_SPEC_TABLE_SIZE))
 
 
 def test_shipped_chains_give_the_paths_of_chains_shot_in_place(room_scene, setup):
-    from engine.raytrace.grid import sorted_chunk
-    from engine.raytrace.planes import PlaneIndex
-    from engine.scaleout.tiles import shoot_source, use_shipped_chains, worker_state
+    from isac_twin.raytrace.grid import sorted_chunk
+    from isac_twin.raytrace.planes import PlaneIndex
+    from isac_twin.scaleout.tiles import shoot_source, use_shipped_chains, worker_state
 
     plan, job = setup
     cfg = room_scene.config.tracer
@@ -74,8 +74,8 @@ def test_shipped_chains_give_the_paths_of_chains_shot_in_place(room_scene, setup
 
 
 def test_shipped_chains_of_another_scene_or_missing_an_ap_are_refused(room_scene, setup):
-    from engine.scaleout.shared_chains import merge
-    from engine.scaleout.tiles import shoot_source, use_shipped_chains
+    from isac_twin.scaleout.shared_chains import merge
+    from isac_twin.scaleout.tiles import shoot_source, use_shipped_chains
 
     plan, job = setup
     cfg = room_scene.config.tracer

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from engine.scaleout.tiles import TAIL_PARTS, TileJob, image_method_calls, plan_grid, trace_tile
+from isac_twin.scaleout.tiles import TAIL_PARTS, TileJob, image_method_calls, plan_grid, trace_tile
 
 from .conftest import CHUNK, SPACING
 
@@ -45,11 +45,11 @@ def test_a_chunk_traced_in_shares_equals_the_whole_chunk(room_scene):
     the chunk takes several image-method calls."""
     import drjit as dr
 
-    from engine.raytrace.chains import ChainTracer
-    from engine.raytrace.grid import GRID_SPEC_TABLE_SIZE, sorted_chunk
-    from engine.raytrace.solver_core import SolverCore
-    from engine.scaleout.cluster import assemble
-    from engine.scaleout.tiles import scene_folder, storage_dtypes
+    from isac_twin.raytrace.chains import ChainTracer
+    from isac_twin.raytrace.grid import GRID_SPEC_TABLE_SIZE, sorted_chunk
+    from isac_twin.raytrace.solver_core import SolverCore
+    from isac_twin.scaleout.cluster import assemble
+    from isac_twin.scaleout.tiles import scene_folder, storage_dtypes
 
     cfg = room_scene.config.tracer
     plan = plan_grid(room_scene, None, SPACING, None, 0.0, cfg, None, CHUNK, chunk_size=CHUNK)

@@ -1,18 +1,19 @@
-"""engine/sensing/config.py: typed ``[[sensing]]`` tables (parsed once by engine.config)."""
+"""engine/sensing/config.py: typed ``[[sensing]]`` tables (parsed once by isac_twin.scene.config)."""
 
 import dataclasses
 from pathlib import Path
 
 import pytest
 
-from engine.config import ConfigError, load_config
-from engine.sensing.config import parse_sensing
+from isac_twin.errors import ConfigError
+from isac_twin.scene.config import load_config
+from isac_twin.sensing.config import parse_sensing
 
 LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"
 
 
 def _with(tables):
-    from engine.config import parse_config
+    from isac_twin.scene.config import parse_config
 
     cfg = load_config(LAB)
     return parse_config(dict(cfg.raw, sensing=tables), cfg.path)
@@ -48,8 +49,9 @@ def test_load_config_accepts_and_validates_sensing_tables(tmp_path):
     """`[[sensing]]` is a known top-level key: good tables load, bad ones fail at load."""
     import pytest as _pytest
 
-    from engine.config import ConfigError, load_config
-    from engine.synthetic import box_room
+    from isac_twin.errors import ConfigError
+    from isac_twin.scene.config import load_config
+    from isac_twin.scene.synthetic import box_room
 
     folder = box_room(tmp_path / "room")
     p = folder / "twin.toml"
@@ -62,7 +64,7 @@ def test_load_config_accepts_and_validates_sensing_tables(tmp_path):
 
 def test_topics_lists_the_labs_sensing_topic(capsys):
     """`isac-twin topics` on the bundled lab lists the radar's detections topic."""
-    from engine.cli import main
+    from isac_twin.cli import main
 
     assert main(["topics", str(LAB)]) == 0
     out = capsys.readouterr().out
@@ -71,10 +73,10 @@ def test_topics_lists_the_labs_sensing_topic(capsys):
 
 
 def test_demo_takes_its_link_and_robot_from_any_scene(tmp_path):
-    """engine.sensing.demo on a non-lab scene: the first [[sensing]] link (radar every step)
+    """isac_twin.experiments.sensing_demo on a non-lab scene: the first [[sensing]] link (radar every step)
     and the first robot from twin.toml; a scene without [[sensing]] is refused by name."""
-    from engine.sensing.demo import first_robot, lab_link, scene_link
-    from engine.synthetic import l_room
+    from isac_twin.experiments.sensing_demo import first_robot, lab_link, scene_link
+    from isac_twin.scene.synthetic import l_room
 
     lab = scene_link(load_config(LAB))
     ref = lab_link()

@@ -1,4 +1,4 @@
-"""The radar in a child process (``engine.sensing.process``): the frames of the
+"""The radar in a child process (``isac_twin.sensing.process``): the frames of the
 synchronous radar, on the worker's schedule, from a replica of the twin's scene
 that follows its edits; errors of the child raised on the twin's thread."""
 
@@ -10,11 +10,10 @@ from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
-import numpy as np
 import pytest
 
-from engine.sensing.estimator import SensingJob
-from engine.sensing.process import SensingProcess
+from isac_twin.sensing.estimator import SensingJob
+from isac_twin.sensing.process import SensingProcess
 
 ROOT = Path(__file__).resolve().parents[3]
 LAB = ROOT / "blend_scenes" / "aces_lab" / "scene"
@@ -23,8 +22,8 @@ LAB = ROOT / "blend_scenes" / "aces_lab" / "scene"
 # spawn ran it again in the child, which built a second twin and failed.
 _SCRIPT = textwrap.dedent("""
     import gc, pickle, sys
-    from engine.state import Edit
-    from engine.twin import Twin
+    from isac_twin.twin.state import Edit
+    from isac_twin.twin.twin import Twin
     sync = sys.argv[2] == "sync"
     tw = Twin.from_scene({lab!r}, dt=0.05, phy=False, sync_sensing=sync,
                          sensing_process=not sync)
@@ -81,7 +80,7 @@ def test_process_frames_equal_the_synchronous_radar_through_edits_and_a_reset(tm
 
 
 def _job():
-    from engine.phy.ofdm import ResourceGrid
+    from isac_twin.phy.ofdm import ResourceGrid
 
     return SensingJob(step=0, time_s=0.05, dt=0.05, links=[], poses={}, truth={},
                       grid=ResourceGrid(64, 78125.0, 14, 8), contains=None)
@@ -110,8 +109,8 @@ def test_a_scene_changed_behind_the_edits_is_refused_not_sensed():
     """The replica follows the edit methods; a change made around them (here an
     object's material set directly) would make the child sense another room:
     the frame is refused, on the twin's thread, naming the cause."""
-    from engine.scene import load_scene
-    from engine.sensing.config import parse_sensing
+    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin.sensing.config import parse_sensing
 
     scene = load_scene(LAB, load_sionna=False)
     links = parse_sensing(scene.config)

@@ -3,12 +3,21 @@
 import numpy as np
 import pytest
 
-from engine.bus import Bus, resolve_type
-from engine.phy import OFDMChannel, PlanarArray, ResourceGrid, ResourceSet
-from engine.phy.units import SPEED_OF_LIGHT
-from engine.sensing import (BackgroundSubtractor, Detections, KalmanTracker, OFDMRadar,
-                            SensingError, SensingLinkSpec, SensingReceiver, ca_cfar, locate,
-                            sensing_resource_set)
+from isac_twin.bus.bus import Bus, resolve_type
+from isac_twin.errors import SensingError
+from isac_twin.phy import OFDMChannel, PlanarArray, ResourceGrid, ResourceSet
+from isac_twin.phy.units import SPEED_OF_LIGHT
+from isac_twin.sensing import (
+    BackgroundSubtractor,
+    Detections,
+    KalmanTracker,
+    OFDMRadar,
+    SensingLinkSpec,
+    SensingReceiver,
+    ca_cfar,
+    locate,
+    sensing_resource_set,
+)
 
 # A 60 GHz frame whose Doppler resolves a moving point target:
 # B = 256 x 120 kHz = 30.7 MHz (monostatic range bin 4.88 m, path-length bin 9.76 m),
@@ -187,7 +196,7 @@ def test_tracker_follows_constant_velocity_target_and_drops_clutter():
 
 
 def test_detections_message_on_the_bus():
-    from engine.sensing.msgs import register
+    from isac_twin.sensing.msgs import register
 
     register()
     assert resolve_type("isac_twin_msgs/msg/Detections") is Detections
@@ -202,7 +211,7 @@ def test_detections_message_on_the_bus():
 
 
 def test_os_cfar_resists_masking_by_a_neighbour():
-    from engine.sensing.radar import os_cfar
+    from isac_twin.sensing.radar import os_cfar
 
     p = np.random.default_rng(0).exponential(1.0, (16, 256))
     p[8, 100] = 3e4

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from engine.sensing.msgs import DETECTIONS_TOPIC, Detections
+from isac_twin.sensing.msgs import DETECTIONS_TOPIC, Detections
 
 LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"
 
@@ -18,8 +18,8 @@ EVERY = 10
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
-    from engine.record import record_twin
-    from engine.twin import Twin
+    from isac_twin.transport.record import record_twin
+    from isac_twin.twin.twin import Twin
 
     tw = Twin.from_scene(LAB, dt=0.05, phy=False)  # the lab's default step
     assert tw.radar is not None and [s.name for s in tw.radar.links] == ["AP2->AP1"]
@@ -99,7 +99,7 @@ def _monostatic_lab(folder: Path) -> Path:
 def test_monostatic_table_runs_in_the_twin(tmp_path):
     """A monostatic [[sensing]] table (AP1 -> AP1, full duplex) replaces the lab's:
     the twin's radar measures the robot's round-trip path length."""
-    from engine.twin import Twin
+    from isac_twin.twin.twin import Twin
 
     tw = Twin.from_scene(_monostatic_lab(tmp_path / "lab"), dt=0.5, phy=False)
     assert [(s.name, s.every) for s in tw.radar.links] == [("AP1->AP1", 1)]
@@ -118,7 +118,7 @@ def test_monostatic_table_runs_in_the_twin(tmp_path):
 
 _FREEZE_CHECK = """
 import sys
-from engine.twin import Twin
+from isac_twin.twin.twin import Twin
 tw = Twin.from_scene(sys.argv[1], dt=0.5, phy=False)
 for _ in range(5):
     tw.step()
@@ -150,7 +150,7 @@ def test_the_radars_first_frame_leaves_the_twins_trace_frozen(tmp_path):
 def test_run_command_prints_the_frame_still_out_at_the_end(capsys):
     """`isac-twin run` waits for the radar frame the sensing worker still computes
     when the steps end and prints it with the step it sensed."""
-    from engine.cli import main
+    from isac_twin.cli import main
 
     assert main(["run", str(LAB), "--steps", "2", "--no-phy"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()

@@ -1,18 +1,17 @@
-"""The radar off the stepping thread (``engine.sensing.worker``): the same frames
+"""The radar off the stepping thread (``isac_twin.sensing.worker``): the same frames
 as the synchronous radar, delivered a fixed number of steps later, and the twin's
 own links untouched by the frame traced beside them."""
-
-from pathlib import Path
 
 import gc
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from engine.sensing.msgs import DETECTIONS_TOPIC, Detections
-from engine.sensing.worker import SensingWorker
+from isac_twin.sensing.msgs import DETECTIONS_TOPIC, Detections
+from isac_twin.sensing.worker import SensingWorker
 
 LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"
 
@@ -44,7 +43,7 @@ def test_worker_delivers_after_latency_and_raises_on_the_caller():
 
 
 def _run(sync: bool, steps: int):
-    from engine.twin import Twin
+    from isac_twin.twin.twin import Twin
 
     # Another twin's Mitsuba objects, while registered, make Dr.Jit refuse to
     # record this twin's frozen trace (a registry limit): the previous test
@@ -125,8 +124,8 @@ def test_worker_frames_equal_the_synchronous_radar():
 def test_edit_and_reset_wait_for_the_frame_out():
     """An edit applied while a frame is out waits for it (the frame traced the room
     before the edit); a reset drops it and starts a new radar."""
-    from engine.state import Edit
-    from engine.twin import Twin
+    from isac_twin.twin.state import Edit
+    from isac_twin.twin.twin import Twin
 
     tw = Twin.from_scene(LAB, dt=0.05, phy=False)
     tw.step()  # frame of step 0 out
@@ -161,7 +160,7 @@ def test_worker_reads_arrays_the_stepping_thread_made_in_a_newer_scope():
     open new scopes all the time) failed to evaluate on the worker ("scope ID of
     predecessors must be lower", seen in a 1,000-step paced run of 4 robots);
     the worker now takes a new scope at each handoff. Failed before the fix."""
-    from engine.raytrace.solver_core import load_sionna_rt
+    from isac_twin.raytrace.solver_core import load_sionna_rt
 
     load_sionna_rt()  # Sionna sets the Mitsuba variant
     import drjit as dr
@@ -193,7 +192,7 @@ def test_wait_all_waits_for_a_dropped_workers_frame():
     (the garbage collector may run there) does not try to join that thread."""
     import threading
 
-    from engine.sensing import worker as mod
+    from isac_twin.sensing import worker as mod
 
     radar = _Slow()
     w = SensingWorker(radar, latency=1)

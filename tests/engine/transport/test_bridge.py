@@ -6,11 +6,11 @@ import time
 import numpy as np
 import pytest
 
-from engine.bus import Bus
-from engine.msgs import Header, Odometry, Pose, PoseStamped, Twist, yaw_to_quaternion
-from engine.robots.agent import RobotAgent, SensorOptions
-from engine.transport.bridge import FusionConfig, TwinBridge, _extrapolate
-from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
+from isac_twin.bus.bus import Bus
+from isac_twin.bus.msgs import Header, Odometry, Pose, PoseStamped, Twist, yaw_to_quaternion
+from isac_twin.robots.agent import RobotAgent, SensorOptions
+from isac_twin.transport.bridge import FusionConfig, TwinBridge, _extrapolate
+from isac_twin.transport.zenoh_transport import ZenohConfig, ZenohTransport
 
 
 class MiniTwin:

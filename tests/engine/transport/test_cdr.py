@@ -5,10 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from engine import msgs as m
-from engine.msgs import MESSAGE_TYPES
-from engine.transport import cdr
-from engine.transport import twin_msgs as tm
+from isac_twin.bus import msgs as m
+from isac_twin.bus import twin_msgs as tm
+from isac_twin.bus.msgs import MESSAGE_TYPES
+from isac_twin.transport import cdr
 
 STAMP = 1_763_000_000.123456789
 
@@ -70,7 +70,7 @@ def _sample(type_name: str):
 
 
 def _detections(h, rng):
-    from engine.sensing.msgs import Detections
+    from isac_twin.sensing.msgs import Detections
 
     return Detections(h, "AP2->AP1", rng.random(2) + 3, rng.normal(size=2), rng.random(2),
                       np.array([np.nan, 1.2]), rng.random(2) * 20,

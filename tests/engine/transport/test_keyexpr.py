@@ -2,7 +2,7 @@
 
 import pytest
 
-from engine.transport.keyexpr import Attachment, parse_topic_key, topic_key
+from isac_twin.transport.keyexpr import Attachment, parse_topic_key, topic_key
 
 
 def test_topic_key_matches_rmw_zenoh_format():

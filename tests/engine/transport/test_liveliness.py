@@ -16,11 +16,11 @@ import time
 import pytest
 import zenoh
 
-from engine.bus import Bus
-from engine.msgs import LaserScan, Twist
-from engine.transport.liveliness import parse_token
-from engine.transport.qos import QosProfile
-from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
+from isac_twin.bus.bus import Bus
+from isac_twin.bus.msgs import LaserScan, Twist
+from isac_twin.transport.liveliness import parse_token
+from isac_twin.transport.qos import QosProfile
+from isac_twin.transport.zenoh_transport import ZenohConfig, ZenohTransport
 
 # published hashes (rosidl-generated, as other ROS 2 client libraries list them)
 SCAN_HASH = "RIHS01_64c191398013af96509d518dac71d5164f9382553fce5c1f8cca5be7924bd828"
@@ -119,7 +119,7 @@ def test_namespace_domain_and_latched_qos_in_tokens(port):
 
 
 def _tf_type():
-    from engine.msgs import TFMessage
+    from isac_twin.bus.msgs import TFMessage
     return TFMessage
 
 

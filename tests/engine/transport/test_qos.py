@@ -2,7 +2,7 @@
 
 import pytest
 
-from engine.transport.qos import QosProfile, qos_for, rosbag2_qos_yaml
+from isac_twin.transport.qos import QosProfile, qos_for, rosbag2_qos_yaml
 
 
 def test_compact_form_matches_rmw_zenoh_design_examples():

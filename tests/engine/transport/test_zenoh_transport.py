@@ -5,10 +5,10 @@ import time
 import numpy as np
 import pytest
 
-from engine.bus import Bus, Transport
-from engine.msgs import LaserScan, Twist
-from engine.transport.clock import ClockProbe, ClockResponder
-from engine.transport.zenoh_transport import ZenohConfig, ZenohTransport
+from isac_twin.bus.bus import Bus, Transport
+from isac_twin.bus.msgs import LaserScan, Twist
+from isac_twin.transport.clock import ClockProbe, ClockResponder
+from isac_twin.transport.zenoh_transport import ZenohConfig, ZenohTransport
 
 
 def _wait(pred, timeout=5.0):
@@ -96,7 +96,7 @@ def test_clock_offset_estimate(pair):
 def test_tf_static_is_latched_for_a_late_joiner(port):
     """/tf_static is TRANSIENT_LOCAL: published before the subscriber exists, still delivered
     (zenoh-ext advanced publisher cache + advanced subscriber history, as rmw_zenoh)."""
-    from engine.msgs import TFMessage, TransformStamped, Header
+    from isac_twin.bus.msgs import Header, TFMessage, TransformStamped
 
     a = ZenohTransport(ZenohConfig(listen=[f"tcp/127.0.0.1:{port}"]), name="a")
     b = None
