@@ -33,9 +33,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from isac_twin import load_scene  # noqa: E402
 from isac_twin.calibration.calibrator import Calibrator, Measurements, Parameter, SolverSettings  # noqa: E402
 from isac_twin.scene import synthetic as syn  # noqa: E402
-from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def main(argv=None) -> int:

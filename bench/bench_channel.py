@@ -125,8 +125,8 @@ def sionna_baseline(repeat: int) -> None:
     except ImportError as exc:  # pragma: no cover
         print(f"(Sionna baseline skipped: {exc})")
         return
+    from isac_twin import load_scene
     from isac_twin.phy.channel import baseband_gains
-    from isac_twin.scene.twin_scene import load_scene
 
     cfg = load_scene(isac_twin.bundled_scene_dir()).config
     tc = cfg.tracer

@@ -77,7 +77,7 @@ def main() -> int:
     import sionna.rt as rt
 
     import isac_twin  # noqa: F401  (LLVM for Dr.Jit)
-    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin import load_scene
 
     folder = isac_twin.bundled_scene_dir()
     load_scene(folder)  # warm-up: first Mitsuba/Dr.Jit use

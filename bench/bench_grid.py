@@ -38,7 +38,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import isac_twin  # noqa: E402,F401 - configures LLVM before mitsuba
-from isac_twin.raytrace.base import device_poses, sionna_orientation  # noqa: E402
+from isac_twin import (
+    bundled_scene_dir,  # noqa: E402
+    device_poses,  # noqa: E402
+    load_scene,  # noqa: E402
+)
+from isac_twin.raytrace.base import sionna_orientation
 from isac_twin.raytrace.grid import (  # noqa: E402
     DEFAULT_CHUNK_SIZE,
     GRID_SPEC_TABLE_SIZE,
@@ -51,8 +56,6 @@ from isac_twin.raytrace.grid import (  # noqa: E402
 )
 from isac_twin.raytrace.raw import free_points  # noqa: E402
 from isac_twin.raytrace.solver_core import SolverCore  # noqa: E402
-from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
-from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 OLD_CHUNK = 16
 

@@ -37,15 +37,19 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from isac_twin import (  # noqa: E402
+    NetworkPHY,  # noqa: E402
+    bundled_scene_dir,  # noqa: E402
+    device_poses,
+    load_scene,  # noqa: E402
+    make_tracer,
+)
 from isac_twin.localization import measurements  # noqa: E402
 from isac_twin.localization.baselines import METHODS, make_localizer  # noqa: E402
 from isac_twin.localization.fingerprints import cached_database  # noqa: E402
 from isac_twin.localization.fusion import PoseEKF  # noqa: E402
 from isac_twin.localization.measurements import FeatureSpec, PilotSettings, observe_pilots  # noqa: E402
-from isac_twin.phy.network import NetworkPHY  # noqa: E402
-from isac_twin.raytrace import DevicePose, device_poses, make_tracer  # noqa: E402
-from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
-from isac_twin.scene.twin_scene import load_scene  # noqa: E402
+from isac_twin.raytrace import DevicePose
 
 
 def lab_links(scene, db, n: int):

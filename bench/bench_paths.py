@@ -34,7 +34,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import isac_twin  # noqa: E402,F401 - configures LLVM before mitsuba
-from isac_twin.raytrace.base import device_poses  # noqa: E402
+from isac_twin import (
+    bundled_scene_dir,  # noqa: E402
+    device_poses,  # noqa: E402
+    load_scene,  # noqa: E402
+)
 from isac_twin.raytrace.conformance import (  # noqa: E402
     SionnaReference,
     check_path_sets,
@@ -42,8 +46,6 @@ from isac_twin.raytrace.conformance import (  # noqa: E402
     robot_points,
 )
 from isac_twin.raytrace.sionna import SionnaTracer  # noqa: E402
-from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
-from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def main(argv=None) -> int:

@@ -18,9 +18,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
+from isac_twin import (
+    bundled_scene_dir,  # noqa: E402
+    load_scene,  # noqa: E402
+)
 from isac_twin.scene.room import check_placement, robot_path_points  # noqa: E402
-from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def best(fn, repeat: int) -> float:

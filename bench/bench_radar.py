@@ -79,7 +79,7 @@ def naive_range_doppler(radar: OFDMRadar, h: np.ndarray) -> RangeDopplerMap:
 def twin_sensing_cost(steps: int, dt: float = 0.05) -> dict:
     """Sensing frame cost in the lab twin (stage ``sense``) vs the comms trace."""
     import isac_twin
-    from isac_twin.twin.twin import Twin
+    from isac_twin import Twin
 
     # the frame within its own step (the default sensing worker delivers it later)
     tw = Twin.from_scene(isac_twin.bundled_scene_dir(), dt=dt, phy=False, sync_sensing=True)

@@ -36,10 +36,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from isac_twin import load_scene  # noqa: E402
 from isac_twin.radiomap.radio_map import compute_radio_map  # noqa: E402
 from isac_twin.raytrace.grid import trace_grid  # noqa: E402
 from isac_twin.raytrace.solver_core import load_sionna_rt  # noqa: E402
-from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def bare_sionna(scene, rm, samples: int, reps: int) -> float:

@@ -44,10 +44,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import isac_twin  # noqa: E402,F401 - configures LLVM before mitsuba
-from isac_twin.raytrace import DevicePose, device_poses  # noqa: E402
+from isac_twin import (
+    bundled_scene_dir,  # noqa: E402
+    device_poses,  # noqa: E402
+    load_scene,  # noqa: E402
+)
+from isac_twin.raytrace import DevicePose
 from isac_twin.raytrace.sionna import SionnaTracer  # noqa: E402
-from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
-from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 TOP_N = 24
 

@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
 import isac_twin  # noqa: E402,F401  (configures Dr.Jit's LLVM before mitsuba loads)
+from isac_twin import load_scene  # noqa: E402
 from isac_twin.bus.bus import Bus  # noqa: E402
 from isac_twin.robots import (  # noqa: E402
     CirclePath,
@@ -38,7 +39,6 @@ from isac_twin.robots import (  # noqa: E402
 from isac_twin.robots.kinematics import KinematicState  # noqa: E402
 from isac_twin.robots.sensors import cast_rays  # noqa: E402
 from isac_twin.scene.synthetic import box_room  # noqa: E402
-from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def per_call(fn, n: int, warm: int = 3) -> float:
@@ -95,7 +95,7 @@ def main() -> None:
     t_loop_o = per_call(loop_opaque, 5, warm=1)
     t_raw = per_call(raw, 200)
     t_loop = per_call(loop, 1, warm=0)  # every call recompiles: warming is pointless
-    print(f"LiDAR, 360 beams, 8 x 6 x 3 m box room (median over new poses):")
+    print("LiDAR, 360 beams, 8 x 6 x 3 m box room (median over new poses):")
     print(f"  Lidar2D.measure (one ray_intersect, noise, LaserScan): {t_scan * 1e3:8.3f} ms/scan")
     print(f"  cast_rays only                                       : {t_raw * 1e3:8.3f} ms/scan")
     print(f"  baseline: per-beam ray_intersect loop (naive, literal inputs recompile): "

@@ -36,10 +36,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import isac_twin  # noqa: E402,F401 - configures LLVM before mitsuba
+from isac_twin import (
+    bundled_scene_dir,  # noqa: E402
+    load_scene,  # noqa: E402
+)
 from isac_twin.raytrace.grid import trace_grid  # noqa: E402
 from isac_twin.scaleout.cluster import cluster_client, trace_grid_tiled  # noqa: E402
-from isac_twin.scene.bundled import bundled_scene_dir  # noqa: E402
-from isac_twin.scene.twin_scene import load_scene  # noqa: E402
 
 
 def _rss_mb() -> float:

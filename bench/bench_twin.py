@@ -47,10 +47,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import isac_twin  # noqa: E402  - configures Dr.Jit's LLVM before mitsuba
-from isac_twin.phy.network import NetworkPHY  # noqa: E402
+from isac_twin import (
+    NetworkPHY,  # noqa: E402
+    Twin,  # noqa: E402
+    load_config,  # noqa: E402
+)
 from isac_twin.robots import SensorOptions  # noqa: E402
-from isac_twin.scene.config import load_config  # noqa: E402
-from isac_twin.twin.twin import STAGES, Twin  # noqa: E402
+from isac_twin.twin.twin import STAGES
 
 PATH = {"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5}
 VARIANTS = {
@@ -452,7 +455,7 @@ def main(argv: list[str] | None = None) -> None:
                   f"{r['doppler_phase']:.2e} rad\n", flush=True)
     grid = args.grid
     if grid is None:
-        from isac_twin.scene.twin_scene import load_scene
+        from isac_twin import load_scene
 
         cfg = load_scene(isac_twin.bundled_scene_dir()).config
         if cfg.tracer.grid_file:

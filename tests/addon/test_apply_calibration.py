@@ -25,7 +25,7 @@ def _room(scene):
 def test_custom_material_is_exported_and_loaded_by_the_engine(scene, tmp_path):
     from addon import materials
     from addon.exporter import ExportError, export_scene
-    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin import load_scene
 
     cab = _room(scene)
     materials.set_custom_material(scene, "damp_chipboard",
@@ -56,10 +56,10 @@ def test_custom_material_is_exported_and_loaded_by_the_engine(scene, tmp_path):
 
 def test_apply_calibration_moves_objects_and_sets_materials(scene, tmp_path):
     from addon.exporter import export_scene
+    from isac_twin import load_scene
     from isac_twin.calibration.calibrator import CalibrationResult
     from isac_twin.calibration.run import write_calibrated_scene
     from isac_twin.scene.meshes import read_ply
-    from isac_twin.scene.twin_scene import load_scene
 
     cab = _room(scene)
     export_scene(scene, tmp_path / "twin", interchange=False)

@@ -303,8 +303,8 @@ def test_every_path_kind_reaches_twin_toml_and_the_engine(scene, tmp_path):
     exported as [devices.path] and accepted by the engine's loader, free space included."""
     from addon import devices
     from addon.exporter import export_scene
+    from isac_twin import load_scene
     from isac_twin.scene import config
-    from isac_twin.scene.twin_scene import load_scene
 
     small_scene(scene)
     robot = scene.objects["robot1"]
@@ -334,8 +334,8 @@ def test_every_path_kind_reaches_twin_toml_and_the_engine(scene, tmp_path):
 
 def test_room_part_tags_are_exported_and_read_by_the_engine(scene, tmp_path):
     from addon.exporter import export_scene
+    from isac_twin import load_scene
     from isac_twin.scene.room import room_parts
-    from isac_twin.scene.twin_scene import load_scene
 
     small_scene(scene)
     scene.objects["Room_Wall_2"].name = "north side"  # a user's own name: the tag stays

@@ -53,8 +53,8 @@ def test_office_is_an_l_at_5_8_ghz_with_tags_and_a_curve_path(office):
     robot = next(d for d in data["devices"] if d["name"] == "robot1")
     assert robot["path"] == {"kind": "polyline", "closed": True,
                              "waypoints": [list(p) for p in build.PATH]}
+    from isac_twin import load_scene
     from isac_twin.scene.room import room_parts
-    from isac_twin.scene.twin_scene import load_scene
 
     s = load_scene(folder, load_sionna=False)  # free space checked: devices and the path
     p = room_parts(s)

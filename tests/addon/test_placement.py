@@ -34,8 +34,7 @@ def test_warnings_match_the_engine(scene, tmp_path, case, want):
     from addon import devices
     from addon.exporter import export_scene
     from addon.placement import placement_warnings
-    from isac_twin.errors import ConfigError
-    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin import ConfigError, load_scene
 
     scene, robot = l_scene(scene)
     if case == "robot_in_desk":

@@ -80,7 +80,7 @@ def _lab(scene, **robot):
 
 def _export_and_load(scene, folder):
     from addon.exporter import export_scene
-    from isac_twin.scene.config import load_config
+    from isac_twin import load_config
 
     export_scene(scene, folder, interchange=False)
     return load_config(folder / "twin.toml")
@@ -90,7 +90,7 @@ def test_every_offered_value_loads_in_the_engine(addon_module, reset_scene, sche
     """Each pattern, polarization, robot model and path direction the add-on offers is
     exported and either accepted by the engine (and modelled by it) or refused at load
     with one line naming the key."""
-    from isac_twin.errors import ConfigError
+    from isac_twin import ConfigError
     from isac_twin.raytrace.antenna_patterns import PATTERNS as MODELLED_PATTERNS
     from isac_twin.robots.kinematics import robot_spec
     from isac_twin.scene.config import MODELLED_POLARIZATIONS

@@ -389,11 +389,11 @@ def test_radar_detections_and_tracks_are_drawn(scene):
 
     from addon import live_view
     from addon.contract import wire
+    from isac_twin import RobotState, StepResult
     from isac_twin.live.protocol import state_message
     from isac_twin.sensing.estimator import SensingStep
     from isac_twin.sensing.radar import Detection
     from isac_twin.sensing.tracker import Track
-    from isac_twin.twin.state import RobotState, StepResult
 
     view = live_view.LiveView()
     for step in range(2):

@@ -11,9 +11,9 @@ import math
 import numpy as np
 import pytest
 
+from isac_twin import Twin
 from isac_twin.bus.frames import dynamic_tf, planar_compose, planar_inverse, robot_prefix
 from isac_twin.scene.synthetic import ROBOT_EXTRA, SyntheticDevice, box_room
-from isac_twin.twin.twin import Twin
 
 
 def _matrix(t):

@@ -9,6 +9,7 @@ mesh written 3 cm / 2 cm away. The fit must recover the change.
 import numpy as np
 import pytest
 
+from isac_twin import CalibrationError, load_scene
 from isac_twin.calibration.calibrator import (
     Calibrator,
     Measurements,
@@ -16,9 +17,7 @@ from isac_twin.calibration.calibrator import (
     SolverSettings,
     mismatch_db2,
 )
-from isac_twin.errors import CalibrationError
 from isac_twin.scene import synthetic as syn
-from isac_twin.scene.twin_scene import load_scene
 
 FREQ = 2.4e9
 OFFSETS = np.linspace(-40e6, 40e6, 6)  # 6 subcarriers over 80 MHz

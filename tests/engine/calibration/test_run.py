@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from isac_twin import CalibrationError, load_scene
 from isac_twin.calibration.calibrator import (
     CalibrationResult,
     Calibrator,
@@ -17,10 +18,8 @@ from isac_twin.calibration.calibrator import (
 )
 from isac_twin.calibration.run import measurements_from_recording, write_calibrated_scene
 from isac_twin.cli import main
-from isac_twin.errors import CalibrationError
 from isac_twin.scene import synthetic as syn
 from isac_twin.scene.meshes import read_ply
-from isac_twin.scene.twin_scene import load_scene
 
 FREQ = 2.4e9
 
@@ -49,8 +48,8 @@ def room(folder, wall, cabinet_shift=(0.0, 0.0), second_ap=False,
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
     """12 twin steps in the brick room, recorded with compact CSI."""
+    from isac_twin import Twin
     from isac_twin.transport.record import record_twin
-    from isac_twin.twin.twin import Twin
 
     d = tmp_path_factory.mktemp("calrun")
     real = room(d / "real", "brick")
@@ -86,8 +85,8 @@ def test_the_model_at_the_truth_is_the_recording_with_every_chain(tmp_path):
     fit can remove (lab: 0.079 dB^2 at the truth, 0.001 with chains)."""
     import dataclasses
 
+    from isac_twin import Twin
     from isac_twin.transport.record import record_twin
-    from isac_twin.twin.twin import Twin
 
     real = room(tmp_path / "real", "brick", tracer={"samples_per_src": 3000, "max_depth": 3})
     record_twin(Twin.from_scene(real), 4, tmp_path / "run.mcap")
@@ -174,8 +173,8 @@ def test_cli_recovers_cabinet_offset_and_says_what_it_cannot_see(tmp_path, capsy
     """60 steps recorded with the cabinet 3 cm further in x and 2 cm back in y: the
     paths to the robot's positions reflect off the cabinet's y-facing side, so y is
     recovered and x (a shift along that face) is reported as not seen."""
+    from isac_twin import Twin
     from isac_twin.transport.record import record_twin
-    from isac_twin.twin.twin import Twin
 
     real = room(tmp_path / "real", "concrete", (0.03, -0.02))
     record_twin(Twin.from_scene(real), 60, tmp_path / "run.mcap")
@@ -215,8 +214,8 @@ def test_a_second_access_point_sees_what_the_first_cannot(tmp_path, capsys):
     from AP1's link alone (``--links AP1,robot1``) it is not. (With this AP at
     (1.0, 3.6, 2.0) instead, x is seen too but the fit ends in a local minimum 1.7 cm
     off in y, at 0.13 dB^2: a second link also adds paths that come and go.)"""
+    from isac_twin import Twin
     from isac_twin.transport.record import record_twin
-    from isac_twin.twin.twin import Twin
 
     real = room(tmp_path / "real", "concrete", (0.03, -0.02), second_ap=True)
     record_twin(Twin.from_scene(real), 60, tmp_path / "run.mcap")
@@ -295,8 +294,8 @@ def test_cli_refuses_bad_input(tmp_path, capsys):
 
 
 def test_parameter_choice_is_checked(tmp_path):
+    from isac_twin import CalibrationError
     from isac_twin.calibration.run import default_parameters
-    from isac_twin.errors import CalibrationError
 
     scene = load_scene(room(tmp_path / "twin", "concrete"), load_sionna=False)
     names = [p.name for p in default_parameters(scene, ("materials",), [])]
@@ -398,9 +397,9 @@ def test_noise_is_read_off_the_recording_and_added_to_the_model(recording, tmp_p
     the mismatch is mostly the noise's own spread, few fades sink below it). The
     module's noise-free
     recording (16 subcarriers 5 MHz apart: 200 ns, no tail) gets no estimate, logged."""
+    from isac_twin import Twin
     from isac_twin.bus.msgs import Csi
     from isac_twin.transport.record import CsiRecording, read_messages, record_twin
-    from isac_twin.twin.twin import Twin
 
     real = room(tmp_path / "real", "brick")
     run = tmp_path / "noisy.mcap"

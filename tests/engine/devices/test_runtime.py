@@ -264,9 +264,8 @@ def test_runtime_in_process_follows_paths_and_times_out_cmd_vel():
 
 def _twin_for(scene_dir):
     """A real Twin of the bundled scene without ray tracing, PHY or LiDAR (fast steps)."""
+    from isac_twin import Twin, load_scene
     from isac_twin.robots import SensorOptions
-    from isac_twin.scene.twin_scene import load_scene
-    from isac_twin.twin.twin import Twin
 
     def oracle(twin, result):  # a stand-in localization estimator: fingerprints = truth
         for r in result.robots.values():
@@ -284,7 +283,7 @@ def test_twin_and_robot_runtime_in_two_processes(tmp_path):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
-    from isac_twin.scene.bundled import bundled_scene_dir
+    from isac_twin import bundled_scene_dir
     from isac_twin.transport.bridge import FusionConfig, TwinBridge
     from isac_twin.transport.record import McapRecorder, read_messages
     from isac_twin.transport.zenoh_transport import ZenohConfig, ZenohTransport

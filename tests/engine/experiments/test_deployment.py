@@ -6,6 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from isac_twin import load_scene
 from isac_twin.experiments.deployment import (
     Deployment,
     DeploymentSettings,
@@ -13,7 +14,6 @@ from isac_twin.experiments.deployment import (
     perturb_scene,
     summarize,
 )
-from isac_twin.scene.twin_scene import load_scene
 
 pytestmark = pytest.mark.slow
 
@@ -154,9 +154,8 @@ def test_perturbation_keeps_the_shell_of_a_room_named_by_the_addon(tmp_path):
 
 def test_case_study_needs_a_path_and_never_borrows_the_labs_circle(tmp_path):
     """A robot without [devices.path]: refused by name, not driven on (4, 3) r 1.5."""
-    from isac_twin.errors import ConfigError
+    from isac_twin import ConfigError, load_config
     from isac_twin.experiments.casestudy import robot_path
-    from isac_twin.scene.config import load_config
     from isac_twin.scene.synthetic import l_room
 
     f = l_room(tmp_path / "np", path={})  # no [devices.path]

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from isac_twin import load_scene
 from isac_twin.calibration.calibrator import SolverSettings
 from isac_twin.experiments.lab_calibration import (
     closing_the_loop,
@@ -16,7 +17,6 @@ from isac_twin.experiments.lab_calibration import (
     real_room,
 )
 from isac_twin.scene import synthetic as syn
-from isac_twin.scene.twin_scene import load_scene
 
 
 def room(folder):

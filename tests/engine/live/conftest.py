@@ -33,7 +33,7 @@ def box_scene_dir(tmp_path_factory):
 @pytest.fixture(scope="session")
 def box_twin_factory(box_scene_dir):
     """Builds fresh :class:`isac_twin.twin.twin.Twin` s on the box room (real Sionna tracing, PHY)."""
-    from isac_twin.twin.twin import Twin
+    from isac_twin import Twin
 
     def make(**kw):
         return Twin.from_scene(box_scene_dir, **kw)

@@ -94,8 +94,8 @@ def test_every_message_type_round_trips(wire):
 
 def test_scene_message_carries_every_devices_array(wire, box_scene_dir):
     """1.2: ``devices[].array`` is ``[rows, cols]`` of the device's ``[devices.array]``."""
+    from isac_twin import load_scene
     from isac_twin.live.protocol import scene_message
-    from isac_twin.scene.twin_scene import load_scene
 
     scene = load_scene(box_scene_dir, load_sionna=False)
     msg = scene_message(scene)

@@ -39,9 +39,9 @@ def test_bad_cell_size_is_refused():
 
 @pytest.mark.slow
 def test_edit_recomputes_and_streams_a_new_map(tmp_path, raw_viewer, wire):
+    from isac_twin import Twin
     from isac_twin.live.server import LiveServer
     from isac_twin.scene.synthetic import two_ap_lab
-    from isac_twin.twin.twin import Twin
 
     folder = two_ap_lab(tmp_path / "lab", furniture={"desk": ((2.0, 2.5, 0.0), (3.5, 3.5, 0.75))},
                         tracer={"samples_per_src": 10000, "max_depth": 1})

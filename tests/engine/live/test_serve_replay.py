@@ -35,8 +35,8 @@ def _serve(args, tmp_path):
 
 @pytest.mark.slow
 def test_serve_replays_a_recording(tmp_path, box_scene_dir, raw_viewer):
+    from isac_twin import Twin
     from isac_twin.transport.record import record_twin
-    from isac_twin.twin.twin import Twin
 
     twin = Twin.from_scene(box_scene_dir, dt=0.2)
     twin.set_state_source("robot1", _line_source)

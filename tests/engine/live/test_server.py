@@ -417,9 +417,8 @@ def test_serve_streams_the_twins_localization_estimate(tmp_path, raw_viewer):
     import subprocess
     import sys
 
+    from isac_twin import Twin, load_scene
     from isac_twin.scene.synthetic import l_room
-    from isac_twin.scene.twin_scene import load_scene
-    from isac_twin.twin.twin import Twin
 
     folder = l_room(tmp_path / "l", robot=(1.0, 1.0, 0.0),
                     tracer={"samples_per_src": 4000, "max_depth": 1})

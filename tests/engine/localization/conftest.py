@@ -24,8 +24,8 @@ def lab(tmp_path_factory):
 @pytest.fixture(scope="session")
 def lab_db(lab, tmp_path_factory):
     """A 0.4 m database of the small lab (cached in a temp folder)."""
+    from isac_twin import load_scene
     from isac_twin.localization.fingerprints import cached_database
-    from isac_twin.scene.twin_scene import load_scene
 
     cache = tmp_path_factory.mktemp("cache")
     return cached_database(load_scene(lab), spacing=0.4, cache_dir=cache, max_paths=16,

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from isac_twin import LinkPaths, load_scene
 from isac_twin.localization.baselines import (
     MCA,
     KnnCsi,
@@ -16,8 +17,7 @@ from isac_twin.localization.measurements import (
     observe_pilots,
     observe_tracer,
 )
-from isac_twin.raytrace.base import SPEED_OF_LIGHT, LinkPaths
-from isac_twin.scene.twin_scene import load_scene
+from isac_twin.raytrace.base import SPEED_OF_LIGHT
 
 
 @pytest.mark.slow
@@ -44,7 +44,7 @@ def _link(lengths, amps, tx="AP1", rx="robot1"):
 
 
 def test_pilot_mdp_matches_tracer_delays_at_high_snr(lab):
-    from isac_twin.phy.network import NetworkPHY
+    from isac_twin import NetworkPHY
 
     cfg = load_scene(lab, load_sionna=False).config
     spec = FeatureSpec.from_config(cfg)
@@ -128,9 +128,9 @@ def test_mca_angles_on_pilots_beats_delay_only_mca_off_the_tuned_path(lab, fine_
     demo's circle in the bundled lab, not here; this AP1 has only 2x2
     antennas), pilots at 20 dB, fixed seed: AP1's directions halve delay-only
     MCA's median error at least."""
+    from isac_twin import NetworkPHY, device_poses, make_tracer
     from isac_twin.localization.baselines import MCAAngles
-    from isac_twin.phy.network import NetworkPHY
-    from isac_twin.raytrace import DevicePose, device_poses, make_tracer
+    from isac_twin.raytrace import DevicePose
 
     lab_db = fine_db
     scene = load_scene(lab)
@@ -215,10 +215,10 @@ def test_los_fix_from_pilots_in_the_bundled_lab_off_the_circle():
     every fix within 10 cm of the truth (measured: 0.3-5.4 cm)."""
     from pathlib import Path
 
+    from isac_twin import NetworkPHY, device_poses, make_tracer
     from isac_twin.localization.baselines import LosFix
     from isac_twin.localization.fingerprints import FingerprintDB
-    from isac_twin.phy.network import NetworkPHY
-    from isac_twin.raytrace import DevicePose, device_poses, make_tracer
+    from isac_twin.raytrace import DevicePose
 
     folder = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"
     scene = load_scene(folder)
@@ -250,8 +250,8 @@ def test_pilot_features_do_not_change_the_mdp_and_directions(lab):
     for (the interpolated full-grid estimate costs ~90 ms per fix on the lab): the MDP and
     directions are the same as with every feature, for the same noise; "mdp_fallback"
     skips the delay-only MDP exactly at the APs that got directions."""
-    from isac_twin.phy.network import NetworkPHY
-    from isac_twin.raytrace import DevicePose, device_poses, make_tracer
+    from isac_twin import NetworkPHY, device_poses, make_tracer
+    from isac_twin.raytrace import DevicePose
 
     scene = load_scene(lab)
     cfg = scene.config

@@ -5,10 +5,7 @@ import shutil
 import numpy as np
 import pytest
 
-from isac_twin.errors import ConfigError
-from isac_twin.scene.config import load_config
-from isac_twin.scene.twin_scene import load_scene
-from isac_twin.twin.twin import Twin
+from isac_twin import ConfigError, Twin, load_config, load_scene
 
 
 def _with_localization(lab, tmp_path, table: str):

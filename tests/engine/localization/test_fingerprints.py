@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from isac_twin import Edit, load_scene
 from isac_twin.errors import DatabaseMismatchError
 from isac_twin.localization.fingerprints import (
     DB_ARRAYS,
@@ -14,8 +15,6 @@ from isac_twin.localization.fingerprints import (
     load_database,
     save_database,
 )
-from isac_twin.scene.twin_scene import load_scene
-from isac_twin.twin.state import Edit
 
 pytestmark = pytest.mark.slow
 
@@ -84,7 +83,7 @@ def test_refuses_other_frequency(lab_db, tmp_path, make_lab):
 
 
 def test_refuses_edited_room_and_twin_flags_it_stale(lab, lab_db):
-    from isac_twin.twin.twin import Twin
+    from isac_twin import Twin
 
     twin = Twin.from_scene(lab, phy=False)
     attach(twin, lab_db)

@@ -7,11 +7,9 @@ import numpy as np
 import pytest
 
 import isac_twin
-from isac_twin.errors import ConfigError
+from isac_twin import ConfigError, LinkPaths, NetworkPHY, load_config
 from isac_twin.phy.mcs import TABLES, McsRate
-from isac_twin.phy.network import NetworkPHY
-from isac_twin.raytrace.base import LinkPaths
-from isac_twin.scene.config import LinkAdaptationConfig, load_config, parse_config
+from isac_twin.scene.config import LinkAdaptationConfig, parse_config
 
 
 def test_tables_match_the_standards():

@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 import isac_twin
-from isac_twin.phy.network import METHODS, NetworkPHY
-from isac_twin.raytrace.base import LinkPaths
-from isac_twin.scene.twin_scene import load_scene
+from isac_twin import LinkPaths, NetworkPHY, load_scene
+from isac_twin.phy.network import METHODS
 
 
 def _paths(rng, tx, rx, num_paths, doppler_hz, rx_yaw):

@@ -7,9 +7,7 @@ import numpy as np
 import pytest
 
 import isac_twin
-from isac_twin.phy.network import NetworkPHY
-from isac_twin.raytrace.base import LinkPaths
-from isac_twin.scene.twin_scene import load_scene
+from isac_twin import LinkPaths, NetworkPHY, load_scene
 
 
 @pytest.fixture(scope="module")

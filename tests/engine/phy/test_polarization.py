@@ -7,6 +7,7 @@ space (Friis, cross-polar isolation)."""
 import numpy as np
 import pytest
 
+from isac_twin import LinkPaths
 from isac_twin.phy import OFDMChannel, PlanarArray, ResourceGrid, baseband_gains
 from isac_twin.raytrace.antenna_patterns import (
     AntennaPatterns,
@@ -14,7 +15,7 @@ from isac_twin.raytrace.antenna_patterns import (
     num_ports,
     port_coefficients,
 )
-from isac_twin.raytrace.base import DevicePose, LinkPaths
+from isac_twin.raytrace.base import DevicePose
 from isac_twin.scene.config import TracerConfig
 
 FC = 2.4e9
@@ -236,8 +237,7 @@ def test_twin_step_with_dual_polarized_arrays(room, tmp_path):
     channel equals eq. 4 from the per-port coefficients."""
     import shutil
 
-    from isac_twin.phy.network import NetworkPHY
-    from isac_twin.twin.twin import Twin
+    from isac_twin import NetworkPHY, Twin
 
     other = tmp_path / "v"
     shutil.copytree(room, other)

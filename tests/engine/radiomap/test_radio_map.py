@@ -4,6 +4,7 @@ only) and against Sionna's PathSolver (incoherent sum of the path powers at cell
 import numpy as np
 import pytest
 
+from isac_twin import load_scene
 from isac_twin.radiomap.radio_map import (
     compute_radio_map,
     load_radio_map,
@@ -11,7 +12,6 @@ from isac_twin.radiomap.radio_map import (
     save_radio_map,
 )
 from isac_twin.scene.synthetic import two_ap_lab
-from isac_twin.scene.twin_scene import load_scene
 
 C = 299_792_458.0
 
@@ -91,7 +91,7 @@ def test_map_matches_pathsolver_at_cell_centres(lab):
 
 @pytest.mark.slow
 def test_shared_scene_keeps_the_tracers_devices(lab):
-    from isac_twin.raytrace.base import device_poses
+    from isac_twin import device_poses
     from isac_twin.raytrace.sionna import SionnaTracer
 
     tracer = SionnaTracer(lab.config.tracer)

@@ -15,7 +15,7 @@ def room_folder(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def room_scene(room_folder):
-    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin import load_scene
 
     return load_scene(room_folder)
 

@@ -4,9 +4,9 @@ Sionna RT's own ``Paths.a`` and ``Paths.cfr`` traced with the same arrays."""
 import numpy as np
 import pytest
 
+from isac_twin import LinkPaths
 from isac_twin.phy import OFDMChannel, PlanarArray, ResourceGrid, baseband_gains
 from isac_twin.raytrace.antenna_patterns import PATTERNS, AntennaPatterns, pattern_gains
-from isac_twin.raytrace.base import LinkPaths
 
 FC = 2.4e9
 # [yaw, pitch, roll] (Sionna order): tilted arrays, so the local frame matters
@@ -114,7 +114,7 @@ def _set_pattern(folder, pattern, polarization="V"):
 def test_directional_ap_changes_traced_gains_and_rates(room, tmp_path):
     import shutil
 
-    from isac_twin.twin.twin import Twin
+    from isac_twin import Twin
 
     iso = Twin.from_scene(room).step()
     other = tmp_path / "tr"

@@ -7,17 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from isac_twin.raytrace.base import (
-    DevicePose,
-    LinkPaths,
-    device_poses,
-    resolve_links,
-    sionna_orientation,
-    validate_poses,
-)
-from isac_twin.scene.config import load_config
+from isac_twin import LinkPaths, device_poses, load_config, load_scene
+from isac_twin.raytrace.base import DevicePose, resolve_links, sionna_orientation, validate_poses
 from isac_twin.scene.synthetic import ROBOT_EXTRA, SyntheticDevice, furnished_room
-from isac_twin.scene.twin_scene import load_scene
 
 
 def test_device_poses_rotate_antenna_offset_by_yaw(tmp_path):

@@ -7,16 +7,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from isac_twin.errors import ConfigError
-from isac_twin.raytrace.base import DevicePose, device_poses
+from isac_twin import ConfigError, device_poses, load_config, load_scene
+from isac_twin.raytrace.base import DevicePose
 from isac_twin.raytrace.chains import ChainTracer
 from isac_twin.raytrace.conformance import find_repeats, grazing, match_paths, scene_edges
 from isac_twin.raytrace.raw import free_points
 from isac_twin.raytrace.sionna import SionnaTracer
 from isac_twin.raytrace.solver_core import SolverCore
-from isac_twin.scene.config import load_config
 from isac_twin.scene.synthetic import furnished_room
-from isac_twin.scene.twin_scene import load_scene
 
 POSITIONS = [(2.1, 1.5, 0.25), (1.05, 0.62, 0.25), (3.3, 2.6, 0.25)]
 

@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from isac_twin.raytrace.base import device_poses
+from isac_twin import device_poses
 from isac_twin.raytrace.conformance import check_shapes, check_tracer, grazing, scene_edges
 from isac_twin.raytrace.sionna import SionnaTracer
 
@@ -47,7 +47,7 @@ def test_checker_catches(good, room_scene, how, failing):
 
 
 def test_check_shapes_flags_bad_arrays(good, room_scene):
-    from isac_twin.raytrace.base import device_poses
+    from isac_twin import device_poses
 
     lp = good(room_scene, device_poses(room_scene.config))[("AP1", "robot1")]
     assert check_shapes(lp) == []
@@ -120,7 +120,7 @@ def test_path_set_checker_catches_repeated_missing_and_invented_paths(good, room
 @pytest.fixture(scope="module")
 def lab_scene():
     import isac_twin
-    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin import load_scene
 
     return load_scene(isac_twin.bundled_scene_dir())
 

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from isac_twin.raytrace.base import device_poses
+from isac_twin import device_poses
 from isac_twin.raytrace.grid import (
     GRID_ARRAYS,
     GRID_FORMAT_VERSION,

@@ -7,11 +7,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from isac_twin.raytrace.base import SPEED_OF_LIGHT, DevicePose, device_poses
+from isac_twin import device_poses, load_scene
+from isac_twin.raytrace.base import SPEED_OF_LIGHT, DevicePose
 from isac_twin.raytrace.conformance import check_tracer
 from isac_twin.raytrace.grid_backend import GridTracer
 from isac_twin.scene.synthetic import furnished_room
-from isac_twin.scene.twin_scene import load_scene
 
 
 def test_conformance(room_grid, room_scene):

@@ -4,12 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from isac_twin.errors import ConfigError
-from isac_twin.raytrace import make_tracer
+from isac_twin import ConfigError, load_config, make_tracer
 from isac_twin.raytrace.grid import save_grid
 from isac_twin.raytrace.grid_backend import GridTracer
 from isac_twin.raytrace.sionna import SionnaTracer
-from isac_twin.scene.config import load_config
 from isac_twin.scene.synthetic import furnished_room
 
 

@@ -8,12 +8,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from isac_twin import device_poses, load_scene
 from isac_twin.errors import TruncationError
-from isac_twin.raytrace.base import INTERACTION_SPECULAR, SPEED_OF_LIGHT, DevicePose, device_poses
+from isac_twin.raytrace.base import INTERACTION_SPECULAR, SPEED_OF_LIGHT, DevicePose
 from isac_twin.raytrace.conformance import check_tracer
 from isac_twin.raytrace.sionna import SionnaTracer
 from isac_twin.scene.synthetic import furnished_room, reflector_scene
-from isac_twin.scene.twin_scene import load_scene
 
 C = SPEED_OF_LIGHT
 

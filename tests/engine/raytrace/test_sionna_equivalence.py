@@ -15,10 +15,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from isac_twin.raytrace.base import DevicePose, device_poses, sionna_orientation
+from isac_twin import device_poses, load_scene
+from isac_twin.raytrace.base import DevicePose, sionna_orientation
 from isac_twin.raytrace.sionna import SionnaTracer
 from isac_twin.scene.synthetic import furnished_room
-from isac_twin.scene.twin_scene import load_scene
 
 phy_channel = pytest.importorskip("isac_twin.phy.channel")
 from isac_twin.phy.arrays import PlanarArray  # noqa: E402

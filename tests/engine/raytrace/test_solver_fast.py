@@ -6,7 +6,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from isac_twin.raytrace.base import DevicePose, device_poses
+from isac_twin import device_poses
+from isac_twin.raytrace.base import DevicePose
 from isac_twin.raytrace.grid import trace_grid
 from isac_twin.raytrace.sionna import SionnaTracer
 

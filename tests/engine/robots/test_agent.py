@@ -33,7 +33,7 @@ def folder(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def scene(folder):
-    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin import load_scene
 
     return load_scene(folder)
 

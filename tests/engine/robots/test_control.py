@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from isac_twin.errors import PathError, SpeedLimitError
+from isac_twin import PathError
+from isac_twin.errors import SpeedLimitError
 from isac_twin.robots.control import (
     CirclePath,
     FigureEightPath,

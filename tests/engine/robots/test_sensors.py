@@ -23,7 +23,7 @@ SIZE = (8.0, 6.0, 3.0)  # the bundled lab's extent
 
 @pytest.fixture(scope="module")
 def room(tmp_path_factory):
-    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin import load_scene
 
     return load_scene(box_room(tmp_path_factory.mktemp("room"), size=SIZE))
 

@@ -143,7 +143,7 @@ def test_an_interrupted_build_resumes_with_the_missing_tiles(room_scene, single_
 
 
 def test_a_worker_with_another_scene_state_is_refused(room_folder, client):
-    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin import load_scene
 
     scene = load_scene(room_folder)
     scene.move_object("cabinet", position=(2.5, 0.6, 0.0))  # the folder on disk is unchanged

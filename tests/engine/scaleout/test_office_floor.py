@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from isac_twin.scene.bundled import bundled_scene_dir
+from isac_twin import bundled_scene_dir
 
 
 @pytest.fixture(scope="module")
 def floor():
-    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin import load_scene
 
     return load_scene(bundled_scene_dir("office_floor"))
 

@@ -4,8 +4,7 @@ import re
 
 import pytest
 
-from isac_twin.errors import ConfigError
-from isac_twin.scene.config import load_config
+from isac_twin import ConfigError, load_config
 from isac_twin.scene.synthetic import box_room
 
 

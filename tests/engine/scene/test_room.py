@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from isac_twin.errors import ConfigError
+from isac_twin import ConfigError, load_scene
 from isac_twin.scene.room import locate, plan_polygons, room_parts
 from isac_twin.scene.synthetic import (
     L_FOOTPRINT,
@@ -17,7 +17,6 @@ from isac_twin.scene.synthetic import (
     polygon_room_objects,
     write_scene_folder,
 )
-from isac_twin.scene.twin_scene import load_scene
 
 ROOT = Path(__file__).resolve().parents[3]
 

@@ -2,8 +2,8 @@
 
 import numpy as np
 
+from isac_twin import load_config
 from isac_twin.contract.writers import geometry, mitsuba_xml, twin_toml
-from isac_twin.scene.config import load_config
 from isac_twin.scene.synthetic import box_room, write_ply
 
 

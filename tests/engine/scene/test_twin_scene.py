@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from isac_twin.errors import ConfigError
+from isac_twin import ConfigError, load_scene
 from isac_twin.scene.meshes import read_ply
 from isac_twin.scene.synthetic import (
     SyntheticDevice,
@@ -13,7 +13,7 @@ from isac_twin.scene.synthetic import (
     write_ply,
     write_scene_folder,
 )
-from isac_twin.scene.twin_scene import itu_defined_at, load_scene
+from isac_twin.scene.twin_scene import itu_defined_at
 
 
 @pytest.fixture()
@@ -185,7 +185,7 @@ def test_scene_mesh_paths_stay_in_the_folder(folder, path, reason):
 
 
 def test_oversized_mesh_is_refused_before_reading(tmp_path):
-    from isac_twin.errors import MeshError
+    from isac_twin import MeshError
 
     big = tmp_path / "big.ply"
     with big.open("wb") as f:

@@ -5,8 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from isac_twin.errors import ConfigError
-from isac_twin.scene.config import load_config
+from isac_twin import ConfigError, load_config
 from isac_twin.sensing.config import parse_sensing
 
 LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"
@@ -49,8 +48,7 @@ def test_load_config_accepts_and_validates_sensing_tables(tmp_path):
     """`[[sensing]]` is a known top-level key: good tables load, bad ones fail at load."""
     import pytest as _pytest
 
-    from isac_twin.errors import ConfigError
-    from isac_twin.scene.config import load_config
+    from isac_twin import ConfigError, load_config
     from isac_twin.scene.synthetic import box_room
 
     folder = box_room(tmp_path / "room")

@@ -109,7 +109,7 @@ def test_a_scene_changed_behind_the_edits_is_refused_not_sensed():
     """The replica follows the edit methods; a change made around them (here an
     object's material set directly) would make the child sense another room:
     the frame is refused, on the twin's thread, naming the cause."""
-    from isac_twin.scene.twin_scene import load_scene
+    from isac_twin import load_scene
     from isac_twin.sensing.config import parse_sensing
 
     scene = load_scene(LAB, load_sionna=False)

@@ -18,8 +18,8 @@ EVERY = 10
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
+    from isac_twin import Twin
     from isac_twin.transport.record import record_twin
-    from isac_twin.twin.twin import Twin
 
     tw = Twin.from_scene(LAB, dt=0.05, phy=False)  # the lab's default step
     assert tw.radar is not None and [s.name for s in tw.radar.links] == ["AP2->AP1"]
@@ -99,7 +99,7 @@ def _monostatic_lab(folder: Path) -> Path:
 def test_monostatic_table_runs_in_the_twin(tmp_path):
     """A monostatic [[sensing]] table (AP1 -> AP1, full duplex) replaces the lab's:
     the twin's radar measures the robot's round-trip path length."""
-    from isac_twin.twin.twin import Twin
+    from isac_twin import Twin
 
     tw = Twin.from_scene(_monostatic_lab(tmp_path / "lab"), dt=0.5, phy=False)
     assert [(s.name, s.every) for s in tw.radar.links] == [("AP1->AP1", 1)]

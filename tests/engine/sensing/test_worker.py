@@ -43,7 +43,7 @@ def test_worker_delivers_after_latency_and_raises_on_the_caller():
 
 
 def _run(sync: bool, steps: int):
-    from isac_twin.twin.twin import Twin
+    from isac_twin import Twin
 
     # Another twin's Mitsuba objects, while registered, make Dr.Jit refuse to
     # record this twin's frozen trace (a registry limit): the previous test
@@ -124,8 +124,7 @@ def test_worker_frames_equal_the_synchronous_radar():
 def test_edit_and_reset_wait_for_the_frame_out():
     """An edit applied while a frame is out waits for it (the frame traced the room
     before the edit); a reset drops it and starts a new radar."""
-    from isac_twin.twin.state import Edit
-    from isac_twin.twin.twin import Twin
+    from isac_twin import Edit, Twin
 
     tw = Twin.from_scene(LAB, dt=0.05, phy=False)
     tw.step()  # frame of step 0 out

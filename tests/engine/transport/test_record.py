@@ -15,10 +15,10 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
+from isac_twin import LinkPaths, LinkState, RobotState, StepResult
 from isac_twin.bus.bus import Bus
 from isac_twin.bus.msgs import Header, LaserScan, Twist
 from isac_twin.bus.twin_msgs import Fingerprint
-from isac_twin.raytrace.base import LinkPaths
 from isac_twin.robots.agent import RobotAgent, SensorOptions
 from isac_twin.robots.control import CirclePath, PurePursuit
 from isac_twin.transport.record import (
@@ -33,7 +33,6 @@ from isac_twin.transport.record import (
     recover,
     replay_to_bus,
 )
-from isac_twin.twin.state import LinkState, RobotState, StepResult
 
 
 class _Decoded:

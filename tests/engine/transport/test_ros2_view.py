@@ -12,10 +12,10 @@ import zenoh
 from rosbags.typesys import Stores, get_typestore
 from zenoh.ext import Int64, z_deserialize
 
+from isac_twin import Twin
 from isac_twin.scene.synthetic import ROBOT_EXTRA, SyntheticDevice, box_room
 from isac_twin.transport.bridge import TwinBridge
 from isac_twin.transport.zenoh_transport import ZenohConfig, ZenohTransport
-from isac_twin.twin.twin import Twin
 
 pytestmark = pytest.mark.slow
 

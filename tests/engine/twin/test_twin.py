@@ -5,9 +5,8 @@ import logging
 import numpy as np
 import pytest
 
+from isac_twin import Command, Edit, Twin
 from isac_twin.scene.synthetic import two_ap_lab
-from isac_twin.twin.state import Command, Edit
-from isac_twin.twin.twin import Twin
 
 pytestmark = pytest.mark.slow
 
@@ -254,7 +253,7 @@ def test_add_edits_read_no_host_file(tmp_path, lab):
 def test_set_path_is_checked_against_the_room_as_it_is_now(tmp_path):
     """A live set_path through the desk is refused by name; once the desk is moved away
     (an edit), the same path is accepted."""
-    from isac_twin.errors import PathError
+    from isac_twin import PathError
     from isac_twin.scene.synthetic import l_room
 
     tw = Twin.from_scene(l_room(tmp_path / "l", robot=(1.0, 1.0, 0.0)), phy=False, seed=0)
