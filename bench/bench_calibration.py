@@ -1,4 +1,4 @@
-"""Benchmark: one gradient step of the calibration (isac_twin.calibration.calibrator).
+"""Benchmark: one gradient step of the calibration (isac_twin.calibration.forward_model).
 
 A 5 x 4 x 3 m synthetic room with a metal cabinet, one AP, N receiver
 positions, K subcarriers; parameters: the walls' permittivity and the
@@ -34,7 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from isac_twin import load_scene  # noqa: E402
-from isac_twin.calibration.calibrator import Calibrator, Measurements, Parameter, SolverSettings  # noqa: E402
+from isac_twin.calibration import Calibrator, Measurements, Parameter, SolverSettings  # noqa: E402
 from isac_twin.scene import synthetic as syn  # noqa: E402
 
 

@@ -1,199 +1,47 @@
 """Calibrate a scene folder from a recording (``isac-twin calibrate``).
 
-Reads the CSI a robot recorded on ``/<robot>/csi`` (an MCAP written by
-:func:`isac_twin.transport.record.record_twin`, compact or full CSI; every recorded link, each
-transmitter seeing the room from its side, unless ``links`` names some) and the robot's poses
-from ``/<robot>/ground_truth`` (interpolated at each CSI stamp; the array
-centre is :func:`isac_twin.utils.geometry.antenna_pose` of it), fits the chosen
-parameters with :class:`isac_twin.calibration.calibrator.Calibrator`, and writes
+:func:`calibrate_recording` reads the recorded CSI of every link (or the links
+named) at the robot's recorded poses
+(:func:`~isac_twin.calibration.recording.measurements_from_recording`), fits the
+chosen parameters (:func:`default_parameters`) with
+:class:`isac_twin.calibration.Calibrator` (a first joint fit, scans of each
+permittivity (:func:`permittivity_grid`) and optionally of each pose offset
+(:func:`pose_grid`), gradient fits from the scans' minima, then a polish and basin
+hops of the objects with a path to the robot) and writes
 
-* ``DIR/scene/``: a copy of the scene folder with the fitted object offsets
-  applied to the meshes and the fitted materials written as custom radio
-  materials (``<bsdf type="radio-material">``, docs/config.md) that the
-  objects of the fitted material now use (it loads like any other folder and
-  gives the calibrated channel);
+* ``DIR/scene/``: the calibrated scene folder
+  (:func:`~isac_twin.calibration.calibrated_scene.write_calibrated_scene`);
 * ``DIR/calibration.png``: :func:`isac_twin.calibration.figure.plot_report` of it;
 * ``DIR/calibration.json``: every parameter before/after with its
   sensitivity, the mismatch before/after, the residual per snapshot, what
-  the measurements did not see, convergence, time per gradient step.
-
-A fitted ITU material ``T`` becomes the custom material ``T-calibrated``
-(``T-<thickness>-calibrated`` when objects use it at several thicknesses),
-holding the fitted permittivity and conductivity (the ITU value at the carrier
-for one not fitted) and the objects' thickness; a fitted custom material keeps
-its name and gets the fitted values.
+  the measurements did not see (:mod:`~isac_twin.calibration.observability`),
+  convergence, time per gradient step.
 """
 
 from __future__ import annotations
 
 import json
-import logging
 import math
-import re
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..bus.msgs import Csi
 from ..errors import CalibrationError
-from ..phy.estimation import noise_power_from_delay_tail
-from ..phy.ofdm import ResourceGrid
 from ..phy.units import SPEED_OF_LIGHT
-from ..raytrace import device_poses
-from ..scene.config import TwinConfig
-from ..transport.record import load_trajectories, read_messages, read_metadata
-from ..utils.geometry import antenna_pose, sionna_orientation
-from .calibrator import (
-    MATERIAL_KINDS,
-    Calibrator,
-    Measurements,
-    Parameter,
-    SolverSettings,
-    local_minima,
-)
+from .calibrated_scene import calibrated_materials, material_users, write_calibrated_scene
+from .calibrator import Calibrator
 from .figure import plot_report
-
-log = logging.getLogger(__name__)
+from .forward_model import SolverSettings
+from .observability import CLEAR_PATH_SHARE, object_paths, observability
+from .problem import MATERIAL_KINDS, Parameter
+from .recording import measurements_from_recording
+from .search import local_minima
 
 #: Materials whose parameters are not fitted by default: a metal reflects (almost)
 #: totally whatever its conductivity, so the channel does not see it.
 NOT_FITTED_BY_DEFAULT = ("metal",)
-
-
-def _array(config: TwinConfig, name: str, path: Path) -> tuple:
-    dev = next(d for d in config.devices if d.name == name)
-    a = dev.array
-    if a.pattern != "iso" or a.polarization != "V":
-        raise CalibrationError(f"{path}: device {name!r} has a {a.pattern!r}/{a.polarization!r} "
-                               "array; calibration models isotropic V elements only")
-    return (a.rows, a.cols, a.vertical_spacing, a.horizontal_spacing)
-
-
-#: A link whose noise estimate (median over its snapshots) is this far below its
-#: channel power is taken as exact: the delay-tail estimate of a noise-free channel is
-#: its Hann window's leakage (lab: 75.6-79.4 dB below), and adding that floor changed
-#: the noise-free lab's fit (the tables' permittivity 0.8 -> 11.4 % off; the fits are
-#: that sensitive to the route, docs/calibration.md)
-NOISELESS_SNR_DB = 60.0
-
-
-def measurements_from_recording(path: str | Path, config: TwinConfig, *,
-                                links: list[tuple[str, str]] | None = None,
-                                max_snapshots: int = 6, max_subcarriers: int = 16,
-                                noise: bool = True
-                                ) -> list[tuple[tuple[str, str], Measurements]]:
-    """The recorded CSI of each link as :class:`~isac_twin.calibration.calibrator.Measurements`.
-
-    Args:
-        path: the ``.mcap``.
-        config: the scene's config (OFDM grid, devices, arrays).
-        links: ``[(tx, rx), ...]`` (default: every recorded link, in the order of
-            their first CSI message).
-        max_snapshots: at most this many CSI messages per link, evenly spread over the
-            run.
-        max_subcarriers: at most this many of the recorded subcarriers, evenly spread.
-        noise: estimate each snapshot's noise variance from all its recorded
-            subcarriers (:func:`~isac_twin.phy.estimation.noise_power_from_delay_tail`;
-            ``Measurements.noise_power``, added to the model's power). None where the
-            recorded subcarriers are too few or too far apart for a delay tail (logged),
-            or the estimate is more than :data:`NOISELESS_SNR_DB` below the channel.
-            False: no noise (the model's exact power is compared).
-
-    Returns:
-        ``[((tx, rx), measurements), ...]`` (first recorded OFDM symbol of each message).
-
-    Raises:
-        CalibrationError: no ``isac_twin`` metadata or CSI decimation in it, no CSI (of a
-            link named), no ground truth of the robot, a CSI shape that does not fit the
-            grid; naming the file.
-    """
-    path = Path(path)
-    meta = read_metadata(path)
-    m = re.search(r"subcarriers\[::(\d+)\]", meta.get("csi", ""))
-    if m is None:
-        raise CalibrationError(f"{path}: no 'csi' entry in the isac_twin metadata (how the CSI "
-                               "was decimated); record with `isac-twin record`")
-    step = int(m.group(1))
-    by_link: dict[tuple[str, str], list] = {}
-    for rm in read_messages(path):
-        if rm.type_name == Csi.ROS_TYPE:
-            c = rm.decode()
-            by_link.setdefault((c.tx, c.rx), []).append(c)
-    if not by_link:
-        raise CalibrationError(f"{path}: no isac_twin_msgs/Csi messages")
-    links = list(by_link) if links is None else [tuple(lk) for lk in links]
-    missing = [lk for lk in links if lk not in by_link]
-    if missing:
-        raise CalibrationError(f"{path}: no isac_twin_msgs/Csi messages of link "
-                               + ", ".join(f"{t}->{r}" for t, r in missing) + " (recorded: "
-                               + ", ".join(f"{t}->{r}" for t, r in by_link) + ")")
-    trajs = load_trajectories(path)
-    return [(lk, _link_measurements(path, config, lk, by_link[lk], trajs, step,
-                                    max_snapshots, max_subcarriers, noise)) for lk in links]
-
-
-def _link_measurements(path: Path, config: TwinConfig, link: tuple[str, str], msgs: list,
-                       trajs: dict, step: int, max_snapshots: int,
-                       max_subcarriers: int, noise: bool = True) -> Measurements:
-    """One link of :func:`measurements_from_recording`."""
-    tx, rx = link
-    if rx not in trajs:
-        raise CalibrationError(f"{path}: no /{rx}/ground_truth poses for the CSI of {tx}->{rx}")
-    o = config.ofdm
-    grid = ResourceGrid(o.num_subcarriers, o.subcarrier_spacing_hz, o.num_symbols)
-    offsets = grid.subcarrier_frequencies[::step]
-    h0 = np.asarray(msgs[0].h)
-    if h0.ndim != 4 or h0.shape[1] != len(offsets):
-        raise CalibrationError(f"{path}: CSI of {tx}->{rx} has shape {h0.shape}, expected "
-                               f"[symbols, {len(offsets)} subcarriers (1 in {step} of "
-                               f"{o.num_subcarriers}), Nr, Nt]")
-    pick = np.unique(np.linspace(0, len(msgs) - 1, min(max_snapshots, len(msgs))).round()
-                     .astype(int))
-    sub = np.unique(np.linspace(0, len(offsets) - 1, min(max_subcarriers, len(offsets)))
-                    .round().astype(int))
-    robot = next((d for d in config.devices if d.name == rx), None)
-    if robot is None:
-        raise CalibrationError(f"{path}: the CSI's receiver {rx!r} is not a device of the scene")
-    pos, ori, csi, noise_power = [], [], [], []
-    for i in pick:
-        c = msgs[i]
-        if noise and noise_power is not None:
-            try:  # h[0]: [all recorded subcarriers, Nr, Nt] -> [Nr, Nt, K]
-                noise_power.append(noise_power_from_delay_tail(
-                    np.moveaxis(np.asarray(c.h)[0], 0, -1), offsets))
-            except ValueError as e:
-                log.warning("%s: %s->%s: no noise estimate, the model's exact power is "
-                            "compared (%s)", path, tx, rx, e)
-                noise_power = None
-        pose, _, _ = trajs[rx].at(float(c.header.stamp))
-        ap = antenna_pose(pose, robot.antenna_offset)
-        pos.append(ap.position)
-        ori.append(sionna_orientation(ap.orientation))
-        csi.append(np.asarray(c.h)[0, sub])
-    txp = device_poses(config).get(tx)
-    if txp is None:
-        raise CalibrationError(f"{path}: the CSI's transmitter {tx!r} is not a device of the "
-                               "scene")
-    m = Measurements(txp.position, np.array(pos), offsets[sub], np.array(csi),
-                     tx_array=_array(config, tx, path), rx_array=_array(config, rx, path),
-                     tx_orientation=sionna_orientation(txp.orientation),
-                     rx_orientations=np.array(ori),
-                     noise_power=np.array(noise_power) if noise and noise_power else None)
-    if m.noise_power is not None and np.median(m.noise_snr_db()) > NOISELESS_SNR_DB:
-        m.noise_power = None  # the window's leakage, not noise: an exact channel
-    return m
-
-
-def material_users(scene, target: str) -> list:
-    """The objects (:class:`~isac_twin.scene.twin_scene.ObjectInfo`) whose material is ``target``: an ITU
-    type or custom name (``"wood"``), or Sionna's name of one ITU material at one
-    thickness (``"wood-0.03"``, the bsdf id without ``mat-``)."""
-    return [o for o in scene.objects.values()
-            if o.material == target or (o.material not in scene.custom_materials
-                                        and f"{o.material}-{o.thickness:g}" == target)]
 
 
 def default_parameters(scene, what: tuple[str, ...], objects: list[str],
@@ -259,107 +107,14 @@ def pose_grid(p: Parameter, wavelength: float, per_wavelength: int = 8) -> np.nd
 #: scan point beats the first fit's mismatch by more than this fraction (a better basin).
 REFIT_GAIN = 0.01
 
-#: :meth:`~isac_twin.calibration.calibrator.Calibrator.polish` steps after a :meth:`hop` moved an
+#: :meth:`~isac_twin.calibration.Calibrator.polish` steps after a :meth:`hop` moved an
 #: offset (in each parameter's ``scale``): the other poses are near their minimum.
 POLISH_STEPS_AFTER_HOP = (0.25, 0.0625)
 
-#: At most this many rounds of :meth:`~isac_twin.calibration.calibrator.Calibrator.hop` and polish (a
+#: At most this many rounds of :meth:`~isac_twin.calibration.Calibrator.hop` and polish (a
 #: round follows while the last one's hop moved something; lab: a third round moved
 #: nothing in two runs, 32-33 s each of 250-302)
 HOP_ROUNDS = 2
-
-#: A fitted permittivity is reported as not determined to this fraction when changing it
-#: by this much changes the mismatch by less than the fit's own residual mismatch.
-SENSITIVITY_STEP = 0.10
-
-
-def observability(cal: Calibrator, result) -> dict:
-    """What the measurements say about each fitted material, at the fit (``result``).
-
-    Per material named by a parameter: how many traced paths touch it and their share
-    of each snapshot's path power (:meth:`Calibrator.visibility`), and the mismatch
-    when its permittivity is changed by -+:data:`SENSITIVITY_STEP` (two traces, no
-    gradients), and from that curvature its 1-sigma ``uncertainty_percent``
-    ``= 100 step sqrt(residual / (N K mean change))``: the fit's residual mismatch
-    taken as independent noise per snapshot and subcarrier (the antennas of one
-    snapshot and subcarrier as one sample: their residuals are correlated).
-    ``could_not_see``: a sentence per parameter the start gradient did not see
-    (:attr:`CalibrationResult.unobserved`) and per permittivity whose 1-sigma
-    exceeds the step (not determined to 10 %).
-
-    Returns:
-        ``{"materials": {target: {...}}, "could_not_see": [str]}``.
-    """
-    final = np.asarray(result.final, float)
-    vis = cal.visibility(final)
-    out, notes = {}, [f"{n}: no traced path changes with it at the start (gradient "
-                      f"{abs(g):.3g})" for n, g in zip(result.names, result.gradient_initial)
-                      if n in result.unobserved]
-    for i, p in enumerate(cal.params):
-        if p.kind != "permittivity":
-            continue
-        v = vis[p.target]
-        changes = []
-        for sgn in (-1.0, 1.0):
-            x = final.copy()
-            x[i] = float(np.clip(x[i] * (1 + sgn * SENSITIVITY_STEP), *p.limits))
-            changes.append(cal.evaluate(x, grad=False)[0] - result.mismatch_final)
-        cal.evaluate(final, grad=False)  # leave the scene at the fit
-        share = np.asarray(v["power_share"], float)
-        out[p.target] = {"paths_per_snapshot": [int(c) for c in v["paths"]],
-                         "power_share_per_snapshot": [float(c) for c in share],
-                         "strongest_path_db_per_snapshot": [float(c) for c in v["strongest_db"]],
-                         "mismatch_change_db2_at_minus_plus_10_percent": changes,
-                         "mismatch_final_db2": float(result.mismatch_final)}
-        curv = float(np.mean(changes))
-        n_k = sum(m.csi.shape[0] * m.csi.shape[1] for m in cal.links)
-        sigma = (100.0 * SENSITIVITY_STEP * math.sqrt(result.mismatch_final / (n_k * curv))
-                 if curv > 0 else math.inf)
-        out[p.target]["uncertainty_percent"] = sigma
-        if not sigma <= 100.0 * SENSITIVITY_STEP:
-            notes.append(
-                f"{p.name}: not determined to {SENSITIVITY_STEP:.0%} by these measurements: "
-                f"-+{SENSITIVITY_STEP:.0%} changes the mismatch by {changes[0]:+.3g} / "
-                f"{changes[1]:+.3g} dB^2 against a residual mismatch of "
-                f"{result.mismatch_final:.3g} dB^2 (1-sigma {sigma:.3g} %); its paths carry "
-                f"at most {100 * share.max():.2g} % of a snapshot's path power "
-                f"({int(np.sum(v['paths']))} paths over {len(share)} snapshots)")
-    return {"materials": out, "could_not_see": notes}
-
-
-#: An object has a *clear path* to the robot when the traced paths that touch it (a
-#: reflection or refraction on it) carry at least this share of some snapshot's path
-#: power at the fit or at the scene's values (a pose the fit got wrong can lose the
-#: paths: lab, both links, 32 subcarriers: SwitchBox_2 1.4 % at the start, 0.92 % at a
-#: fit 1.8 deg off in yaw, left out of the polish; at its true pose the mismatch fell
-#: from 0.486 to 0.300 dB^2): only then does the issue's target (1 cm, 0.5 deg)
-#: apply (every object with a path to the robot is polished and hopped). Lab: racks
-#: 3.8 / 7.8 %, a switch box 1.4 %, the chairs and tables out of the robot's sight
-#: 0-0.4 %.
-CLEAR_PATH_SHARE = 0.01
-
-
-def object_paths(cal: Calibrator, values, start: dict | None = None) -> dict[str, dict]:
-    """Per object with a fitted pose: the paths that touch it at ``values`` (physical
-    units, ``[P]``; :meth:`~isac_twin.calibration.calibrator.Calibrator.visibility`) and whether it has
-    a clear path to the robot (:data:`CLEAR_PATH_SHARE`) there or, with ``start`` (this
-    function's result at the scene's values), at the start; then also
-    ``power_share_max_at_start``."""
-    vis = cal.visibility(values)
-    out = {}
-    for t in dict.fromkeys(p.target for p in cal.params if p.kind in ("x", "y", "yaw")):
-        v = vis[t]
-        share = np.asarray(v["power_share"], float)
-        out[t] = {"paths_per_snapshot": [int(c) for c in v["paths"]],
-                  "power_share_per_snapshot": [float(c) for c in share],
-                  "strongest_path_db_per_snapshot": [float(c) for c in v["strongest_db"]],
-                  "clear_path": bool(share.max(initial=0.0) >= CLEAR_PATH_SHARE)}
-        if start is not None:
-            s0 = start[t]
-            out[t]["power_share_max_at_start"] = max(s0["power_share_per_snapshot"],
-                                                     default=0.0)
-            out[t]["clear_path"] = out[t]["clear_path"] or s0["clear_path"]
-    return out
 
 
 @dataclass
@@ -367,117 +122,6 @@ class RunOutput:
     scene_dir: Path
     report_path: Path
     report: dict
-
-
-def calibrated_materials(scene, result) -> tuple[dict[str, dict[str, float]], dict[str, str]]:
-    """The custom materials a calibration writes and the objects that use them.
-
-    Args:
-        scene: the scene that was calibrated (its objects and materials as loaded).
-        result: :class:`~isac_twin.calibration.calibrator.CalibrationResult`.
-
-    Returns:
-        ``(materials, assign)``: ``name -> {"relative_permittivity", "conductivity" (S/m),
-        "thickness" (m)}`` and ``object -> material name``, for every object whose
-        material (ITU type or custom name) had a parameter fitted.
-    """
-    from sionna.rt.radio_materials.itu import itu_material
-
-    fitted: dict[str, dict[str, float]] = {}
-    for name, val in zip(result.names, result.final):
-        target, kind = name.rsplit(".", 1)
-        if kind in MATERIAL_KINDS:
-            key = "relative_permittivity" if kind == "permittivity" else "conductivity"
-            fitted.setdefault(target, {})[key] = float(val)
-    f = scene.config.scene.frequency_hz
-    materials: dict[str, dict[str, float]] = {}
-    assign: dict[str, str] = {}
-    for target, vals in fitted.items():
-        users = material_users(scene, target)
-        if target in scene.custom_materials:
-            materials[target] = {**scene.custom_materials[target], **vals}
-            assign.update({o.name: target for o in users})
-            continue
-        itu = users[0].material
-        eps, sigma = (float(np.asarray(v).reshape(-1)[0]) for v in itu_material(itu, f))
-        thicknesses = sorted({o.thickness for o in users})
-        for d in thicknesses:
-            mname = (f"{target}-calibrated" if len(thicknesses) == 1 and target != itu
-                     else f"{itu}-calibrated" if len(thicknesses) == 1 else
-                     f"{itu}-{d:g}-calibrated")
-            materials[mname] = {"relative_permittivity": vals.get("relative_permittivity", eps),
-                                "conductivity": vals.get("conductivity", sigma),
-                                "thickness": float(d)}
-            assign.update({o.name: mname for o in users if o.thickness == d})
-    return materials, assign
-
-
-def _write_materials(xml_path: Path, scene, materials: dict, assign: dict) -> None:
-    """Rewrite ``xml_path`` (a copy of ``scene``'s scene.xml): the objects in ``assign``
-    refer to their custom material, written as Sionna's ``radio-material`` bsdf; ITU
-    bsdfs no object refers to any more are dropped."""
-    import xml.etree.ElementTree as ET
-
-    from ..contract import schema
-    from ..contract.writers.numbers import fmt_float as fmt
-
-    prefix = schema.MATERIAL_ID_PREFIX
-    tree = ET.parse(xml_path)
-    root = tree.getroot()
-    shapes = list(root.iter("shape"))
-    for s in shapes:
-        sid = s.get("id", "")
-        name = sid[5:] if sid.startswith("mesh-") else sid
-        if name in assign:
-            next(s.iter("ref")).set("id", prefix + assign[name])
-    used = {r.get("id") for s in shapes for r in s.iter("ref")}
-    parent = {c: p for p in root.iter() for c in p}
-    for b in list(root.iter("bsdf")):
-        if b.get("id") not in used or (b.get("type") == schema.CUSTOM_MATERIAL_PLUGIN
-                                       and b.get("id")[len(prefix):] in materials):
-            parent[b].remove(b)
-    at = list(root).index(shapes[0]) if shapes else len(root)
-    for mname in sorted(materials, reverse=True):
-        b = ET.Element("bsdf", {"type": schema.CUSTOM_MATERIAL_PLUGIN, "id": prefix + mname})
-        for key in schema.CUSTOM_MATERIAL_PROPERTIES:
-            ET.SubElement(b, "float", {"name": key, "value": fmt(materials[mname][key])})
-        root.insert(at, b)
-    ET.indent(tree, "\t")
-    tree.write(xml_path, encoding="utf-8")
-
-
-def write_calibrated_scene(scene, result, out_dir: Path) -> Path:
-    """Copy ``scene``'s folder to ``out_dir`` with the fitted x/y/yaw offsets applied to
-    the objects' meshes (rotation about the mesh's bounding-box centre) and the fitted
-    materials written (:func:`calibrated_materials`); return it."""
-    from ..scene.meshes import read_ply
-    from ..scene.synthetic import write_ply
-
-    src = Path(scene.config.scene.file).parent
-    if out_dir.exists():
-        shutil.rmtree(out_dir)
-    shutil.copytree(src, out_dir)
-    materials, assign = calibrated_materials(scene, result)
-    if materials:
-        _write_materials(out_dir / Path(scene.config.scene.file).relative_to(src), scene,
-                         materials, assign)
-    offsets: dict[str, dict[str, float]] = {}
-    for name, val in zip(result.names, result.final):
-        target, kind = name.rsplit(".", 1)
-        if kind in ("x", "y", "yaw"):
-            offsets.setdefault(target, {})[kind] = float(val)
-    for name, off in offsets.items():
-        info = scene.objects[name]
-        dest = out_dir / Path(info.mesh_file).relative_to(src)
-        mesh = read_ply(info.mesh_file)
-        v = mesh.vertices.copy()
-        c = 0.5 * (v.min(axis=0) + v.max(axis=0))
-        cs, sn = np.cos(off.get("yaw", 0.0)), np.sin(off.get("yaw", 0.0))
-        x, y = v[:, 0] - c[0], v[:, 1] - c[1]
-        v[:, 0] = c[0] + cs * x - sn * y + off.get("x", 0.0)
-        v[:, 1] = c[1] + sn * x + cs * y + off.get("y", 0.0)
-        write_ply(dest, v, mesh.faces)
-    return out_dir
 
 
 def recording_calibrator(scene, recording, *, what: tuple[str, ...], objects, materials,
@@ -510,31 +154,30 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
     ``out/calibration.json`` (see the module doc). ``solver``: default the scene's
     ``[tracer]`` settings (:meth:`SolverSettings.from_tracer`). ``scan``: start each
     permittivity from the best of :func:`permittivity_grid` (the mismatch has a local
-    minimum per slab resonance, see :meth:`Calibrator.scan`) and fit from the
-    ``multistart`` best local minima of the scans; the fit with the lowest mismatch wins.
-    With poses fitted too, a first joint fit from the scene's values comes first, the
-    scans run at its poses, and the fits from their minima only when a scan point
-    beats it by more than :data:`REFIT_GAIN`. ``materials``: the materials fitted with ``"materials"`` (default all but metal; see
-    :func:`default_parameters`). ``pose_scan``: before fitting, set each pose offset in
-    turn to the best of :func:`pose_grid` (the magnitude mismatch has a local minimum
-    about every half wavelength of an object's shift); costs one trace per grid point.
-    ``trust``: with poses fitted, each fit runs in rounds inside a box of +-``trust``
+    minimum per slab resonance, see :meth:`Calibrator.scan`) and fit from the ``multistart``
+    best local minima of the scans; the fit with the lowest mismatch wins. With poses fitted
+    too, a first joint fit from the scene's values comes first, the scans run at its poses,
+    and the fits from their minima only when a scan point beats it by more than
+    :data:`REFIT_GAIN`. ``materials``: the materials fitted with ``"materials"`` (default
+    all but metal; see :func:`default_parameters`). ``pose_scan``: before fitting, set each
+    pose offset in turn to the best of :func:`pose_grid` (the magnitude mismatch has a local
+    minimum about every half wavelength of an object's shift); costs one trace per grid
+    point. ``trust``: with poses fitted, each fit runs in rounds inside a box of +-``trust``
     typical changes (1 cm, 1 deg, 10 % of a material value) about the round's start
-    (:meth:`~isac_twin.calibration.calibrator.Calibrator.fit`); None: one unbounded L-BFGS-B.
-    ``polish``: then search the seen pose offsets of the objects with a path to the
-    robot, and the permittivities, on traced values
-    (:meth:`~isac_twin.calibration.calibrator.Calibrator.polish`); the result is where that search
-    ends when it lowered the mismatch. The report's ``objects`` says which objects
-    have a clear path (:data:`CLEAR_PATH_SHARE`: the accuracy claimed), ``polish`` what
-    the search did, ``could_not_see`` names the objects without a clear path with
-    their numbers. ``hop``: after the polish, scan
-    those objects' x/y offsets and yaws across the next half-wavelength basins
-    (:meth:`~isac_twin.calibration.calibrator.Calibrator.hop`) and polish again (from
-    :data:`POLISH_STEPS_AFTER_HOP`) when that lowered the mismatch, then again (up to
-    :data:`HOP_ROUNDS` rounds) while a hop moves something; the report's ``hop``
-    gives each round's scans. ``noise``: the model's power gets each snapshot's noise variance
-    estimated from the recording added (:func:`measurements_from_recording`); the
-    report's ``noise_snr_db`` gives the estimates."""
+    (:meth:`~isac_twin.calibration.Calibrator.fit`); None: one unbounded L-BFGS-B.
+    ``polish``: then search the seen pose offsets of the objects with a path to the robot,
+    and the permittivities, on traced values
+    (:meth:`~isac_twin.calibration.Calibrator.polish`); the result is where that search ends
+    when it lowered the mismatch. The report's ``objects`` says which objects have a clear
+    path (:data:`CLEAR_PATH_SHARE`: the accuracy claimed), ``polish`` what the search did,
+    ``could_not_see`` names the objects without a clear path with their numbers. ``hop``:
+    after the polish, scan those objects' x/y offsets and yaws across the next
+    half-wavelength basins (:meth:`~isac_twin.calibration.Calibrator.hop`) and polish again
+    (from :data:`POLISH_STEPS_AFTER_HOP`) when that lowered the mismatch, then again (up to
+    :data:`HOP_ROUNDS` rounds) while a hop moves something; the report's ``hop`` gives each
+    round's scans. ``noise``: the model's power gets each snapshot's noise variance
+    estimated from the recording added (:func:`measurements_from_recording`); the report's
+    ``noise_snr_db`` gives the estimates."""
     from ..scene.twin_scene import load_scene
 
     out = Path(out)
@@ -608,11 +251,11 @@ def calibrate_recording(scene_dir: str | Path, recording: str | Path, out: str |
 
     if (first_fit is not None and (first_fit.converged or polish) and not pose_scans
             and better > (1.0 - REFIT_GAIN) * first_fit.mismatch_final):
-        # the scans at the fitted poses found no better basin: no further fits (a
-        # first fit stopped where a path appears is continued by the polish on
-        # traced values, if an object has a clear path to the robot; lab: the refit from the scan's best gained 0.1 % in 14
-        # gradient steps, and the calibration ended at 0.2587 dB^2 in 253 s with it,
-        # 0.2386 dB^2 in 237 s without)
+        # the scans at the fitted poses found no better basin: no further fits (a first
+        # fit stopped where a path appears is continued by the polish on traced values,
+        # if an object has a clear path to the robot; lab: the refit from the scan's
+        # best gained 0.1 % in 14 gradient steps, and the calibration ended at 0.2587
+        # dB^2 in 253 s with it, 0.2386 dB^2 in 237 s without)
         fits, starts = [first_fit], [cal.initial.copy()]
     elif first_fit is not None and polish and not pose_scans:
         # a better basin at the first fit's poses: the polish goes on from the scans'

@@ -8,7 +8,7 @@ objects of ``changed_material`` (e.g. ``"wood-0.03"``, the tables) get a custom 
 material whose relative permittivity is ``permittivity_factor`` times the twin's. It
 records the robot's CSI over one lap of its path there (``record_twin``, optionally
 with noise at an SNR), calibrates the twin's folder from that recording
-(:func:`isac_twin.calibration.run.calibrate_recording`: the changed material and the moved
+(:func:`isac_twin.calibration.calibrate_recording`: the changed material and the moved
 objects' x/y/yaw), and reports each recovered offset against the truth, the fitted
 permittivity against the real one, and the time.
 """
@@ -23,8 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..calibration.calibrator import SolverSettings
-from ..calibration.run import calibrate_recording, material_users
+from ..calibration import (
+    SolverSettings,
+    calibrate_recording,
+    material_users,
+    recording_calibrator,
+    write_calibrated_scene,
+)
 from ..scene.twin_scene import load_scene
 from ..transport.record import CsiRecording, record_twin
 from .casestudy import CASE_STUDY_MCA
@@ -99,7 +104,7 @@ def closing_the_loop(folder, out, *, seed: int = 1, changed_material: str = "woo
         dt: twin step of the recording, s (only the snapshots used matter).
         snr_db: noise of the recorded CSI (None: the twin's exact channel).
         snapshots, subcarriers, max_steps, solver, multistart, pose_scan, noise: of the
-            calibration (:func:`isac_twin.calibration.run.calibrate_recording`).
+            calibration (:func:`isac_twin.calibration.calibrate_recording`).
 
     Returns:
         A JSON-serialisable dict: ``objects`` (per object: truth and fitted dx, dy cm,
@@ -181,14 +186,12 @@ def mismatch_at_truth(folder, recording, truth: dict, *, objects: list[str],
     model as :func:`closing_the_loop`'s calibration. A fit that ends below it has
     fitted the recording's noise as well as the truth does: its errors are the
     measurements' limit, not the search's. With ``out``, the twin calibrated to those
-    values is written there (:func:`~isac_twin.calibration.run.write_calibrated_scene`):
+    values is written there (:func:`~isac_twin.calibration.write_calibrated_scene`):
     the best any calibration can do, the reference of :func:`localization_errors`.
 
     Returns:
         ``(mismatch dB^2, the folder written or None)``.
     """
-    from ..calibration.run import recording_calibrator, write_calibrated_scene
-
     scene = load_scene(folder)
     _, params, cal = recording_calibrator(
         scene, recording, what=CALIBRATED, objects=objects, materials=[changed_material],

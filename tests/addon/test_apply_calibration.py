@@ -1,5 +1,5 @@
 """addon/calibration.py and custom radio materials: export of custom materials, and a
-calibration folder written by the engine (isac_twin.calibration.run.write_calibrated_scene)
+calibration folder written by the engine (isac_twin.calibration.write_calibrated_scene)
 applied to the open scene in headless bpy."""
 
 from __future__ import annotations
@@ -57,8 +57,7 @@ def test_custom_material_is_exported_and_loaded_by_the_engine(scene, tmp_path):
 def test_apply_calibration_moves_objects_and_sets_materials(scene, tmp_path):
     from addon.exporter import export_scene
     from isac_twin import load_scene
-    from isac_twin.calibration.calibrator import CalibrationResult
-    from isac_twin.calibration.run import write_calibrated_scene
+    from isac_twin.calibration import CalibrationResult, write_calibrated_scene
     from isac_twin.scene.meshes import read_ply
 
     cab = _room(scene)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from isac_twin import load_scene
-from isac_twin.calibration.calibrator import SolverSettings
+from isac_twin.calibration import SolverSettings
 from isac_twin.experiments.lab_calibration import (
     closing_the_loop,
     lap_steps,
