@@ -6,7 +6,12 @@ import pytest
 
 from isac_twin import CalibrationError
 from isac_twin.calibration import Measurements, Parameter
-from isac_twin.calibration.problem import mismatch_db2, unobserved
+from isac_twin.calibration.problem import (
+    as_links,
+    check_parameters,
+    mismatch_db2,
+    unobserved,
+)
 from tests.engine.calibration.conftest import OFFSETS, RX, TX
 
 
@@ -30,3 +35,26 @@ def test_bad_input_is_refused():
         Parameter("permittivity", "concrete", bounds=(0.5, 10))
     with pytest.raises(CalibrationError, match=r"csi must be \[N=4, K=6, Nr=1, Nt=1\]"):
         Measurements(TX, RX, OFFSETS, np.zeros((4, 5)))
+
+
+def test_parameters_and_links_are_checked():
+    """What a calibrator is given: at least one parameter, none twice, a typical change
+    > 0; one link's measurements or a list of links on the same subcarriers."""
+    with pytest.raises(CalibrationError, match="no parameters to fit"):
+        check_parameters([])
+    with pytest.raises(CalibrationError, match="given twice"):
+        check_parameters([Parameter("x", "Cabinet"), Parameter("x", "Cabinet")])
+    assert Parameter("x", "Cabinet").typical_change(0.0) == 0.01  # m
+    assert Parameter("yaw", "Cabinet").typical_change(0.0) == pytest.approx(np.radians(1.0))
+    assert Parameter("permittivity", "concrete").typical_change(5.0) == pytest.approx(0.5)
+    assert Parameter("conductivity", "concrete").typical_change(0.0) == 0.01  # S/m
+    with pytest.raises(CalibrationError, match="scale must be > 0"):
+        Parameter("x", "Cabinet", scale=0.0).typical_change(0.0)
+    one = Measurements(TX, RX, OFFSETS, np.ones((4, 6)))
+    assert as_links(one) == [one] and as_links([one, one]) == [one, one]
+    with pytest.raises(CalibrationError, match="non-empty list"):
+        as_links([])
+    with pytest.raises(CalibrationError, match="non-empty list"):
+        as_links([np.ones((4, 6))])
+    with pytest.raises(CalibrationError, match="link 1's subcarriers differ"):
+        as_links([one, Measurements(TX, RX, OFFSETS + 1e6, np.ones((4, 6)))])
