@@ -149,8 +149,8 @@ def test_the_cli_table_lists_every_command():
     listed = set(re.findall(r"^\| `([\w-]+)` \|", table, re.M))
     commands = cli_commands()
     assert len(commands) >= 10
-    assert set(commands) <= listed, f"missing from the README's table: {set(commands) - listed}"
-    assert listed <= set(commands), f"in the README's table, not a command: {listed - set(commands)}"
+    assert set(commands) <= listed, f"not in the README's table: {set(commands) - listed}"
+    assert listed <= set(commands), f"in the README's table, not commands: {listed - set(commands)}"
 
 
 def test_the_readme_names_the_zip_build_py_builds():
