@@ -184,6 +184,7 @@ def test_the_readme_bpy_script_builds_a_room_the_engine_loads(tmp_path):
     script = tmp_path / "myroom.py"
     script.write_text(code)
     tool = Path(bpy.utils.system_resource("SCRIPTS")) / "addons_core/bl_pkg/cli/blender_ext.py"
+    (tmp_path / "dist").mkdir()
     built = subprocess.run([sys.executable, str(tool), "build", "--source-dir",
                             str(ROOT / "addon"), "--output-dir", str(tmp_path / "dist")],
                            capture_output=True, text=True, timeout=300)
