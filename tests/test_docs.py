@@ -2,11 +2,11 @@
 rooms' READMEs.
 
 Checked here: the README's length and its two commands; no issue numbers; every
-``isac_twin.<module path>`` named resolves; every relative link (and its #anchor) and every
-repository path in backticks exists; the README's Python and ``bpy`` examples run as written
-(the ``bpy`` one in a fresh interpreter with a scratch ``BLENDER_USER_RESOURCES``, its scene
-folder then loaded by the engine); the README's command table lists every command of
-``isac-twin --help``.
+``isac_twin.<module path>`` named resolves; every relative link (and its #anchor), every
+repository path in backticks and every test named exists; the README's Python and ``bpy``
+examples run as written (the ``bpy`` one in a fresh interpreter with a scratch
+``BLENDER_USER_RESOURCES``, its scene folder then loaded by the engine); the README's command
+table lists every command of ``isac-twin --help``.
 """
 
 from __future__ import annotations
@@ -127,6 +127,17 @@ def test_relative_links_and_paths_exist(doc):
         if not (ROOT / rel).exists():
             bad.append(f"path `{rel}` does not exist")
     assert not bad, f"{doc.relative_to(ROOT)}:\n" + "\n".join(bad)
+
+
+def test_every_test_named_exists():
+    defined = set()
+    for f in (ROOT / "tests").rglob("test_*.py"):
+        defined |= set(re.findall(r"^def (test_\w+)", f.read_text(), re.M))
+    named = {(name, doc.name) for doc in DOCS
+             for name in re.findall(r"`(test_\w+)(?:\[[^\]]*\])?`", doc.read_text())}
+    assert named, "no test names found: the pattern is wrong"
+    bad = sorted(f"{name} (in {doc})" for name, doc in named if name not in defined)
+    assert not bad, "named in the docs, no such test:\n" + "\n".join(bad)
 
 
 def test_the_docs_map_lists_every_page():
