@@ -25,7 +25,7 @@ import numpy as np
 
 from ..bus import frames
 from ..bus.bus import Bus
-from ..bus.msgs import Clock, Csi, Header, TFMessage, quaternion_to_yaw
+from ..bus.msgs import Clock, Csi, Header, TFMessage
 from ..errors import ConfigError, PathError
 from ..phy.network import NetworkPHY
 from ..raytrace import make_tracer
@@ -33,7 +33,7 @@ from ..robots import KinematicState, SensorOptions, build_robots, cast_scans
 from ..robots.control import controller_from_spec
 from ..scene.room import ROBOT_BODY_HEIGHT_M, path_obstruction
 from ..scene.twin_scene import TwinScene, load_scene
-from ..utils.geometry import DevicePose, antenna_pose
+from ..utils.geometry import DevicePose, antenna_pose, quaternion_to_yaw
 from ..utils.threads import one_blas_thread
 from . import pacing
 from .commands import apply_command, validate_command
