@@ -13,7 +13,7 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from isac_twin.bus.msgs import Header, Odometry, Pose, Twist, yaw_to_quaternion
+from isac_twin.bus.msgs import Header, Odometry, Pose, Twist
 from isac_twin.bus.twin_msgs import Fingerprint
 from isac_twin.devices.runtime import (
     PoseEstimator,
@@ -23,6 +23,7 @@ from isac_twin.devices.runtime import (
     robot_config_from_dict,
 )
 from isac_twin.errors import RobotConfigError
+from isac_twin.utils.geometry import yaw_to_quaternion
 
 
 def _free_port() -> int:
