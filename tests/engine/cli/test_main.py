@@ -150,6 +150,23 @@ def test_mesh_error_is_one_line_naming_the_file(tmp_path, capsys):
     assert f"{ply.name}: " in _one_line(capsys)
 
 
+def test_path_error_is_one_line_naming_file_and_device(tmp_path, capsys):
+    """A robot path with two waypoints at one point (it used to end in a PathError
+    traceback that named neither the file nor the device)."""
+    from isac_twin.scene.synthetic import ROBOT_EXTRA, SyntheticDevice, box_room
+
+    path = {"kind": "polyline", "waypoints": [[2.0, 2.0], [2.0, 2.0]]}
+    devs = [SyntheticDevice("AP1", "access_point", "tx", (1.0, 1.0, 2.0)),
+            SyntheticDevice("robot1", "robot", "rx", (3.0, 2.0, 0.0),
+                            extra={**ROBOT_EXTRA, "path": path})]
+    folder = box_room(tmp_path / "s", devices=devs, links=[("AP1", "robot1")])
+    for cmd in ("info", "topics"):
+        assert main([cmd, str(folder)]) == 2
+        line = _one_line(capsys)
+        assert "twin.toml: devices[1] (robot1).path: polyline: waypoints 0 and 1 coincide" \
+            in line, line
+
+
 def test_calibration_error_is_one_line_naming_the_file(lab, tmp_path, capsys):
     junk = tmp_path / "junk.mcap"
     junk.write_text("not an mcap")
