@@ -12,6 +12,7 @@ from tests.engine.live.conftest import (  # noqa: F401  (fixtures used here too)
     raw_viewer,
     wire,
 )
+from tests.engine.robots.test_agent import folder as two_robot_room  # noqa: F401  (fixture)
 
 ROOT = Path(__file__).resolve().parents[3]
 #: The bundled lab's scene folder.

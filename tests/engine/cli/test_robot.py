@@ -3,7 +3,6 @@ process (one line for what zenoh refuses, its ends on SIGTERM)."""
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import socket
@@ -14,27 +13,16 @@ import time
 import pytest
 
 from isac_twin.cli import main
-from isac_twin.scene.synthetic import SyntheticDevice, box_room
 from tests.engine.devices.test_runtime import ROBOT_TOML
 from tests.engine.transport.conftest import free_port
 
 from .conftest import LAB, ROOT
 
 
-def test_topics_prints_the_real_registry(tmp_path, capsys):
+def test_topics_prints_the_real_registry(two_robot_room, capsys):
     """Two robots' topics from the agents themselves; the lab's [[sensing]] radar adds
     its detections topic."""
-    devices = [
-        SyntheticDevice("AP1", "access_point", "tx", (1.0, 1.0, 2.0)),
-        SyntheticDevice("tb_burger", "robot", "rx", (5.5, 3.0, 0.0),
-                        orientation=(0.0, 0.0, math.pi / 2),
-                        extra={"model": "burger", "antenna_offset": [0.0, 0.0, 0.25]}),
-        SyntheticDevice("tb_waffle", "robot", "rx", (2.0, 1.0, 0.0),
-                        extra={"model": "waffle", "antenna_offset": [0.0, 0.0, 0.25]}),
-    ]
-    folder = box_room(tmp_path / "two", size=(8.0, 6.0, 3.0), devices=devices,
-                      links=[("AP1", "tb_burger"), ("AP1", "tb_waffle")])
-    assert main(["topics", str(folder)]) == 0
+    assert main(["topics", str(two_robot_room)]) == 0
     out = capsys.readouterr().out
     assert "2 robots (tb_burger, tb_waffle)" in out
     line = next(ln for ln in out.splitlines() if ln.startswith("/tb_waffle/scan "))
