@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
 from collections.abc import Collection
 from pathlib import Path
@@ -105,7 +106,8 @@ def _user_paths(args: argparse.Namespace) -> list[Path]:
 def _on_user_path(exc: OSError, args: argparse.Namespace) -> bool:
     """Whether ``exc`` concerns a path the user named, one inside it or one of its
     folders (a missing recording, an unwritable output folder)."""
-    failed = [Path(f).absolute() for f in (exc.filename, exc.filename2) if f is not None]
+    failed = [Path(f).absolute() for f in (exc.filename, exc.filename2)
+              if isinstance(f, (str, os.PathLike))]  # not a file descriptor
     for user in (p.absolute() for p in _user_paths(args)):
         for f in failed:
             if f == user or user in f.parents or f in user.parents:

@@ -51,8 +51,8 @@ def test_localize_runs_the_case_study_on_an_l_room(tmp_path):
     f = l_room(tmp_path / "l", robot=(1.0, 1.0, 0.0),
                tracer={"samples_per_src": 2000, "max_depth": 1})
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "isac_twin.cli", "localize", str(f), "--out", str(out),
-                        "--spacing", "0.6", "--steps", "3", "--table-points", "2",
+    r = subprocess.run([sys.executable, "-m", "isac_twin.cli", "localize", str(f), "--out",
+                        str(out), "--spacing", "0.6", "--steps", "3", "--table-points", "2",
                         "--snr", "20", "--cache-dir", str(tmp_path / "cache")],
                        cwd=ROOT, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr[-3000:]
