@@ -10,10 +10,10 @@ import sys
 from pathlib import Path
 
 from ..bus.bus import Bus
+from ..bus.sensing_msgs import advertise
 from ..errors import ConfigError, IsacTwinError
 from ..robots import build_robots
 from ..scene.twin_scene import load_scene
-from ..sensing.msgs import advertise
 from .lifecycle import StopSignals, bounded_stop, exit_now
 from .main import error_line
 from .options import scene_arg, scene_path
