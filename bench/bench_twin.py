@@ -53,7 +53,7 @@ from isac_twin import (
     load_config,  # noqa: E402
 )
 from isac_twin.robots import SensorOptions  # noqa: E402
-from isac_twin.twin.twin import STAGES
+from isac_twin.twin.pacing import STAGES
 
 PATH = {"kind": "circle", "centre": [4.0, 3.0], "radius": 1.5}
 VARIANTS = {

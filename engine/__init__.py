@@ -7,7 +7,7 @@ Communications and Robotics". The public API is short on purpose::
 
     twin = Twin(load_scene(bundled_scene_dir("aces_lab")))
     for result in twin.run(100):
-        print(result.t, {k: l.rate_bps for k, l in result.links.items()})
+        print(result.time_s, {k: l.rate_bps for k, l in result.links.items()})
 
 Names are imported on first use (PEP 562), so ``import isac_twin`` -- and the
 stdlib-only ``isac_twin.contract`` -- stay light; Sionna RT and Dr.Jit load when a

@@ -21,6 +21,7 @@ line and exits with status 2 (:mod:`isac_twin.cli`).
     +-- SensingError (ValueError)        a sensing ([[sensing]]) setup or input
     +-- DatabaseMismatchError (ValueError)  a fingerprint database of another scene
     +-- CalibrationError (ValueError)    calibration input
+    +-- UsageError (ValueError)          a command-line option or argument of ``isac-twin``
     +-- TruncationError (RuntimeError)   the solver's path buffer overflowed
     +-- DeviceError (RuntimeError)       a device answered wrongly or not at all
         +-- DeviceTimeout
@@ -35,8 +36,8 @@ from .contract.wire import WireError
 
 __all__ = ["IsacTwinError", "ContractError", "WireError", "ConfigError", "MeshError",
            "RobotConfigError", "PathError", "SpeedLimitError", "BusError", "SensingError",
-           "DatabaseMismatchError", "CalibrationError", "TruncationError", "DeviceError",
-           "DeviceTimeout", "OakDUnavailable", "OakDNotFound"]
+           "DatabaseMismatchError", "CalibrationError", "UsageError", "TruncationError",
+           "DeviceError", "DeviceTimeout", "OakDUnavailable", "OakDNotFound"]
 
 
 class ConfigError(IsacTwinError, ValueError):
@@ -78,6 +79,11 @@ class DatabaseMismatchError(IsacTwinError, ValueError):
 
 class CalibrationError(IsacTwinError, ValueError):
     """Bad calibration input (unknown material/object, bad shapes, bad bounds)."""
+
+
+class UsageError(IsacTwinError, ValueError):
+    """A command-line option or argument of ``isac-twin`` is invalid, or what it names
+    cannot be used (the message names the option and what was expected)."""
 
 
 class TruncationError(IsacTwinError, RuntimeError):

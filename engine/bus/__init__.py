@@ -2,7 +2,8 @@
 
 Modules: :mod:`.msgs` (ROS 2-shaped message types), :mod:`.twin_msgs` (the
 ``isac_twin_msgs`` types: paths, link metrics, fingerprints, CSI, path commands, clock
-pings), :mod:`.frames` (REP-105 frames and transforms), :mod:`.bus` (:class:`Bus`,
+pings), :mod:`.sensing_msgs` (the radar's ``isac_twin_msgs/msg/Detections``),
+:mod:`.frames` (REP-105 frames and transforms), :mod:`.bus` (:class:`Bus`,
 nodes, subscriptions, the transport interface).
 """
 

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..utils.geometry import yaw_to_quaternion
 from .msgs import Header, TFMessage, TransformStamped
 
 #: world frame id
@@ -74,11 +75,6 @@ class RobotFrames:
         return f"{self.prefix}camera_depth_optical_frame"
 
 
-def yaw_quaternion(yaw: float) -> np.ndarray:
-    """``[x, y, z, w]`` of a rotation by ``yaw`` rad about z."""
-    return np.array([0.0, 0.0, math.sin(0.5 * yaw), math.cos(0.5 * yaw)])
-
-
 def planar_compose(a, b) -> np.ndarray:
     """``a * b`` of planar poses ``[x, y, yaw]`` (b expressed in a's frame)."""
     x, y, th = a
@@ -95,7 +91,7 @@ def planar_inverse(a) -> np.ndarray:
 
 def _planar_tf(stamp: float, parent: str, child: str, p) -> TransformStamped:
     return TransformStamped(Header(stamp, parent), child, np.array([p[0], p[1], 0.0]),
-                            yaw_quaternion(float(p[2])))
+                            yaw_to_quaternion(float(p[2])))
 
 
 def dynamic_tf(stamp: float, frames: RobotFrames, truth, odom=None) -> list[TransformStamped]:

@@ -131,17 +131,6 @@ MESSAGE_TYPES: dict[str, type] = {
 }
 
 
-def yaw_to_quaternion(yaw: float) -> np.ndarray:
-    """Quaternion ``[x, y, z, w]`` of a rotation by ``yaw`` rad about Z."""
-    return np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-
-
-def quaternion_to_yaw(q) -> float:
-    """Yaw (rad) of a quaternion ``[x, y, z, w]``."""
-    x, y, z, w = q
-    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
-
-
 @dataclass
 class JointState:
     """Joint positions (rad), velocities (rad/s), efforts; e.g. the two wheels."""

@@ -35,6 +35,7 @@ from typing import Callable
 import numpy as np
 
 from ..bus.msgs import BatteryState, Imu, Odometry
+from ..utils.geometry import wrap_angle, yaw_to_quaternion
 from . import opencr as oc
 from .emulated import EmulatedSerialDevice
 
@@ -123,11 +124,6 @@ def build_packet(dxl_id: int, inst: int, params: bytes) -> bytes:
     return pkt + struct.pack("<H", crc16(pkt))
 
 
-def quat_from_yaw(yaw: float) -> np.ndarray:
-    """``[x, y, z, w]`` of a rotation by ``yaw`` rad about Z."""
-    return np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
-
-
 class DiffDriveRobot:
     """Default ``step(v, w, dt)``: an ideal differential drive on flat ground.
 
@@ -156,11 +152,11 @@ class DiffDriveRobot:
         mid = self.yaw + w * dt / 2
         self.x += v * dt * math.cos(mid)
         self.y += v * dt * math.sin(mid)
-        self.yaw = math.atan2(math.sin(self.yaw + w * dt), math.cos(self.yaw + w * dt))
+        self.yaw = wrap_angle(self.yaw + w * dt)
         ax = (v - self._v) / dt if dt > 0 else 0.0
         self._v = v
         return (self.left_pos, self.right_pos, wl, wr, np.array([0.0, 0.0, w]),
-                np.array([ax, v * w, GRAVITY]), quat_from_yaw(self.yaw))
+                np.array([ax, v * w, GRAVITY]), yaw_to_quaternion(self.yaw))
 
 
 class EmulatedOpenCR(EmulatedSerialDevice):

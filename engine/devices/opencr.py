@@ -30,6 +30,7 @@ from dynamixel_sdk import COMM_RX_CORRUPT, COMM_RX_TIMEOUT, COMM_SUCCESS, Packet
 from ..bus.msgs import BatteryState, Header, Imu, Odometry, Pose, Twist
 from ..contract import schema
 from ..errors import DeviceError, DeviceTimeout
+from ..utils.geometry import wrap_angle, yaw_to_quaternion
 from . import ptyserial  # noqa: F401  (registers the pty:// URL handler)
 from .base import DeviceDriver, Publish
 
@@ -173,7 +174,7 @@ class DiffDriveOdometry:
         dyaw = (d_r - d_l) / self.wheel_separation
         self.x += ds * math.cos(self.yaw + dyaw / 2.0)
         self.y += ds * math.sin(self.yaw + dyaw / 2.0)
-        self.yaw = math.atan2(math.sin(self.yaw + dyaw), math.cos(self.yaw + dyaw))
+        self.yaw = wrap_angle(self.yaw + dyaw)
         return ds, dyaw
 
 
@@ -323,7 +324,7 @@ class OpenCR(DeviceDriver):
         odom = Odometry(
             header=Header(stamp=stamp, frame_id=self.odom_frame), child_frame_id=self.base_frame,
             pose=Pose(position=np.array([self.odometry.x, self.odometry.y, 0.0]),
-                      orientation=np.array([0.0, 0.0, math.sin(self.odometry.yaw / 2), math.cos(self.odometry.yaw / 2)])),
+                      orientation=yaw_to_quaternion(self.odometry.yaw)),
             twist=Twist(linear=np.array([r * (wl + wr) / 2.0, 0.0, 0.0]),
                         angular=np.array([0.0, 0.0, r * (wr - wl) / sep])),
         )

@@ -53,6 +53,7 @@ import serial
 
 from ..bus.msgs import Header, LaserScan
 from ..errors import DeviceError, DeviceTimeout
+from ..utils.geometry import wrap_angle
 from . import ptyserial  # noqa: F401  (registers the pty:// URL handler)
 from .base import DeviceDriver, DriverStats, Publish
 
@@ -684,8 +685,8 @@ class ScanAssembler:
             # ROS angle decreases with device angle: index j = n - 1 - slot
             idx = n - 1 - slot[keep]
             inc = math.radians(step)
-            a0 = float(np.mod(self.angle_offset - math.radians(nodes[0].angle_deg + base + (n - 1) * step)
-                              + np.pi, 2 * np.pi) - np.pi)
+            a0 = wrap_angle(self.angle_offset
+                            - math.radians(nodes[0].angle_deg + base + (n - 1) * step))
             ranges = np.full(n, np.nan)
             inten = np.zeros(n)
             ranges[idx] = np.where(valid[keep], dist[keep], np.inf)

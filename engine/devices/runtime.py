@@ -80,8 +80,6 @@ from ..bus.msgs import (
     PoseStamped,
     TFMessage,
     Twist,
-    quaternion_to_yaw,
-    yaw_to_quaternion,
 )
 from ..bus.twin_msgs import Fingerprint, PathCommand
 from ..contract import schema
@@ -90,6 +88,7 @@ from ..robots.control import controller_from_spec
 from ..robots.kinematics import robot_spec
 from ..transport.clock import ClockResponder
 from ..transport.zenoh_transport import ZenohConfig, ZenohTransport
+from ..utils.geometry import quaternion_to_yaw, wrap_angle, yaw_to_quaternion
 
 log = logging.getLogger(__name__)
 
@@ -294,7 +293,7 @@ class PoseEstimator:
         x, y, yaw = self.odom
         c, s = math.cos(oyaw), math.sin(oyaw)
         return np.array([ox + c * x - s * y, oy + s * x + c * y,
-                         math.atan2(math.sin(oyaw + yaw), math.cos(oyaw + yaw))])
+                         wrap_angle(oyaw + yaw)])
 
     def pose(self) -> np.ndarray:
         """``[x m, y m, yaw rad]`` in the map frame."""

@@ -1,9 +1,8 @@
 """The engine's side of the wire format: convert records to and from messages.
 
 The format itself is ``addon/contract/wire.py``, the one definition the add-on and the
-engine share (stdlib only); ``isac_twin.contract`` loads it (from the
-repository's ``addon/`` folder, or from the copy a built wheel carries) and
-this module re-exports it as :data:`wire`.
+engine share (stdlib only), imported as ``isac_twin.contract.wire``; this module
+re-exports it as :data:`wire`.
 """
 
 from __future__ import annotations

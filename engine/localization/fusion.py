@@ -41,11 +41,9 @@ import math
 
 import numpy as np
 
+from ..utils.geometry import wrap_angle
+
 __all__ = ["PoseEKF"]
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def _rot(t: float) -> np.ndarray:
@@ -126,7 +124,7 @@ class PoseEKF:
         """Propagate with a new odometry pose ``[x, y, yaw]``."""
         odo = self._pose("odometry", odometry)
         ds = _rot(-self._odo[2]) @ (odo[:2] - self._odo[:2])  # body-frame increment
-        dyaw = _wrap(odo[2] - self._odo[2])
+        dyaw = wrap_angle(odo[2] - self._odo[2])
         self._odo = odo
         t = self.x[2]
         step = _rot(t) @ ds
@@ -136,7 +134,7 @@ class PoseEKF:
         F = np.eye(3)
         F[:2, 2] = dstep
         self.x[:2] += step
-        self.x[2] = _wrap(t + dyaw)
+        self.x[2] = wrap_angle(t + dyaw)
         dist = float(np.hypot(*ds))
         a_t, a_r, a_d = self.odom_std
         var_t = (a_t * dist) ** 2 + 1e-8
@@ -179,7 +177,7 @@ class PoseEKF:
         K = self.P @ H.T @ np.linalg.inv(S)
         before = self.antenna_xy
         self.x = self.x + K @ nu
-        self.x[2] = _wrap(self.x[2])
+        self.x[2] = wrap_angle(self.x[2])
         moved = self.antenna_xy - before  # kept innovations are against the moved track
         self._recent = [(i, v - moved, r) for i, v, r in self._recent]
         ikh = np.eye(3) - K @ H

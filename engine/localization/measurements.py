@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..phy.arrays import PlanarArray, r_hat, rotation_matrix
+from ..phy.arrays import PlanarArray, r_hat, sionna_rotation
 from ..phy.channel import baseband_gains, cfr_at
 from ..phy.directions import DelayDirectionEstimator, DelayDirectionProfile
 from ..phy.estimation import LSChannelEstimator, MdpEstimator, PilotPattern, ideal_mdp
@@ -208,7 +208,7 @@ def front_directions(directions, orientation=(0.0, 0.0, 0.0)) -> np.ndarray:
     like its mirror image in front; compare directions after this fold.
     """
     k = np.asarray(directions, float)
-    rot = rotation_matrix(orientation)
+    rot = sionna_rotation(orientation)
     loc = k @ rot  # world -> local (R^T k as rows)
     loc[..., 0] = np.abs(loc[..., 0])
     return loc @ rot.T

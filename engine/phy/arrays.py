@@ -10,7 +10,9 @@ reproduce the phase shifts Sionna applies with ``synthetic_array=True``:
   (in wavelengths).
 * ``orientation = [yaw, pitch, roll]`` = Sionna's ``(alpha, beta, gamma)``:
   rotations about z, y, x, ``R = Rz(yaw) Ry(pitch) Rx(roll)``; world
-  element positions are ``R @ p_local``. (``twin.toml`` lists
+  element positions are ``R @ p_local`` (the one rotation,
+  :func:`isac_twin.utils.geometry.rotation_matrix`, reached through
+  :func:`~isac_twin.utils.geometry.sionna_orientation`). (``twin.toml`` lists
   ``[roll, pitch, yaw]``: reverse it before passing it here.)
 * Directions use Sionna's spherical convention: zenith ``theta`` from +z,
   azimuth ``phi`` from +x towards +y,
@@ -30,25 +32,23 @@ from typing import Callable, Union
 
 import numpy as np
 
+from ..utils.geometry import rotation_matrix, sionna_orientation
 from ._checks import positive_float, positive_int, real_array
 
-__all__ = ["PlanarArray", "rotation_matrix", "r_hat", "ElementPattern"]
+__all__ = ["PlanarArray", "sionna_rotation", "r_hat", "ElementPattern"]
 
 ElementPattern = Callable[[np.ndarray, np.ndarray], np.ndarray]
 """Element field pattern hook: ``g(theta_local [L], phi_local [L]) -> [L]``
 complex amplitude (sqrt of gain) in the array's local frame."""
 
 
-def rotation_matrix(orientation) -> np.ndarray:
-    """Rotation matrix ``[3, 3]`` for ``orientation = [yaw, pitch, roll]`` [rad]
-    (Sionna's ``rotation_matrix``: ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``)."""
-    a, b, c = real_array("orientation", orientation, shape=(3,))
-    ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
-    return np.array([
-        [ca * cb, ca * sb * sc - sa * cc, ca * sb * cc + sa * sc],
-        [sa * cb, sa * sb * sc + ca * cc, sa * sb * cc - ca * sc],
-        [-sb, cb * sc, cb * cc],
-    ])
+def sionna_rotation(orientation) -> np.ndarray:
+    """``[3, 3]`` rotation ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` of a Sionna-order
+    ``orientation = [yaw, pitch, roll]`` [rad], checked (finite, 3 numbers): the
+    engine's one :func:`~isac_twin.utils.geometry.rotation_matrix`, the order
+    reversed at this boundary."""
+    o = real_array("orientation", orientation, shape=(3,))
+    return rotation_matrix(*sionna_orientation(o))
 
 
 def r_hat(theta, phi) -> np.ndarray:
@@ -111,7 +111,7 @@ class PlanarArray:
     def positions(self, orientation=(0.0, 0.0, 0.0)) -> np.ndarray:
         """Rotated element positions ``[Nant, 3]`` [wavelengths], world axes,
         relative to the array centre."""
-        return self.normalized_positions @ rotation_matrix(orientation).T
+        return self.normalized_positions @ sionna_rotation(orientation).T
 
     def steering_vectors(self, theta, phi, orientation=(0.0, 0.0, 0.0)) -> np.ndarray:
         """Steering vectors for ``L`` directions.
@@ -136,7 +136,7 @@ class PlanarArray:
         k = real_array("directions", k, ndim=2)
         if k.shape[1] != 3:
             raise ValueError(f"directions must have shape [L, 3], got {list(k.shape)}")
-        rot = rotation_matrix(orientation)
+        rot = sionna_rotation(orientation)
         phase = 2.0 * np.pi * (k @ (self.normalized_positions @ rot.T).T)  # [L, Nant]
         a = np.exp(1j * phase)
         if self.pattern != "iso":

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._checks import complex_array, positive_float, positive_int, real_array
-from .arrays import PlanarArray, rotation_matrix
+from .arrays import PlanarArray, sionna_rotation
 from .estimation import MdpEstimator
 from .units import SPEED_OF_LIGHT
 
@@ -112,7 +112,7 @@ class DelayDirectionEstimator:
             raise ValueError("a single antenna has no direction: use MdpEstimator")
         self.array = array
         self.df = positive_float("comb_spacing_hz", comb_spacing_hz)
-        self.rot = rotation_matrix(orientation)
+        self.rot = sionna_rotation(orientation)
         self.max_paths = positive_int("max_paths", max_paths)
         if split_fraction is not None and not 0 < split_fraction < 1:
             raise ValueError(f"split_fraction must be in (0, 1) or None, got {split_fraction!r}")

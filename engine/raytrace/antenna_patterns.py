@@ -42,9 +42,9 @@ from collections.abc import Callable
 import numpy as np
 
 from ..contract import schema as shared
-from ..phy.arrays import r_hat, rotation_matrix
+from ..phy.arrays import r_hat, sionna_rotation
 from ..scene.config import MODELLED_POLARIZATIONS
-from .base import sionna_orientation
+from ..utils.geometry import sionna_orientation, wrap_angle
 from .polarization import local_to_world
 
 __all__ = ["PATTERNS", "MODELLED_POLARIZATIONS", "SLANTS", "AntennaPatterns", "apply_elements",
@@ -73,7 +73,7 @@ def _hw_dipole(theta, phi):
 
 
 def _tr38901(theta, phi):
-    phi = np.mod(phi + np.pi, 2 * np.pi) - np.pi
+    phi = wrap_angle(phi)
     t3 = np.deg2rad(65.0)
     a_v = -np.minimum(12.0 * ((theta - np.pi / 2) / t3) ** 2, 30.0)
     a_h = -np.minimum(12.0 * (phi / t3) ** 2, 30.0)
@@ -98,7 +98,7 @@ def pattern_gains(name: str, theta, phi, orientation) -> np.ndarray:
     ``(theta [L], phi [L])`` [rad] of an array with ``orientation = [yaw, pitch,
     roll]`` [rad] (Sionna order)."""
     k = r_hat(theta, phi).reshape(-1, 3)
-    k_loc = k @ rotation_matrix(orientation)  # R^T k, row-vector form
+    k_loc = k @ sionna_rotation(orientation)  # R^T k, row-vector form
     th = np.arctan2(np.hypot(k_loc[:, 0], k_loc[:, 1]), k_loc[:, 2])
     ph = np.arctan2(k_loc[:, 1], k_loc[:, 0])
     return field_pattern(name)(th, ph)
@@ -127,7 +127,7 @@ def element_fields(name: str, polarization: str, theta, phi) -> np.ndarray:
 def _world_fields(name, polarization, theta, phi, orientation) -> np.ndarray:
     """Port fields ``[L, P, 2]`` in the world spherical basis at world
     directions ``(theta, phi) [L]`` of an array with Sionna ``orientation``."""
-    th, ph, q = local_to_world(r_hat(theta, phi).reshape(-1, 3), rotation_matrix(orientation))
+    th, ph, q = local_to_world(r_hat(theta, phi).reshape(-1, 3), sionna_rotation(orientation))
     return np.einsum("lij,lpj->lpi", q, element_fields(name, polarization, th, ph))
 
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..utils.geometry import rotation_matrix
+from ..utils.geometry import rotation_matrix, sionna_orientation
 
 __all__ = ["local_to_world", "v_world", "world_basis"]
 
@@ -94,7 +94,8 @@ def v_world(k: np.ndarray, orientations: np.ndarray, index: np.ndarray) -> np.nd
     [L]``), seen from world unit directions ``k [L, 3]``.
 
     The same as ``local_to_world(k, R[index])[2][:, :, 0]`` with ``R [N, 3, 3]``
-    the orientations' rotations (:func:`~isac_twin.utils.geometry.rotation_matrix`), but for
+    the orientations' rotations (:func:`~isac_twin.utils.geometry.rotation_matrix` of
+    each orientation reversed by :func:`~isac_twin.utils.geometry.sionna_orientation`), but for
     an orientation of zero, which is the world frame itself: exactly ``(1, 0)``."""
     k = np.asarray(k, np.float64).reshape(-1, 3)
     o = np.asarray(orientations, np.float64).reshape(-1, 3)
@@ -106,7 +107,7 @@ def v_world(k: np.ndarray, orientations: np.ndarray, index: np.ndarray) -> np.nd
     if len(rest) == 0:
         return out
     if len(rest) <= V_WORLD_GATHER:
-        mats = np.stack([rotation_matrix(r[2], r[1], r[0]) for r in o])
+        mats = np.stack([rotation_matrix(*sionna_orientation(r)) for r in o])
         out[rest] = local_to_world(k[rest], mats[index[rest]])[2][:, :, 0]
         return out
     uniq, inv = np.unique(o, axis=0, return_inverse=True)
@@ -114,5 +115,5 @@ def v_world(k: np.ndarray, orientations: np.ndarray, index: np.ndarray) -> np.nd
     for u, ori in enumerate(uniq):
         m = (per_path == u) & ~zero
         if m.any():
-            out[m] = local_to_world(k[m], rotation_matrix(ori[2], ori[1], ori[0]))[2][:, :, 0]
+            out[m] = local_to_world(k[m], rotation_matrix(*sionna_orientation(ori)))[2][:, :, 0]
     return out

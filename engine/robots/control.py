@@ -35,7 +35,8 @@ import numpy as np
 
 from ..bus.msgs import Twist
 from ..errors import PathError, SpeedLimitError
-from .kinematics import KinematicState, RobotSpec, make_twist, robot_spec, wrap_angle
+from ..utils.geometry import wrap_angle
+from .kinematics import KinematicState, RobotSpec, make_twist, robot_spec
 
 log = logging.getLogger(__name__)
 

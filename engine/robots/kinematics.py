@@ -48,7 +48,7 @@ import numpy as np
 from ..bus.msgs import Twist
 from ..contract import schema
 from ..errors import SpeedLimitError
-from ..utils.geometry import rotation_matrix
+from ..utils.geometry import euler_to_quaternion, rotation_matrix, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -132,20 +132,6 @@ def robot_spec(model: str) -> RobotSpec:
     except KeyError:
         raise ValueError(f"unknown robot model {model!r} (known: {', '.join(ROBOT_SPECS)})") \
             from None
-
-
-def euler_to_quaternion(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Quaternion ``[x, y, z, w]`` of ZYX Euler angles (rad)."""
-    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
-    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
-    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
-    return np.array([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
-                     cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy])
-
-
-def wrap_angle(a):
-    """Wrap angle(s) to ``[-pi, pi)``."""
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
 def arc_step(x: float, y: float, yaw: float, v: float, w: float, dt: float

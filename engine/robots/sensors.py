@@ -40,15 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..bus.msgs import Header, Image, Imu, JointState, LaserScan, Odometry, Pose, Twist
-from .kinematics import (
-    GRAVITY,
-    TICK_RAD,
-    KinematicState,
-    RobotSpec,
-    euler_to_quaternion,
-    robot_spec,
-    wrap_angle,
-)
+from ..utils.geometry import euler_to_quaternion, wrap_angle
+from .kinematics import GRAVITY, TICK_RAD, KinematicState, RobotSpec, robot_spec
 
 log = logging.getLogger(__name__)
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, PathError
 from .meshes import read_ply
 
 #: Geometry rules for untagged objects (fractions of the room's extent).
@@ -283,8 +283,11 @@ def check_placement(scene, devices=None) -> None:
                               f"its {what} {_fmt(body)} lies in {hit}")
         if d.kind != "robot" or d.path is None:
             continue
-        msg = path_obstruction(scene, d.path, d.position[:2], body[2], meshes=meshes,
-                               parts=parts)
+        try:
+            msg = path_obstruction(scene, d.path, d.position[:2], body[2], meshes=meshes,
+                                   parts=parts)
+        except PathError as exc:  # a malformed path, e.g. two waypoints at one point
+            raise ConfigError(f"{where}.path: {exc}") from None
         if msg is not None:
             raise ConfigError(f"{where}.path: {msg}")
 

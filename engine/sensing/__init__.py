@@ -9,17 +9,17 @@ solver), :mod:`~isac_twin.sensing.clutter` (background subtraction),
 :mod:`~isac_twin.sensing.tracker` (constant-velocity Kalman tracker),
 :mod:`~isac_twin.sensing.estimator` (``RadarEstimator`` for ``Twin``),
 :mod:`~isac_twin.sensing.isac` (rate vs sensing trade-off),
-:mod:`~isac_twin.sensing.msgs` (``isac_twin_msgs/msg/Detections``),
+:mod:`~isac_twin.bus.sensing_msgs` (``isac_twin_msgs/msg/Detections``),
 :mod:`~isac_twin.sensing.config` (``[[sensing]]`` tables).
 
 Only :mod:`~isac_twin.sensing.tracer` and the estimator need Sionna.
 """
 
+from ..bus.sensing_msgs import DETECTIONS_TOPIC, Detections
 from ..errors import SensingError
 from .clutter import BackgroundSubtractor
 from .geometry import locate
 from .link import SensingLinkSpec, SensingReceiver, echo_channel, sensing_resource_set
-from .msgs import DETECTIONS_TOPIC, Detections
 from .radar import Detection, OFDMRadar, RangeDopplerMap, ca_cfar, os_cfar
 from .tracker import KalmanTracker, Track
 

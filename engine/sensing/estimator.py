@@ -9,7 +9,7 @@ divided by the known symbols, background-subtracted and processed by
 (range ellipse x azimuth) and fed to one multi-target
 :class:`~isac_twin.sensing.tracker.KalmanTracker`. Detections and confirmed
 tracks are published on ``/sensing/detections``
-(:class:`~isac_twin.sensing.msgs.Detections`) and stored on the step result as
+(:class:`~isac_twin.bus.sensing_msgs.Detections`) and stored on the step result as
 ``result.sensing`` (a :class:`SensingStep`).
 """
 
@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..bus.sensing_msgs import DETECTIONS_TOPIC, Detections, advertise
 from ..errors import SensingError
 from ..phy.ofdm import ResourceGrid
 from ..utils.geometry import DevicePose, sionna_orientation
@@ -27,7 +28,6 @@ from ..utils.threads import one_blas_thread
 from .clutter import BackgroundSubtractor
 from .geometry import locate
 from .link import SensingLinkSpec, SensingReceiver, echo_channel
-from .msgs import DETECTIONS_TOPIC, Detections, advertise
 from .radar import OFDMRadar
 from .tracer import BURGER_SIZE, SensingTracer, TargetSpec
 from .tracker import KalmanTracker, Track

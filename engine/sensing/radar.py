@@ -46,7 +46,7 @@ import scipy.ndimage
 import scipy.optimize
 
 from ..errors import SensingError
-from ..phy.arrays import PlanarArray, r_hat, rotation_matrix
+from ..phy.arrays import PlanarArray, r_hat, sionna_rotation
 from ..phy.ofdm import ResourceSet
 from ..phy.units import SPEED_OF_LIGHT
 
@@ -423,7 +423,7 @@ class OFDMRadar:
 
     def _beamscan_grid(self, step_deg: float):
         """Front-hemisphere grid of directions (world frame) and steering vectors."""
-        rot = rotation_matrix(self.rx_orientation)
+        rot = sionna_rotation(self.rx_orientation)
         a = self.rx_array
         step = np.deg2rad(step_deg)
         az = np.arange(-np.pi / 2 + step / 2, np.pi / 2, step)
@@ -442,7 +442,7 @@ class OFDMRadar:
         world, sv = self._scan
         spec = np.abs(np.conj(sv) @ s) ** 2
         k0 = world[int(np.argmax(spec))]
-        rot = rotation_matrix(self.rx_orientation)
+        rot = sionna_rotation(self.rx_orientation)
         loc0 = rot.T @ k0
         x0 = np.array([np.arctan2(loc0[1], loc0[0]), np.arcsin(np.clip(loc0[2], -1, 1))])
 

@@ -63,10 +63,10 @@ from ..bus.msgs import (
     Odometry,
     PoseStamped,
     Twist,
-    quaternion_to_yaw,
     shift_stamps,
 )
 from ..bus.twin_msgs import Fingerprint, PathCommand
+from ..utils.geometry import quaternion_to_yaw, wrap_angle
 from .clock import ClockProbe
 
 log = logging.getLogger(__name__)
@@ -319,8 +319,8 @@ class TwinBridge:
         pose = state.pose
         pose[0] += gain * (est[0] - pose[0])
         pose[1] += gain * (est[1] - pose[1])
-        dyaw = math.atan2(math.sin(est[2] - pose[5]), math.cos(est[2] - pose[5]))
-        pose[5] = math.atan2(math.sin(pose[5] + gain * dyaw), math.cos(pose[5] + gain * dyaw))
+        dyaw = wrap_angle(est[2] - pose[5])
+        pose[5] = wrap_angle(pose[5] + gain * dyaw)
 
     def publish_step(self, result) -> None:
         """After a twin step: send each mirrored robot the step's localization estimate
@@ -379,7 +379,7 @@ def _compose(origin: np.ndarray, local: np.ndarray) -> np.ndarray:
     x, y, yaw = local
     c, s = math.cos(oyaw), math.sin(oyaw)
     return np.array([ox + c * x - s * y, oy + s * x + c * y,
-                     math.atan2(math.sin(oyaw + yaw), math.cos(oyaw + yaw))])
+                     wrap_angle(oyaw + yaw)])
 
 
 def _extrapolate(est: np.ndarray, vel: np.ndarray, dt: float) -> np.ndarray:
@@ -394,4 +394,4 @@ def _extrapolate(est: np.ndarray, vel: np.ndarray, dt: float) -> np.ndarray:
     r = v / w
     return np.array([x + r * (math.sin(yaw2) - math.sin(yaw)),
                      y - r * (math.cos(yaw2) - math.cos(yaw)),
-                     math.atan2(math.sin(yaw2), math.cos(yaw2))])
+                     wrap_angle(yaw2)])

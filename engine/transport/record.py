@@ -50,8 +50,9 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from ..bus.bus import Bus
-from ..bus.msgs import MESSAGE_TYPES, Csi, PoseStamped, quaternion_to_yaw, shift_stamps
+from ..bus.msgs import MESSAGE_TYPES, Csi, PoseStamped, shift_stamps
 from ..bus.twin_msgs import link_metrics_msg, link_paths_msg
+from ..utils.geometry import quaternion_to_yaw, wrap_angle
 from . import cdr
 from .qos import qos_for, rosbag2_qos_yaml
 
@@ -524,7 +525,7 @@ class Trajectory:
                 v = float(math.hypot(dx, dy) / dt) * (1.0 if (
                     dx * math.cos(yaw) + dy * math.sin(yaw)) >= 0 else -1.0)
                 w = float((self._yaw[k] - self._yaw[k - 1]) / dt)
-        yaw = math.atan2(math.sin(yaw), math.cos(yaw))
+        yaw = wrap_angle(yaw)
         return np.array([x, y, z, 0.0, 0.0, yaw]), v, w
 
 

@@ -2,7 +2,7 @@
 
 Self-contained beside :mod:`isac_twin.transport.cdr`: the ``.msg`` text
 (:data:`MSG_DEFINITIONS`) goes into the typestore, :func:`to_ros` /
-:func:`from_ros` convert the :class:`~isac_twin.sensing.msgs.Detections`
+:func:`from_ros` convert the :class:`~isac_twin.bus.sensing_msgs.Detections`
 dataclass (``position [M, 3]`` and ``track_* [T, 2]`` flattened row-major).
 Importing this module registers the type on the topic bus.
 """
@@ -13,7 +13,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..sensing.msgs import MSG_DEFINITION, Detections, register
+from ..bus.sensing_msgs import MSG_DEFINITION, Detections, register
 
 __all__ = ["MSG_DEFINITIONS", "to_ros", "from_ros"]
 

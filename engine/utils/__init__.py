@@ -1,8 +1,19 @@
-"""Utilities every layer may use: :mod:`.geometry` (poses, the one rotation convention),
-:mod:`.npzfile` (versioned NPZ files), :mod:`.llvm` (the LLVM library Dr.Jit needs),
-:mod:`.threads` (BLAS on one thread)."""
+"""Utilities every layer may use: :mod:`.geometry` (poses and the one geometry
+convention: rotation, quaternions, angle wrap), :mod:`.npzfile` (versioned NPZ files),
+:mod:`.llvm` (the LLVM library Dr.Jit needs), :mod:`.threads` (BLAS on one thread)."""
 
-from .geometry import DevicePose, antenna_pose, planar_pose, rotation_matrix, sionna_orientation
+from .geometry import (
+    DevicePose,
+    antenna_pose,
+    euler_to_quaternion,
+    planar_pose,
+    quaternion_to_yaw,
+    rotation_matrix,
+    sionna_orientation,
+    wrap_angle,
+    yaw_to_quaternion,
+)
 
-__all__ = ["DevicePose", "antenna_pose", "planar_pose", "rotation_matrix",
-           "sionna_orientation"]
+__all__ = ["DevicePose", "antenna_pose", "euler_to_quaternion", "planar_pose",
+           "quaternion_to_yaw", "rotation_matrix", "sionna_orientation", "wrap_angle",
+           "yaw_to_quaternion"]

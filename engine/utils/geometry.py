@@ -1,11 +1,24 @@
-"""The one pose boundary: where a device's antenna array is, given a robot's state.
+"""The one geometry convention of the engine, and the one pose boundary.
+
+Conventions (every layer calls these; none writes its own):
+
+* Orientations are ``[roll, pitch, yaw]`` (rad), ZYX Euler angles of REP-103:
+  body -> world is ``Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (:func:`rotation_matrix`).
+  Sionna RT and ``isac_twin.phy`` take the same rotation as ``[yaw, pitch, roll]``
+  (Sionna's ``rotation_matrix(angles)``, angles about z, y, x):
+  :func:`sionna_orientation` reverses the order at that boundary, explicitly, both
+  ways (the reversal is its own inverse).
+* Quaternions are ROS's ``[x, y, z, w]`` (scalar last, as
+  ``geometry_msgs/Quaternion`` and ``scipy.spatial.transform.Rotation.as_quat``):
+  :func:`euler_to_quaternion`, and for a floor robot :func:`yaw_to_quaternion` and
+  :func:`quaternion_to_yaw`.
+* Angles are wrapped to ``[-pi, pi)`` by :func:`wrap_angle`.
 
 Every layer that needs an array's world pose (the twin's step, the initial
 poses of a config, the localization deployment) calls :func:`antenna_pose`; the
 pose travels as one type, :class:`DevicePose`, with orientations in the
-engine's ``[roll, pitch, yaw]`` order (REP-103, ZYX Euler angles). Sionna RT
-and ``isac_twin.phy`` take ``[yaw, pitch, roll]``: :func:`sionna_orientation` is the
-one conversion, called where a pose crosses into them.
+engine's ``[roll, pitch, yaw]`` order; :func:`sionna_orientation` is the
+one conversion, called where a pose crosses into Sionna or ``isac_twin.phy``.
 
 A leaf module (numpy only): every layer may import it.
 """
@@ -17,8 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DevicePose", "antenna_pose", "planar_pose", "rotation_matrix",
-           "sionna_orientation"]
+__all__ = ["DevicePose", "antenna_pose", "euler_to_quaternion", "planar_pose",
+           "quaternion_to_yaw", "rotation_matrix", "sionna_orientation", "wrap_angle",
+           "yaw_to_quaternion"]
 
 
 @dataclass(frozen=True)
@@ -45,7 +59,12 @@ class DevicePose:
 
 def rotation_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """``[3, 3]`` rotation body -> world for ZYX Euler angles (rad), REP-103:
-    ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``."""
+    ``Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
+
+    The one rotation of the engine. Sionna's ``rotation_matrix([a, b, c])`` is the same
+    matrix for ``[a, b, c] = [yaw, pitch, roll]``: from a Sionna-order orientation
+    ``o`` it is ``rotation_matrix(*sionna_orientation(o))``.
+    """
     cr, sr = math.cos(roll), math.sin(roll)
     cp, sp = math.cos(pitch), math.sin(pitch)
     cy, sy = math.cos(yaw), math.sin(yaw)
@@ -57,9 +76,41 @@ def rotation_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 
 def sionna_orientation(orientation) -> tuple[float, float, float]:
-    """``[roll, pitch, yaw]`` -> Sionna's / ``isac_twin.phy``'s ``[yaw, pitch, roll]`` (rad)."""
+    """``[roll, pitch, yaw]`` -> Sionna's / ``isac_twin.phy``'s ``[yaw, pitch, roll]``
+    (rad), and back: reversing the order is its own inverse."""
     r, p, y = (float(x) for x in orientation)
     return (y, p, r)
+
+
+def euler_to_quaternion(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Quaternion ``[x, y, z, w]`` (ROS order, scalar last) of ZYX Euler angles (rad),
+    the rotation of :func:`rotation_matrix`."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array([sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+                     cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy])
+
+
+def yaw_to_quaternion(yaw: float) -> np.ndarray:
+    """Quaternion ``[x, y, z, w]`` (ROS order, scalar last) of a rotation by ``yaw`` rad
+    about z: ``[0, 0, sin(yaw / 2), cos(yaw / 2)]``."""
+    return np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
+
+
+def quaternion_to_yaw(q) -> float:
+    """Yaw (rad, in ``[-pi, pi]``) of a quaternion ``[x, y, z, w]`` (ROS order): the
+    ZYX Euler yaw, ``atan2(2 (w z + x y), 1 - 2 (y^2 + z^2))``, for any unit quaternion
+    (not only a rotation about z)."""
+    x, y, z, w = q
+    return float(np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+
+
+def wrap_angle(a):
+    """Angle(s) ``a`` (rad) wrapped to ``[-pi, pi)``: ``(a + pi) mod 2 pi - pi`` (so
+    ``pi`` maps to ``-pi``). A float for a scalar, else an array of ``a``'s shape."""
+    w = (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+    return float(w) if w.ndim == 0 else w
 
 
 def planar_pose(x: float, y: float, yaw: float, z: float = 0.0) -> np.ndarray:

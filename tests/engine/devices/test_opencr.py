@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from isac_twin.bus.msgs import BatteryState, Imu, Odometry, Twist, quaternion_to_yaw
+from isac_twin.bus.msgs import BatteryState, Imu, Odometry, Twist
 from isac_twin.devices import opencr as oc
 from isac_twin.devices.emulated_opencr import (
     DiffDriveRobot,
@@ -20,6 +20,7 @@ from isac_twin.devices.emulated_opencr import (
     stuff,
     unstuff,
 )
+from isac_twin.utils.geometry import quaternion_to_yaw
 
 from .test_rplidar import run_with_timeout
 

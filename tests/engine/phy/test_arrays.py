@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from isac_twin.phy.arrays import PlanarArray, r_hat, rotation_matrix
+from isac_twin.phy.arrays import PlanarArray, r_hat, sionna_rotation
 
 
 def test_element_order_and_positions_match_sionna_planar_array():
@@ -16,12 +16,17 @@ def test_element_order_and_positions_match_sionna_planar_array():
     assert arr.num_ant == 6
 
 
-def test_rotation_matrix_matches_zyx_euler_composition():
-    yaw, pitch, roll = 0.3, -0.7, 1.1
-    rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
-    ry = np.array([[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0], [-np.sin(pitch), 0, np.cos(pitch)]])
-    rx = np.array([[1, 0, 0], [0, np.cos(roll), -np.sin(roll)], [0, np.sin(roll), np.cos(roll)]])
-    np.testing.assert_allclose(rotation_matrix([yaw, pitch, roll]), rz @ ry @ rx, atol=1e-12)
+def test_sionna_rotation_is_sionnas_rotation_matrix():
+    """Sionna-order ``[yaw, pitch, roll]`` -> the matrix Sionna RT's own
+    ``rotation_matrix(angles)`` computes (float32), and bad input is refused by name."""
+    import mitsuba as mi
+    from sionna.rt.utils.geometry import rotation_matrix as sionna_rotation_matrix
+
+    for o in ([0.3, -0.7, 1.1], [-2.9, 1.2, -0.4], [np.pi, 0.0, np.pi / 2]):
+        ref = np.array(sionna_rotation_matrix(mi.Point3f(*o)), dtype=np.float64).reshape(3, 3)
+        np.testing.assert_allclose(sionna_rotation(o), ref, atol=2e-6)
+    with pytest.raises(ValueError, match="orientation contains NaN"):
+        sionna_rotation([0.0, np.nan, 0.0])
 
 
 def test_broadside_steering_is_all_ones():
@@ -50,7 +55,7 @@ def test_orientation_rotates_the_array_with_its_boresight():
     # Same local direction -> same steering vector, whatever the pose.
     o = np.array([0.4, -0.2, 0.9])
     k_local = r_hat(1.0, 0.3)
-    k_world = rotation_matrix(o) @ k_local
+    k_world = sionna_rotation(o) @ k_local
     a_rot = arr.steering_vectors_from_directions(k_world[None], orientation=o)
     a_loc = arr.steering_vectors_from_directions(k_local[None])
     np.testing.assert_allclose(a_rot, a_loc, atol=1e-12)

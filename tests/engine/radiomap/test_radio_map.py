@@ -148,23 +148,6 @@ def test_bad_arguments_are_named(lab, kw, match):
 
 
 @pytest.mark.slow
-def test_cli_writes_png_and_npz(lab, tmp_path, capsys):
-    from isac_twin.cli import main
-
-    folder = lab.config.path.parent
-    assert main(["radiomap", str(folder), "--out", str(tmp_path), "--cell", "0.5",
-                 "--samples", "20000"]) == 0
-    out = capsys.readouterr().out
-    assert "AP1: RSS" in out and "AP2: RSS" in out
-    rm = load_radio_map(tmp_path / "radiomap.npz")
-    assert rm.tx_names == ["AP1", "AP2"] and rm.cell_size == 0.5
-    png = (tmp_path / "radiomap.png").read_bytes()
-    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
-    assert main(["radiomap", str(folder), "--out", str(tmp_path), "--tx", "robot9"]) == 2
-    assert "unknown device 'robot9'" in capsys.readouterr().err
-
-
-@pytest.mark.slow
 def test_map_matches_the_projects_grid_trace(lab):
     """The issue's check: map path gain against the incoherent sum of the grid trace's path
     powers at the grid points (isac_twin.raytrace.grid, chain reuse): median within 2 dB, with

@@ -190,17 +190,6 @@ def test_cmd_vel_from_another_node_drives_the_robot(scene):
     assert "/tb/scan" not in {t.name for t in bus.registry().topics}  # no scene: no LiDAR
 
 
-def test_topics_cli_prints_the_real_registry(folder, capsys):
-    from isac_twin.cli import main
-
-    assert main(["topics", str(folder)]) == 0
-    out = capsys.readouterr().out
-    assert "2 robots (tb_burger, tb_waffle)" in out
-    line = next(ln for ln in out.splitlines() if ln.startswith("/tb_waffle/scan "))
-    assert "sensor_msgs/msg/LaserScan" in line and line.split()[-1] == "0"
-    assert "2 nodes: tb_burger, tb_waffle" in out
-
-
 def test_opencr_step_adapter_matches_the_emulator_contract():
     from isac_twin.robots import DiffDriveRobot, OpenCRStep
     from isac_twin.robots.kinematics import robot_spec

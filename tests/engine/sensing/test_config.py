@@ -60,16 +60,6 @@ def test_load_config_accepts_and_validates_sensing_tables(tmp_path):
         load_config(folder)
 
 
-def test_topics_lists_the_labs_sensing_topic(capsys):
-    """`isac-twin topics` on the bundled lab lists the radar's detections topic."""
-    from isac_twin.cli import main
-
-    assert main(["topics", str(LAB)]) == 0
-    out = capsys.readouterr().out
-    row = next(line for line in out.splitlines() if line.startswith("/sensing/detections"))
-    assert row.split()[1:3] == ["isac_twin_msgs/msg/Detections", "radar"]
-
-
 def test_demo_takes_its_link_and_robot_from_any_scene(tmp_path):
     """isac_twin.experiments.sensing_demo on a non-lab scene: the first [[sensing]] link (radar every step)
     and the first robot from twin.toml; a scene without [[sensing]] is refused by name."""

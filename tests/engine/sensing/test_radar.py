@@ -196,7 +196,7 @@ def test_tracker_follows_constant_velocity_target_and_drops_clutter():
 
 
 def test_detections_message_on_the_bus():
-    from isac_twin.sensing.msgs import register
+    from isac_twin.bus.sensing_msgs import register
 
     register()
     assert resolve_type("isac_twin_msgs/msg/Detections") is Detections

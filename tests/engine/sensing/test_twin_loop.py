@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from isac_twin.sensing.msgs import DETECTIONS_TOPIC, Detections
+from isac_twin.bus.sensing_msgs import DETECTIONS_TOPIC, Detections
 
 LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"
 
@@ -145,15 +145,3 @@ def test_the_radars_first_frame_leaves_the_twins_trace_frozen(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
     error, recordings, targets = out.stdout.split()[-3:]
     assert (error, int(targets)) == ("None", 1) and int(recordings) > 0, out.stdout
-
-
-def test_run_command_prints_the_frame_still_out_at_the_end(capsys):
-    """`isac-twin run` waits for the radar frame the sensing worker still computes
-    when the steps end and prints it with the step it sensed."""
-    from isac_twin.cli import main
-
-    assert main(["run", str(LAB), "--steps", "2", "--no-phy"]) == 0
-    lines = capsys.readouterr().out.strip().splitlines()
-    assert [ln.split()[1] for ln in lines[:2]] == ["0", "1"]
-    assert "radar" not in lines[0] and "radar" not in lines[1]  # not delivered yet
-    assert lines[2].startswith("radar (step 0) ") and lines[2].endswith(" tracks")

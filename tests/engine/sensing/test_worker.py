@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from isac_twin.sensing.msgs import DETECTIONS_TOPIC, Detections
+from isac_twin.bus.sensing_msgs import DETECTIONS_TOPIC, Detections
 from isac_twin.sensing.worker import SensingWorker
 
 LAB = Path(__file__).resolve().parents[3] / "blend_scenes" / "aces_lab" / "scene"

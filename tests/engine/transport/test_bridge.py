@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 from isac_twin.bus.bus import Bus
-from isac_twin.bus.msgs import Header, Odometry, Pose, PoseStamped, Twist, yaw_to_quaternion
+from isac_twin.bus.msgs import Header, Odometry, Pose, PoseStamped, Twist
 from isac_twin.robots.agent import RobotAgent, SensorOptions
 from isac_twin.transport.bridge import FusionConfig, TwinBridge, _extrapolate
 from isac_twin.transport.zenoh_transport import ZenohConfig, ZenohTransport
+from isac_twin.utils.geometry import yaw_to_quaternion
 
 
 class MiniTwin:

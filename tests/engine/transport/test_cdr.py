@@ -70,7 +70,7 @@ def _sample(type_name: str):
 
 
 def _detections(h, rng):
-    from isac_twin.sensing.msgs import Detections
+    from isac_twin.bus.sensing_msgs import Detections
 
     return Detections(h, "AP2->AP1", rng.random(2) + 3, rng.normal(size=2), rng.random(2),
                       np.array([np.nan, 1.2]), rng.random(2) * 20,

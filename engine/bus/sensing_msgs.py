@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..bus.msgs import MESSAGE_TYPES, Header
+from .msgs import MESSAGE_TYPES, Header
 
 __all__ = ["Detections", "DETECTIONS_TOPIC", "MSG_DEFINITION", "register", "advertise"]
 
