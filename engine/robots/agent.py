@@ -40,6 +40,7 @@ from ..bus.frames import RobotFrames, robot_prefix
 from ..bus.msgs import Header, Pose, PoseStamped, Twist
 from .kinematics import DiffDriveRobot, ProcessNoise, robot_spec
 from .sensors import (
+    Body,
     DepthCamera,
     ImuNoise,
     ImuSensor,
@@ -205,6 +206,15 @@ class RobotAgent:
         self.set_state(state)
         return self.sense(t, placed=True)
 
+    def body(self) -> Body:
+        """The robot's body now, as the other robots' scene sensors see it: a box of
+        the model's ``body_size`` on the floor under base_link, turned by its yaw."""
+        st = self.robot.state
+        size = self.spec.body_size
+        return Body(centre=(float(st.pose[0]), float(st.pose[1]),
+                            float(st.pose[2]) + 0.5 * size[2]),
+                    yaw=float(st.yaw), size=tuple(size))
+
     def set_state(self, state) -> None:
         """Put the robot at ``state`` without publishing (see :meth:`place`)."""
         self.robot.state = state
@@ -305,35 +315,44 @@ def _name_key(name: str) -> int:
     return int.from_bytes(name.encode()[:8].ljust(8, b"\0"), "little")
 
 
-def cast_scans(agents, t: float) -> dict[str, dict[str, tuple]]:
+def cast_scans(agents, t: float, *, occluders=None) -> dict[str, dict[str, tuple]]:
     """The scene-sensor scans of several robots due at ``t`` s, cast in one
     Mitsuba call (issue #19: a call costs ~2 ms whatever its 360 beams; every
     ray's hit is computed alone, so each robot gets what its own call gives).
+    Each robot's rays see the bodies of the ``occluders`` but its own
+    (:meth:`RobotAgent.body`).
 
     Args:
-        agents: the :class:`RobotAgent` s, after their motion update.
+        agents: the :class:`RobotAgent` s whose due scans to cast, after their
+            motion update.
+        occluders: the robots whose bodies the rays see (default ``agents``).
 
     Returns:
         ``{robot: {topic key: (t [M], valid [M], cos_inc [M])}}`` for
-        :meth:`RobotAgent.sense` ``hits``; empty when fewer than two scans are
-        due (each is then cast on its own, as before).
+        :meth:`RobotAgent.sense` ``hits``; empty when no scan is due.
     """
+    agents = list(agents)
+    occluders = agents if occluders is None else list(occluders)
     jobs = []
     for a in agents:
         for key, sensor in a.scans_due(t):
             origin, dirs = sensor.rays(a.state)
-            jobs.append((a.name, key, sensor.scene, origin, dirs))
+            jobs.append((a, key, sensor.scene, origin, dirs))
     scenes = {id(j[2]) for j in jobs}
-    if len(jobs) < 2 or len(scenes) != 1:
+    if not jobs or len(scenes) != 1:
         return {}
+    bodies = [o.body() for o in occluders]
+    index = {id(o): i for i, o in enumerate(occluders)}
     origins = np.concatenate([np.broadcast_to(np.asarray(o, float), d.shape)
                               for *_, o, d in jobs])
-    d_all, valid, cos_inc = cast_rays(jobs[0][2], origins, np.concatenate([j[4] for j in jobs]))
+    owner = np.concatenate([np.full(d.shape[0], index.get(id(a), -1)) for a, *_, d in jobs])
+    d_all, valid, cos_inc = cast_rays(jobs[0][2], origins, np.concatenate([j[4] for j in jobs]),
+                                      bodies=bodies, owner=owner)
     out: dict[str, dict[str, tuple]] = {}
     start = 0
-    for name, key, _, _, dirs in jobs:
+    for a, key, _, _, dirs in jobs:
         seg = slice(start, start + dirs.shape[0])
-        out.setdefault(name, {})[key] = (d_all[seg], valid[seg], cos_inc[seg])
+        out.setdefault(a.name, {})[key] = (d_all[seg], valid[seg], cos_inc[seg])
         start = seg.stop
     return out
 

@@ -77,6 +77,9 @@ class RobotSpec:
         lidar_mount: ``base_scan`` origin in ``base_link`` ``[3]``, m (TurtleBot3 URDF).
         imu_mount: ``imu_link`` origin in ``base_link`` ``[3]``, m (TurtleBot3 URDF).
         camera_mount: camera origin in ``base_link`` ``[3]``, m.
+        body_size: overall ``(length, width, height)`` of the base, m, a box centred
+            on base_link in x/y from the floor up (what other robots' LiDAR and
+            depth cameras see of it; the radar's target cuboid is the same box).
     """
 
     model: str
@@ -91,6 +94,7 @@ class RobotSpec:
     lidar_mount: tuple[float, float, float] = (-0.032, 0.0, 0.172)
     imu_mount: tuple[float, float, float] = (-0.032, 0.0, 0.068)
     camera_mount: tuple[float, float, float] = (0.07, 0.0, 0.15)
+    body_size: tuple[float, float, float] = schema.ROBOT_MODELS["burger"].size
 
     @property
     def min_turn_radius_at_max_speed(self) -> float:
@@ -113,7 +117,8 @@ def _spec(model: str, **mounts) -> RobotSpec:
     schema's (``addon/contract/schema.py``), the sensor mounts are the engine's."""
     body = schema.ROBOT_MODELS[model]
     return RobotSpec(model, body.wheel_radius, body.wheel_separation, body.max_linear,
-                     body.max_angular, footprint_radius=body.footprint_radius, **mounts)
+                     body.max_angular, footprint_radius=body.footprint_radius,
+                     body_size=tuple(body.size), **mounts)
 
 
 #: The two TurtleBot3 models (dimensions from ROBOTIS' URDFs and e-Manual).

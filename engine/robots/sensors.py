@@ -25,9 +25,11 @@ Lidar2D            LaserScan           relative + absolute range noise, dropout,
 DepthCamera        Image (16UC1, mm)   off by default; ray-cast depth image
 =================  ==================  ==========================================
 
-Not modelled: other robots are not in the Mitsuba scene (LiDAR does not see
-them); the LiDAR takes the whole scan from the pose at the scan time (no
-motion skew); no RGB camera image (only depth).
+The ray casts see the scene's geometry and the other robots' bodies (boxes of
+the model's size, :class:`Body`); never the casting robot's own body, nor the
+radar's sensing-target cuboids, which Sionna keeps in the same Mitsuba scene
+(:func:`cast_rays`). Not modelled: the LiDAR takes the whole scan from the
+pose at the scan time (no motion skew); no RGB camera image (only depth).
 """
 
 from __future__ import annotations
@@ -336,14 +338,139 @@ def _mi_scene(scene):
     return scene
 
 
-def cast_rays(scene, origins: np.ndarray, directions: np.ndarray
+def _target_shape_ids(scene) -> np.ndarray:
+    """Registry ids ``[T]`` (uint32, as ``reinterpret_array(UInt32, ShapePtr)``
+    gives them) of the radar's sensing-target cuboids in the scene: Sionna puts
+    them into the Mitsuba scene as shapes, but they are the radar's proxies of
+    robots and objects, not geometry a LiDAR or camera sees."""
+    import drjit as dr
+    import mitsuba as mi
+
+    sc = scene.sionna if hasattr(scene, "sionna") else scene
+    targets = getattr(sc, "sensing_targets", None) or {}
+    ids = [int(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(t.mi_mesh))[0])
+           for t in targets.values()]
+    return np.array(ids, np.uint32)
+
+
+@dataclass(frozen=True)
+class Body:
+    """A box that occludes the scene sensors: a robot's body.
+
+    Robots are not shapes of the Mitsuba scene (they move every step), so the
+    LiDAR and depth cameras of the other robots see them through this box,
+    intersected analytically (:func:`body_hits`).
+
+    Attributes:
+        centre: box centre ``[3]``, world frame, m.
+        yaw: heading of the box's x axis, rad.
+        size: ``(length, width, height)``, m.
+    """
+
+    centre: tuple[float, float, float]
+    yaw: float
+    size: tuple[float, float, float]
+
+
+def body_hits(origins: np.ndarray, directions: np.ndarray, bodies: Sequence[Body],
+              owner: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """First hit of each ray on the boxes ``bodies`` (slab test in each box's frame).
+
+    Args:
+        origins: ``[N, 3]`` or ``[3]``, m; directions: ``[N, 3]`` unit vectors.
+        owner: ``[N]`` index into ``bodies`` of the box each ray ignores (its own
+            robot's), -1 for none.
+
+    Returns:
+        ``t [N]`` distance to the first box entered (m, ``inf`` if none; a ray
+        starting inside a box does not hit it) and ``cos_inc [N]`` |cos| of the
+        incidence angle on the face entered.
+    """
+    d = np.asarray(directions, np.float64)
+    n = d.shape[0]
+    o = np.broadcast_to(np.asarray(origins, np.float64), (n, 3))
+    best = np.full(n, np.inf)
+    cos_best = np.zeros(n)
+    for k, b in enumerate(bodies):
+        c, s = math.cos(b.yaw), math.sin(b.yaw)
+        R = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # world -> box
+        ol = (o - np.asarray(b.centre, float)) @ R.T
+        dl = d @ R.T
+        half = 0.5 * np.asarray(b.size, float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (-half - ol) / dl
+            t2 = (half - ol) / dl
+        lo = np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2))  # [N, 3]
+        hi = np.where(np.isnan(t1), np.inf, np.maximum(t1, t2))
+        # a ray parallel to a slab misses unless it runs between its faces
+        par = dl == 0
+        inside = np.abs(ol) <= half
+        lo = np.where(par, np.where(inside, -np.inf, np.inf), lo)
+        hi = np.where(par, np.where(inside, np.inf, -np.inf), hi)
+        axis = np.argmax(lo, axis=1)
+        t_in, t_out = lo.max(axis=1), hi.min(axis=1)
+        hit = (t_in > 0) & (t_in <= t_out) & (t_in < best)
+        if owner is not None:
+            hit &= np.asarray(owner) != k
+        best = np.where(hit, t_in, best)
+        cos_best = np.where(hit, np.abs(dl[np.arange(n), axis]), cos_best)
+    return best, cos_best
+
+
+#: how far past a skipped target's surface a ray is cast on, m
+_SKIP_EPS = 1e-4
+
+
+def _intersect(m, org, d: np.ndarray, n: int):
+    """One Mitsuba ``ray_intersect`` of ``n`` rays: numpy ``t``, ``valid``, the
+    unnormalised hit normal ``[3, N]`` and the hit shape's registry id."""
+    import drjit as dr
+    import mitsuba as mi
+
+    ray = mi.Ray3f(o=org, d=mi.Vector3f(mi.Float(d[:, 0].copy()), mi.Float(d[:, 1].copy()),
+                                        mi.Float(d[:, 2].copy())))
+    si = m.ray_intersect(ray)
+    valid_mi = si.is_valid()
+    shape = dr.reinterpret_array(mi.UInt32, si.shape)
+    dr.eval(si.t, si.n, valid_mi, shape)  # one kernel for all outputs
+    valid = np.array(valid_mi, bool).reshape(-1)
+    if valid.shape != (n,):
+        valid = np.broadcast_to(valid, (n,)).copy()
+    t = np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
+    nrm = np.array(si.n, np.float64)
+    if nrm.shape != (3, n):  # drjit returns Vector3f as [3, N]
+        nrm = nrm.reshape(3, -1) if nrm.size == 3 * n else np.zeros((3, n))
+    ids = np.array(shape, np.uint32).reshape(-1)
+    if ids.shape != (n,):
+        ids = np.broadcast_to(ids, (n,)).copy()
+    return t, valid, nrm, ids
+
+
+def _points(p: np.ndarray):
+    import mitsuba as mi
+
+    p = np.ascontiguousarray(p, np.float32)
+    return mi.Point3f(mi.Float(p[:, 0].copy()), mi.Float(p[:, 1].copy()),
+                      mi.Float(p[:, 2].copy()))
+
+
+def cast_rays(scene, origins: np.ndarray, directions: np.ndarray, *,
+              bodies: Sequence[Body] = (), owner: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Cast ``N`` rays into the scene's geometry in one Mitsuba call.
+    """Cast ``N`` rays into the scene's geometry and the robots' ``bodies``.
+
+    The radar's sensing-target cuboids in the Sionna scene are not geometry a
+    sensor sees (one encloses each robot's own LiDAR): a ray that hits one is
+    cast on from just past it (:data:`_SKIP_EPS`), so it returns what the scene
+    without targets returns. The robots are seen through ``bodies`` instead.
 
     Args:
         scene: a :class:`~isac_twin.scene.twin_scene.TwinScene`, ``sionna.rt.Scene`` or Mitsuba scene.
         origins: ``[N, 3]`` or ``[3]`` (shared), m.
         directions: ``[N, 3]`` unit vectors.
+        bodies: boxes that occlude (:class:`Body`, e.g. the other robots).
+        owner: ``[N]`` index into ``bodies`` of the box a ray ignores (the body
+            of the robot that casts it), -1 for none.
 
     Returns:
         ``t [N]`` distance to the first hit (m, ``inf`` if none), ``valid [N]``
@@ -361,23 +488,35 @@ def cast_rays(scene, origins: np.ndarray, directions: np.ndarray
         # the kernel and force a recompile (that costs ~20 ms per scan)
         org = mi.Point3f(*(dr.opaque(mi.Float, float(c)) for c in o))
     else:
-        o = np.ascontiguousarray(o)
-        org = mi.Point3f(mi.Float(o[:, 0].copy()), mi.Float(o[:, 1].copy()),
-                         mi.Float(o[:, 2].copy()))
-    ray = mi.Ray3f(o=org, d=mi.Vector3f(mi.Float(d[:, 0].copy()), mi.Float(d[:, 1].copy()),
-                                        mi.Float(d[:, 2].copy())))
-    si = m.ray_intersect(ray)
-    valid_mi = si.is_valid()
-    dr.eval(si.t, si.n, valid_mi)  # one kernel for all outputs
-    valid = np.array(valid_mi, bool).reshape(-1)
-    if valid.shape != (n,):
-        valid = np.broadcast_to(valid, (n,)).copy()
-    t = np.where(valid, np.array(si.t, np.float64).reshape(-1), np.inf)
-    nrm = np.array(si.n, np.float64)
-    if nrm.shape != (3, n):  # drjit returns Vector3f as [3, N]
-        nrm = nrm.reshape(3, -1) if nrm.size == 3 * n else np.zeros((3, n))
+        org = _points(o)
+    t, valid, nrm, ids = _intersect(m, org, d, n)
+    skip = _target_shape_ids(scene)
+    if skip.size:
+        o64 = np.broadcast_to(np.asarray(origins, np.float64), (n, 3))
+        d64 = d.astype(np.float64)
+        # a ray crosses each convex cuboid at most twice
+        for _ in range(2 * skip.size + 1):
+            again = np.flatnonzero(valid & np.isin(ids, skip))
+            if again.size == 0:
+                break
+            base = t[again] + _SKIP_EPS
+            t2, v2, n2, i2 = _intersect(m, _points(o64[again] + d64[again] * base[:, None]),
+                                        d[again], again.size)
+            t[again], valid[again], ids[again] = base + t2, v2, i2
+            nrm[:, again] = n2
+        else:
+            lost = valid & np.isin(ids, skip)
+            valid &= ~lost
+            t[lost] = np.inf
     cos_inc = np.abs(np.einsum("in,ni->n", nrm, d.astype(np.float64)))
-    return t, valid, np.where(valid, cos_inc, 0.0)
+    cos_inc = np.where(valid, cos_inc, 0.0)
+    if bodies:
+        tb, cb = body_hits(origins, d, bodies, owner)
+        closer = tb < t
+        t = np.where(closer, tb, t)
+        valid = valid | closer
+        cos_inc = np.where(closer, cb, cos_inc)
+    return t, valid, cos_inc
 
 
 class Lidar2D(Sensor):
@@ -540,4 +679,4 @@ class DepthCamera(Sensor):
 
 
 __all__ = ["Sensor", "WheelEncoders", "WheelOdometry", "ImuNoise", "ImuSensor", "Lidar2D",
-           "DepthCamera", "cast_rays", "DXL_VELOCITY_UNIT"]
+           "DepthCamera", "Body", "body_hits", "cast_rays", "DXL_VELOCITY_UNIT"]

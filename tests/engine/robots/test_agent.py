@@ -135,7 +135,7 @@ def test_unheard_scans_are_skipped_and_a_late_subscriber_gets_the_same(scene):
 def test_scans_of_several_robots_cast_together_equal_their_own_casts(scene):
     """Issue 19: the twin casts every robot's due LiDAR and depth scans in one call
     (advance all, ``cast_scans``, then ``sense`` each); every scan equals the one
-    the robot's own ``step`` casts, bit for bit."""
+    cast for the robot alone (with the other robots' bodies), bit for bit."""
     def robots():
         bus = Bus()
         agents = build_robots(scene.config, bus, scene, seed=2,
@@ -153,7 +153,10 @@ def test_scans_of_several_robots_cast_together_equal_their_own_casts(scene):
     for k in range(30):
         t = (k + 1) * 0.05
         for a in alone.values():
-            a.step(t, 0.05)
+            a.advance(0.05)
+        for a in alone.values():
+            a.sense(t, hits=cast_scans([a], t, occluders=alone.values()).get(a.name))
+            a.control()
         for a in together.values():
             a.advance(0.05)
         hits = cast_scans(together.values(), t)
@@ -173,6 +176,55 @@ def test_scans_of_several_robots_cast_together_equal_their_own_casts(scene):
                 np.testing.assert_array_equal(m.data, g.data)
     for n in alone:
         np.testing.assert_array_equal(alone[n].state.pose, together[n].state.pose)
+
+
+@pytest.mark.parametrize("targets", [False, True])
+def test_other_robots_occlude_the_lidar_and_the_own_body_never(scene, targets):
+    """Exact against the geometry (8 x 6 m box room, TurtleBot3 sizes and URDF
+    mounts): the burger at (3, 3) heading +x faces the waffle at (4.5, 3)
+    heading -x. The waffle's forward beam (LiDAR 0.122 m up) ends on the
+    burger's front face (0.192 m tall); the burger's (0.172 m up) passes over
+    the 0.141 m waffle to the wall; neither sees its own body. The radar's
+    target cuboids around both robots (``targets``) change nothing."""
+    from isac_twin.sensing.tracer import SensingTracer, TargetSpec
+
+    bus = Bus()
+    agents = build_robots(scene.config, bus, scene, options=SensorOptions(noise=False))
+    burger, waffle = agents["tb_burger"], agents["tb_waffle"]
+    for a, (x, yaw) in ((burger, (3.0, 0.0)), (waffle, (4.5, math.pi))):
+        st = a.state
+        st.pose[:] = [x, 3.0, 0.0, 0.0, 0.0, yaw]
+        a.set_state(st)
+    tracer = SensingTracer(scene) if targets else None
+    if targets:
+        for a in (burger, waffle):
+            b = a.body()
+            tracer.set_target(TargetSpec(a.name, size=b.size, position=np.array(b.centre),
+                                         yaw=b.yaw))
+    try:
+        hits = cast_scans([burger, waffle], 0.0)
+
+        def beam(agent, angle, ranges):
+            return ranges[int(np.argmin(np.abs(np.angle(np.exp(1j * (agent.lidar.angles
+                                                                      - angle))))))]
+
+        b_ranges, b_valid, _ = hits["tb_burger"]["scan"]
+        w_ranges, w_valid, _ = hits["tb_waffle"]["scan"]
+        assert b_valid.all() and w_valid.all()
+        bx = 3.0 + burger.spec.lidar_mount[0]  # 2.968
+        wx = 4.5 - waffle.spec.lidar_mount[0]  # 4.564 (heading -x)
+        assert beam(waffle, 0.0, w_ranges) == pytest.approx(wx - (3.0 + 0.138 / 2), abs=1e-3)
+        assert beam(waffle, math.pi, w_ranges) == pytest.approx(8.0 - wx, abs=1e-3)
+        assert beam(burger, 0.0, b_ranges) == pytest.approx(8.0 - bx, abs=1e-3)
+        assert beam(burger, math.pi, b_ranges) == pytest.approx(bx, abs=1e-3)
+        assert beam(burger, math.pi / 2, b_ranges) == pytest.approx(3.0, abs=1e-3)
+        # without the burger among the occluders the waffle sees the wall behind it
+        alone = cast_scans([waffle], 0.0, occluders=[waffle])["tb_waffle"]["scan"][0]
+        assert beam(waffle, 0.0, alone) == pytest.approx(wx, abs=1e-3)
+    finally:
+        if targets:
+            for a in (burger, waffle):
+                tracer.remove_target(a.name)
 
 
 def test_cmd_vel_from_another_node_drives_the_robot(scene):
