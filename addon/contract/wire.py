@@ -635,21 +635,28 @@ class Decoder:
         self.reasons = (self.reasons + [reason])[-20:]
         log.warning("wire: rejected a frame from %s (%s): %s", self.peer, kind, reason)
 
-    def feed(self, data: bytes) -> list[dict]:
-        """Consume ``data``; return the complete, valid messages it finished."""
+    def feed(self, data: bytes, *, limit: int | None = None) -> list[dict]:
+        """Consume ``data``; return the complete, valid messages it finished.
+
+        Args:
+            limit: return after this many messages; the bytes after the last one
+                stay buffered, for the next call (``feed(b"")`` goes on), so the
+                caller can change :attr:`max_frame` in between (a server raising it
+                once the peer's ``hello`` was accepted).
+        """
         out: list[dict] = []
         self._buf += data
         self._pos = 0
         try:
-            return self._frames(out)
+            return self._frames(out, limit)
         finally:  # consumed frames leave the buffer whatever happened while parsing them
             del self._buf[:self._pos]
 
-    def _frames(self, out: list[dict]) -> list[dict]:
+    def _frames(self, out: list[dict], limit: int | None = None) -> list[dict]:
         buf = self._buf
         pos = 0
         n_buf = len(buf)
-        while True:
+        while limit is None or len(out) < limit:
             if self._skip:
                 k = min(self._skip, n_buf - pos)
                 pos += k

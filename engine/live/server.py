@@ -42,6 +42,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
+from ..twin.edits import public_reason
 from ..twin.state import Command, Edit, StepResult
 from . import protocol
 from .protocol import wire
@@ -76,7 +77,7 @@ class LiveTwin(Protocol):
 
     def step(self) -> StepResult: ...
 
-    def apply_edit(self, edit: Edit) -> None: ...
+    def apply_edit(self, edit: Edit, *, on_result=None) -> None: ...
 
     def command(self, cmd: Command) -> None: ...
 
@@ -399,8 +400,7 @@ class LiveServer:
                 break
             try:
                 if isinstance(item, Edit):
-                    self.twin.apply_edit(item)
-                    self.edits_applied += 1
+                    self.twin.apply_edit(item, on_result=self._edit_answer(viewer))
                 else:
                     self.twin.command(item)
                     if item.op == "reset":
@@ -413,10 +413,23 @@ class LiveServer:
                 what = f"{type(item).__name__.lower()} {item.op}"
                 log.warning("rejected %s from viewer %s: %s", what, viewer.addr, exc)
                 self.stats["edit_errors"] += 1
-                self._send_to(viewer, wire.error("rejected", f"{what}: {exc}",
+                self._send_to(viewer, wire.error("rejected", f"{what}: {public_reason(exc)}",
                                                  ref=getattr(item, "target", item.op)))
         if changed:
             self.publish(self._status())
+
+    def _edit_answer(self, viewer: _Viewer):
+        """The ``on_result`` of a viewer's edit (called by the twin's step, on the loop
+        thread): count it applied, or answer ``rejected`` with the reason to that
+        viewer only."""
+        def answer(edit: Edit, error: str | None) -> None:
+            if error is None:
+                self.edits_applied += 1
+                return
+            log.warning("edit from viewer %s not applied: %s", viewer.addr, error)
+            self.stats["edit_errors"] += 1
+            self._send_to(viewer, wire.error("rejected", error, ref=edit.target))
+        return answer
 
     # ------------------------------------------------------------------ the I/O thread
 
@@ -549,15 +562,22 @@ class LiveServer:
             return
         if v.closing:
             return  # a fatal error is on its way: read nothing more
-        msgs = v.decoder.feed(data)
-        if not v.ready and v.decoder.rejections:
-            # before the hello only a valid hello is acceptable: no second chance
-            self._send_to(v, wire.error("handshake", "expected a valid hello first (at most "
-                                        f"{PRE_HELLO_MAX_FRAME} bytes)", fatal=True),
-                          close=True)
-            return
-        for msg in msgs:
-            self._handle(v, msg)
+        while True:
+            # before the hello, decode one frame only: the frames behind it in the
+            # same chunk are decoded under the limits of a viewer whose hello passed
+            greeting = not v.ready
+            msgs = v.decoder.feed(data, limit=1 if greeting else None)
+            data = b""
+            if greeting and v.decoder.rejections:
+                # before the hello only a valid hello is acceptable: no second chance
+                self._send_to(v, wire.error("handshake", "expected a valid hello first (at "
+                                            f"most {PRE_HELLO_MAX_FRAME} bytes)", fatal=True),
+                              close=True)
+                return
+            for msg in msgs:
+                self._handle(v, msg)
+            if not greeting or not msgs or v.closing:
+                return
 
     def _handle(self, v: _Viewer, msg: dict) -> None:
         t = msg["type"]

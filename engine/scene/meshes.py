@@ -62,15 +62,25 @@ def confine(name: str | Path, folder: str | Path, *, roots=()) -> Path:
         if not roots:
             raise MeshError(f"mesh path {text!r}: absolute paths are not allowed (give it "
                             "relative to the scene folder)")
-        target = Path(text).resolve()
+        target = _resolve(Path(text), text)
         allowed = allowed[1:]
     else:
-        target = (allowed[0] / posix).resolve()
+        target = _resolve(allowed[0] / posix, text)
     if not any(target == r or target.is_relative_to(r) for r in allowed):
         raise MeshError(f"mesh path {text!r}: leaves the scene folder (through a symbolic "
                         "link)" if not (posix.is_absolute() or win.drive)
                         else f"mesh path {text!r}: not inside an asset folder")
     return target
+
+
+def _resolve(path: Path, text: str) -> Path:
+    """``path`` with its symbolic links followed; a loop is a :class:`MeshError`
+    naming the path as written (Python raises RuntimeError or OSError for it)."""
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError) as exc:
+        raise MeshError(f"mesh path {text!r}: cannot be resolved (a symbolic-link loop?): "
+                        f"{type(exc).__name__}") from None
 
 
 def read_file(path: str | Path, max_bytes: int = MAX_MESH_BYTES) -> bytes:
@@ -260,18 +270,42 @@ def _read_binary(body: bytes, elements) -> tuple[np.ndarray, np.ndarray, int]:
 
 
 def _read_ascii(body: bytes, elements) -> tuple[np.ndarray, np.ndarray]:
-    lines = body.decode("ascii").split("\n")
+    """The vertices and faces of an ASCII body, read as Mitsuba's loader reads it: a
+    stream of tokens, line breaks not counted, every element's every property in
+    header order, and no token left after the last element."""
+    tokens = body.decode("ascii").split()
     pos = 0
     verts = faces = None
+
+    def take(n: int) -> list[str]:
+        nonlocal pos
+        if pos + n > len(tokens):
+            raise ValueError(f"the data ends {pos + n - len(tokens)} token(s) short")
+        out = tokens[pos:pos + n]
+        pos += n
+        return out
+
     for name, count, props in elements:
-        rows = lines[pos:pos + count]
-        if len(rows) < count:
-            raise ValueError(f"element '{name}' has fewer than {count} rows")
-        pos += count
-        if name == "vertex":
-            idx = [i for i, p in enumerate(props) if p[1] in ("x", "y", "z")]
-            verts = np.array([[float(r.split()[i]) for i in idx] for r in rows])
-        elif name == "face":
-            faces = _triangles([np.array(r.split()[1:1 + int(r.split()[0])], dtype=np.int64)
-                                for r in rows])
+        if all(p[0] == "scalar" for p in props):
+            rows = np.array(take(count * len(props)), dtype=np.float64).reshape(count,
+                                                                               len(props))
+            if name == "vertex":
+                idx = [i for i, p in enumerate(props) if p[1] in ("x", "y", "z")]
+                verts = rows[:, idx]
+            continue
+        polys = []
+        first_list = next(i for i, p in enumerate(props) if p[0] == "list")
+        for _ in range(count):
+            for i, p in enumerate(props):
+                if p[0] == "scalar":
+                    take(1)
+                    continue
+                items = np.array(take(int(take(1)[0])), dtype=np.int64)
+                if i == first_list:  # a face's vertex indices
+                    polys.append(items)
+        if name == "face":
+            faces = _triangles(polys)
+    if pos != len(tokens):
+        raise ValueError(f"{len(tokens) - pos} token(s) after the last element (Mitsuba "
+                         "refuses such a file)")
     return verts, faces

@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import re
 import shutil
 import tempfile
 import weakref
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -27,12 +29,28 @@ from ..scene.meshes import confine, parse_ply, read_ply
 from ..scene.twin_scene import BOUNDS_TOLERANCE_M
 from .state import Edit
 
-__all__ = ["MAX_EDIT_MESH_BYTES", "SceneEditor"]
+__all__ = ["MAX_EDIT_MESH_BYTES", "EditResult", "SceneEditor", "public_reason"]
 
 log = logging.getLogger(__name__)
 
 #: Largest mesh an ``add`` edit may name, bytes.
 MAX_EDIT_MESH_BYTES = 32 * 1024 * 1024
+
+#: ``on_result(edit, error)``: ``error`` None when the edit was applied, else why not
+EditResult = Callable[[Edit, "str | None"], None]
+
+# an absolute path (POSIX or a Windows drive) in a message: a token starting with
+# / or X:\ that holds a further separator; not "m/s" or "1/2" (a word before the /)
+_ABS_PATH = re.compile(r"(?<![\w.])(?:[A-Za-z]:)?[\\/](?:[^\s'\"\\/]+[\\/])+([^\s'\"\\/]*)")
+
+
+def public_reason(exc: BaseException | str) -> str:
+    """The text of an error as a remote sender may read it: every absolute path is
+    cut to its last component (``.../name.ply``), so a rejection reveals nothing of
+    the host's folders; one line."""
+    text = exc if isinstance(exc, str) else (str(exc) or type(exc).__name__)
+    text = _ABS_PATH.sub(lambda m: ".../" + m.group(1), text)
+    return " ".join(text.split())
 
 
 class SceneEditor:
@@ -49,10 +67,22 @@ class SceneEditor:
         self._twin = weakref.proxy(twin)
         #: edits validated and queued, applied before the next step
         self.pending: list[Edit] = []
+        self._replies: list[EditResult | None] = []  # one per pending edit
         self._upload_dir: Path | None = None
 
+    def _names_after_queue(self) -> set[str]:
+        """The objects' names as the queued edits will leave them (in order)."""
+        names = set(self._twin.scene.objects)
+        for e in self.pending:
+            if e.op == "add":
+                names.add(e.target)
+            elif e.op == "remove":
+                names.discard(e.target)
+        return names
+
     def validate(self, edit: Edit) -> None:
-        """Check an edit completely against the twin as it is now.
+        """Check an edit completely against the twin as it is now, with the edits
+        queued before it applied (objects they add or remove).
 
         The one validation of edits: :meth:`queue` calls it before queuing,
         so the live server (which queues through ``Twin.apply_edit``) answers a bad
@@ -65,7 +95,7 @@ class SceneEditor:
         what = f"edit {edit.op} {edit.target!r}"
         if edit.op not in wire.EDIT_OPS:
             raise ValueError(f"{what}: op: expected one of {', '.join(wire.EDIT_OPS)}")
-        objects = tw.scene.objects
+        objects = self._names_after_queue()
         devices = set(tw.ap_poses) | set(tw.agents)
 
         def triple(field, value, margin=None):
@@ -147,32 +177,60 @@ class SceneEditor:
                 f"{what}: mesh_file: expected a PLY file inside the scene folder (a relative "
                 f"path) or an asset folder, at most {MAX_EDIT_MESH_BYTES} bytes") from None
 
-    def queue(self, edit: Edit) -> None:
+    def queue(self, edit: Edit, on_result: EditResult | None = None) -> None:
         """Validate an edit (:meth:`validate`) and queue it; it is applied before
         the next step (the next trace sees it). A bad edit raises here and queues
-        nothing; the edits already queued are untouched."""
+        nothing; the edits already queued are untouched.
+
+        Args:
+            on_result: called once the edit was applied (``error`` None) or failed
+                when applied (``error``: ``"edit OP 'TARGET': not applied: why"``,
+                no host path in it), on the thread that steps the twin.
+        """
         self.validate(edit)
         self.pending.append(edit)
+        self._replies.append(on_result)
 
     def apply_pending(self) -> None:
-        """Apply the queued edits in order (the twin calls this as a step starts),
-        after the radar frame still out on the twin's scene, if any, has been
-        traced; then warn about every database the edits made stale."""
+        """Apply the queued edits in order, each on its own (the twin calls this as a
+        step starts), after the radar frame still out on the twin's scene, if any,
+        has been traced; then warn about every database the edits made stale.
+
+        An edit that fails (validated when queued, but its mesh changed since, Mitsuba
+        refused it, or an edit before it failed) is skipped and answered; whatever
+        it raised, the other edits apply and the step goes on."""
         tw = self._twin
         edits, self.pending = self.pending, []
+        replies, self._replies = self._replies, []
         if edits and tw.sensing_worker is not None and tw.sensing_worker.shares_scene:
             tw.sensing_worker.wait()  # the radar frame out traces this scene
-        for e in edits:
+        for e, reply in zip(edits, replies):
+            error = None
             try:
                 self._apply_one(e)
-            except (KeyError, ValueError, OSError) as exc:
-                # Validated when queued, but an earlier edit of the same batch can
-                # invalidate a later one (remove, then move): skip only that one.
-                log.error("edit %s %r not applied: %s", e.op, e.target, exc)
+            except Exception as exc:  # noqa: BLE001 - one edit must not stop the twin
+                log.error("edit %s %r not applied: %s: %s", e.op, e.target,
+                          type(exc).__name__, exc)
+                error = f"edit {e.op} {e.target!r}: not applied: {self._why(e, exc)}"
+            if reply is not None:
+                try:
+                    reply(e, error)
+                except Exception:  # noqa: BLE001 - a sender's callback must not either
+                    log.exception("edit %s %r: its result callback failed", e.op, e.target)
         if edits:
             for name in tw.stale_databases():
                 log.warning("database %s was built before this edit of the room and is "
                             "stale: rebuild it (e.g. `isac-twin grid`)", name)
+
+    def _why(self, e: Edit, exc: Exception) -> str:
+        """Why an edit failed, as its sender may read it."""
+        if isinstance(exc, KeyError):
+            return "target: no object or device of that name (an edit before it failed?)"
+        if e.op == "add" and e.mesh_file is not None and isinstance(exc, (OSError, MeshError)):
+            # like the validation: one message whatever the host's files said
+            return ("mesh_file: expected a PLY file inside the scene folder (a relative "
+                    f"path) or an asset folder, at most {MAX_EDIT_MESH_BYTES} bytes")
+        return f"{type(exc).__name__}: {public_reason(exc)}"
 
     def _apply_one(self, e: Edit) -> None:
         tw = self._twin

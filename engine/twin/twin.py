@@ -37,7 +37,7 @@ from ..utils.geometry import DevicePose, antenna_pose, quaternion_to_yaw
 from ..utils.threads import one_blas_thread
 from . import pacing
 from .commands import apply_command, validate_command
-from .edits import SceneEditor
+from .edits import EditResult, SceneEditor
 from .pacing import RunStats, StageClock
 from .state import Command, Edit, LinkState, RobotState, StepResult
 
@@ -286,11 +286,17 @@ class Twin:
         """
         self.editor.validate(edit)
 
-    def apply_edit(self, edit: Edit) -> None:
-        """Validate an edit (:meth:`validate_edit`) and queue it; it is applied before
-        the next step (the next trace sees it). A bad edit raises here and queues
-        nothing; the edits already queued are untouched."""
-        self.editor.queue(edit)
+    def apply_edit(self, edit: Edit, *, on_result: EditResult | None = None) -> None:
+        """Validate an edit (:meth:`validate_edit`, against the room as the edits
+        already queued leave it) and queue it; it is applied before the next step
+        (the next trace sees it). A bad edit raises here and queues nothing; the
+        edits already queued are untouched.
+
+        Args:
+            on_result: ``on_result(edit, error)`` once it is applied (``error`` None)
+                or failed when applied (the reason; the other edits still apply).
+        """
+        self.editor.queue(edit, on_result)
 
     def _apply_pending(self) -> None:
         """Apply the queued edits now (:meth:`.edits.SceneEditor.apply_pending`)."""

@@ -437,3 +437,80 @@ def test_serve_streams_the_twins_localization_estimate(tmp_path, raw_viewer):
         assert r["name"] == "robot1" and r["estimate"] is not None, r
         errs.append(float(np.linalg.norm(np.array(r["estimate"][:2]) - r["pose"][:2])))
     assert np.median(errs) < 0.15 and max(errs) < 0.35, errs
+
+
+def test_a_hello_and_frames_after_it_in_one_write(server, raw_viewer, wire, box_scene_dir):
+    """A viewer may send its hello and what follows in one write: the pre-hello limit
+    (64 KiB) applies to the hello only, not to a larger edit behind it (before, the
+    whole chunk was decoded under the limit and the viewer got a fatal handshake
+    error)."""
+    from isac_twin.live.server import PRE_HELLO_MAX_FRAME
+    from isac_twin.scene.synthetic import box_mesh, write_ply
+
+    ply = box_scene_dir.parent / "big_crate.ply"
+    write_ply(ply, *box_mesh((1.0, 1.0, 0.0), (1.5, 1.4, 0.6)))
+    # comments make the mesh larger than the pre-hello limit (Mitsuba skips them)
+    head, rest = ply.read_bytes().split(b"\n", 1)
+    data = head + b"\n" + b"comment padding\n" * (PRE_HELLO_MAX_FRAME // 16 + 10) + rest
+    v = raw_viewer(server.address)
+    v.send_raw(wire.encode(wire.hello("viewer", "eager"))
+               + wire.encode(wire.edit("add", "big_crate", material="wood", mesh_ply=data))
+               + wire.encode(wire.command("step")))
+    assert v.until(lambda m: m["type"] == "scene")
+    assert v.until(lambda m: m["type"] == "state")["step"] == 0
+    assert "big_crate" in server.twin.scene.objects
+    assert not any(m["type"] == "error" for m in v.got)
+    v.send(wire.edit("remove", "big_crate"))  # leave the shared twin as it was
+    v.send(wire.command("step"))
+    v.until(lambda m: m["type"] == "status" and m["edits_applied"] == 2)
+
+
+def test_every_edit_not_applied_is_answered_and_the_others_apply(server, raw_viewer, wire,
+                                                                  box_scene_dir):
+    """One write of edits, checked and applied one at a time: ``add X`` then ``move X``
+    both apply; a second ``add X`` and a ``material`` of an object removed earlier in
+    the write are rejected at once; an add whose mesh file became a symbolic-link loop
+    after it was queued is rejected when applied, without a host path, and the move
+    queued behind it still applies; ``edits_applied`` counts the applied edits only and
+    the twin keeps stepping (before: the move was rejected, the second add and the
+    material edit counted as applied, and the loop stopped the twin for everyone)."""
+    from isac_twin.scene.synthetic import box_mesh, write_ply
+
+    meshes = box_scene_dir / "meshes"
+    write_ply(meshes / "swap.ply", *box_mesh((1.0, 1.0, 0.0), (1.5, 1.4, 0.6)))
+    v = raw_viewer(server.address)
+    v.hello()
+    v.until(lambda m: m["type"] == "scene")
+    base = server.edits_applied
+    ply = meshes / "swap.ply"
+    v.send_raw(b"".join(wire.encode(m) for m in (
+        wire.edit("add", "crate", material="wood", mesh_ply=ply.read_bytes()),
+        wire.edit("move", "crate", position=(2.0, 2.0, 0.3)),
+        wire.edit("add", "crate", material="wood", mesh_ply=ply.read_bytes()),
+        wire.edit("add", "shelf", material="wood", mesh_file="meshes/swap.ply"),
+        wire.edit("remove", "crate"),
+        wire.edit("material", "crate", material="metal"))))
+    errors = [v.until(lambda m: m["type"] == "error") for _ in range(2)]
+    assert [(e["code"], e["ref"]) for e in errors] == [("rejected", "crate")] * 2
+    assert "target: an object or device of that name exists" in errors[0]["message"]
+    assert "edit material 'crate': target: no object" in errors[1]["message"]
+    assert _wait(lambda: len(server.twin.editor.pending) == 4)
+    try:
+        ply.unlink()
+        ply.symlink_to(meshes / "swap_loop.ply")
+        (meshes / "swap_loop.ply").symlink_to(ply)
+        v.send(wire.command("step"))
+        err = v.until(lambda m: m["type"] == "error")
+        assert err["code"] == "rejected" and err["ref"] == "shelf"
+        assert err["message"].startswith("edit add 'shelf': not applied: mesh_file")
+        assert str(box_scene_dir) not in err["message"]
+        assert v.until(lambda m: m["type"] == "state")["step"] == 0
+        st = v.until(lambda m: m["type"] == "status" and m["step"] == 1)
+        assert st["edits_applied"] == base + 3  # add, move, remove crate
+        assert "crate" not in server.twin.scene.objects
+        assert "shelf" not in server.twin.scene.objects
+        v.send(wire.command("step"))
+        assert v.until(lambda m: m["type"] == "state")["step"] == 1
+    finally:
+        for f in (ply, meshes / "swap_loop.ply"):
+            f.unlink(missing_ok=True)

@@ -177,3 +177,64 @@ def test_a_sent_mesh_is_stored_privately_and_removed_with_the_twin(lab):
         assert twin_ref() is None and not folder.exists()
     finally:
         gc.enable()
+
+
+def test_validation_sees_the_adds_and_removes_queued_before_it(lab):
+    """Edits are checked one at a time, in order, against the room as the queue
+    leaves it: ``add X`` then ``move X`` in one batch both apply; a second ``add X``
+    and a ``material`` of an object removed earlier in the batch are refused when
+    queued (before, the move was refused and the other two passed and failed
+    silently inside the step)."""
+    data = next((lab / "meshes").glob("*.ply")).read_bytes()
+    tw = Twin.from_scene(lab, seed=1, phy=False, sensing=False, localize=False)
+    tw.apply_edit(Edit(op="add", target="crate", material="wood", mesh_data=data))
+    tw.apply_edit(Edit(op="move", target="crate", position=(1.0, 1.0, 0.5)))
+    with pytest.raises(ValueError, match="edit add 'crate': target: an object or device"):
+        tw.apply_edit(Edit(op="add", target="crate", material="wood", mesh_data=data))
+    tw.apply_edit(Edit(op="remove", target="cabinet"))
+    with pytest.raises(ValueError, match="edit material 'cabinet': target: no object"):
+        tw.apply_edit(Edit(op="material", target="cabinet", material="wood"))
+    with pytest.raises(ValueError, match="edit move 'cabinet': target: no object"):
+        tw.apply_edit(Edit(op="move", target="cabinet", position=(1.0, 1.0, 0.5)))
+    tw.apply_edit(Edit(op="add", target="cabinet", material="wood", mesh_data=data))
+    tw.step()
+    assert tw.scene.object_poses["crate"][:3] == pytest.approx([1.0, 1.0, 0.5])
+    assert tw.scene.objects["cabinet"].material == "wood"  # removed, then added again
+
+
+def test_an_edit_that_fails_when_applied_is_answered_and_the_batch_goes_on(tmp_path, lab):
+    """An edit valid when queued can still fail when applied (here its mesh file is
+    replaced by a symbolic-link loop in between; Mitsuba refusing a mesh is another
+    way). It is answered to its sender with a reason that names no host path, the
+    edits queued behind it apply, and the twin keeps stepping (before, the step
+    raised, every edit of the batch after it was dropped unanswered)."""
+    folder = tmp_path / "lab"
+    shutil.copytree(lab, folder)
+    good = next((folder / "meshes").glob("*.ply"))
+    shutil.copy(good, folder / "meshes" / "crate.ply")
+    tw = Twin.from_scene(folder, seed=1, phy=False, sensing=False, localize=False)
+    answers = []
+
+    def answer(edit, error):
+        answers.append((edit.op, edit.target, error))
+
+    tw.apply_edit(Edit(op="add", target="crate", material="wood",
+                       mesh_file="meshes/crate.ply"), on_result=answer)
+    tw.apply_edit(Edit(op="move", target="crate", position=(1.0, 1.0, 0.5)), on_result=answer)
+    tw.apply_edit(Edit(op="move", target="cabinet", position=(4.0, 1.0, 0.9)),
+                  on_result=answer)
+    (folder / "meshes" / "crate.ply").unlink()
+    (folder / "meshes" / "crate.ply").symlink_to(folder / "meshes" / "loop.ply")
+    (folder / "meshes" / "loop.ply").symlink_to(folder / "meshes" / "crate.ply")
+    r = tw.step()
+    assert r.step == 0 and "crate" not in tw.scene.objects
+    assert tw.scene.object_poses["cabinet"][:3] == pytest.approx([4.0, 1.0, 0.9])
+    assert [a[:2] for a in answers] == [("add", "crate"), ("move", "crate"),
+                                        ("move", "cabinet")]
+    (_, _, add_err), (_, _, move_err), (_, _, ok) = answers
+    assert ok is None
+    assert add_err.startswith("edit add 'crate': not applied: ") and "mesh_file" in add_err
+    assert move_err.startswith("edit move 'crate': not applied: ")
+    for err in (add_err, move_err):
+        assert str(tmp_path) not in err and "/" not in err.split("not applied: ")[1]
+    assert tw.step().step == 1
