@@ -341,6 +341,7 @@ class LiveSession:
         self.engine_scene_hash = ""
         #: a warning for the panel (e.g. edits re-sent after an engine restart)
         self.notice = ""
+        self._connects = 0  # the client's connects when the panel's error was last reset
         if engine is None:
             self.client.connect()
 
@@ -373,6 +374,11 @@ class LiveSession:
         msgs = self.client.tick()
         if scene is None:
             return msgs
+        if self.client.connects != self._connects:
+            # (re)connected: the panel's error was about the connection before this one
+            self._connects = self.client.connects
+            self.notice = ""
+            live_view.clear_error(scene)
         for m in msgs:
             if m["type"] == "radiomap":
                 radiomap_view.apply_radiomap(scene, m, self.view)

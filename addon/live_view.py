@@ -769,6 +769,11 @@ def store_connection(scene, state: str, error: str, rejections: dict) -> None:
     _set(p, "rejected", int(sum(rejections.values())))
 
 
+def clear_error(scene) -> None:
+    """Forget the panel's last error (a new connection: the old one's errors are stale)."""
+    _set(_props(scene), "last_error", "")
+
+
 def clear(scene) -> None:
     """Remove everything the live view created."""
     coll = bpy.data.collections.get(COLLECTION)

@@ -554,3 +554,67 @@ def test_link_metrics_as_text_in_the_scene(scene):
         "step 4", "AP1 -> robot1: SNR 35.2 dB, 1340 Mbit/s (MCS 623 Mbit/s), LOS",
         "AP2 -> robot1: SNR -, -"]
     assert obj.location.y > 6.0
+
+
+def test_the_panel_clears_a_stale_connection_error_on_reconnect(scene):
+    """While no engine listens the panel shows "cannot connect"; once one answers the
+    session reconnects and the panel shows no error (before, the old error stayed),
+    while an engine's rejection arriving after that stays until the next reconnect."""
+    from addon import live
+    from addon.contract import wire
+
+    probe = socket.socket()
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()  # nothing listens here yet
+    s = live.LiveSession(scene, "127.0.0.1", port)
+    s.client.backoff_s = (0.05, 0.1)
+    end = time.monotonic() + 10
+    while "cannot connect" not in scene.isac_live.last_error and time.monotonic() < end:
+        s.tick()
+        time.sleep(0.01)
+    assert "cannot connect" in scene.isac_live.last_error
+
+    ls = socket.socket()
+    ls.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    ls.bind(("127.0.0.1", port))
+    ls.listen(1)
+    ls.settimeout(10)
+    stop = threading.Event()
+
+    def serve():
+        c, _ = ls.accept()
+        c.settimeout(5)
+        c.recv(4096)
+        c.sendall(wire.encode(wire.hello("engine"))
+                  + wire.encode({"type": "scene", "name": "x", "content_hash": "h",
+                                 "frequency_hz": 2.4e9, "objects": [], "devices": [],
+                                 "links": []}))
+        stop.wait(10)
+        c.sendall(wire.encode(wire.error("rejected", "edit move 'Box': target: no object",
+                                         ref="Box")))
+        time.sleep(1.0)
+        c.close()
+        ls.close()
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        end = time.monotonic() + 10
+        while not (s.client.connected and s.applied["scene"]) and time.monotonic() < end:
+            s.tick()
+            time.sleep(0.01)
+        assert s.client.connected and s.applied["scene"] == 1
+        assert scene.isac_live.last_error == ""
+        stop.set()
+        end = time.monotonic() + 10
+        while not s.applied["error"] and time.monotonic() < end:
+            s.tick()
+            time.sleep(0.01)
+        for _ in range(3):
+            s.tick()
+        assert scene.isac_live.last_error == "rejected: edit move 'Box': target: no object"
+    finally:
+        stop.set()
+        s.client.disconnect()
+        t.join(5)
