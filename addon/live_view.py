@@ -36,7 +36,6 @@ from mathutils import Matrix, Vector
 from . import legend
 from .contract import schema
 from .exporter import safe_name
-from .modelling import get_collection
 
 COLLECTION = legend.COLLECTION
 PREFIX = "ISAC_Live_"

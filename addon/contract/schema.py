@@ -171,6 +171,33 @@ CUSTOM_MATERIAL_PROPERTIES: dict[str, MaterialProperty] = {
 MATERIAL_NAME_CHARS = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_-."
 
 
+#: Most waypoints of a robot's polyline path (twin.toml ``[devices.path]``, the live
+#: link's ``set_path``): a path is checked against the room when it is set, on the
+#: thread that steps the twin.
+MAX_WAYPOINTS = 1000
+
+#: Longest object or device name, characters (Blender 5 names hold at most 255 bytes).
+MAX_NAME_CHARS = 255
+
+
+def name_problem(name) -> str | None:
+    """Why ``name`` cannot name an object or a device (None: it can). A name is a
+    string of printable characters (no line break, control character such as an ANSI
+    escape, or lone surrogate, which would forge log lines or fail to encode),
+    not only spaces, at most :data:`MAX_NAME_CHARS` characters."""
+    if not isinstance(name, str):
+        return f"expected a string, got {type(name).__name__}"
+    if not name.strip():
+        return f"expected a name, got the empty name {name!r}"
+    if len(name) > MAX_NAME_CHARS:
+        return f"{len(name)} characters, beyond the limit of {MAX_NAME_CHARS}"
+    for i, c in enumerate(name):
+        if not c.isprintable() and c != " ":
+            return (f"character {i} ({c!r}) is not printable (line breaks, control "
+                    "characters and lone surrogates are refused)")
+    return None
+
+
 def custom_material_problems(name: str, values: dict, itu_names=()) -> list[str]:
     """What is wrong with custom material ``name`` of properties ``values``
     (``{property: value}``, every key of :data:`CUSTOM_MATERIAL_PROPERTIES`); ``[]`` when

@@ -599,7 +599,8 @@ class LiveServer:
             if why is not None:
                 self._send_to(v, wire.error("version", why, fatal=True), close=True)
                 return
-            v.name = msg.get("name", "")[:64]
+            # printable only: the name goes into the server's log lines
+            v.name = "".join(c if c.isprintable() else "?" for c in msg.get("name", "")[:64])
             v.rays = wire.RAYS_CAPABILITY in msg.get("capabilities", ())
             v.decoder.max_frame = wire.MAX_FRAME_BYTES
             with self._lock:

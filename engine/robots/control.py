@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..bus.msgs import Twist
+from ..contract import schema
 from ..errors import PathError, SpeedLimitError
 from ..utils.geometry import wrap_angle
 from .kinematics import KinematicState, RobotSpec, make_twist, robot_spec
@@ -309,6 +310,10 @@ class PolylinePath(SampledPath):
     """Straight segments through ``waypoints`` ``[N, 2]`` (m); ``closed`` loops back."""
 
     def __init__(self, waypoints, closed: bool = False):
+        n = len(waypoints) if hasattr(waypoints, "__len__") else 0
+        if n > schema.MAX_WAYPOINTS:
+            raise PathError(f"polyline: {n} waypoints, beyond the limit of "
+                            f"{schema.MAX_WAYPOINTS}")
         super().__init__(waypoints, closed=closed, name="polyline")
 
     def describe(self) -> str:

@@ -465,7 +465,8 @@ def cast_rays(scene, origins: np.ndarray, directions: np.ndarray, *,
     without targets returns. The robots are seen through ``bodies`` instead.
 
     Args:
-        scene: a :class:`~isac_twin.scene.twin_scene.TwinScene`, ``sionna.rt.Scene`` or Mitsuba scene.
+        scene: a :class:`~isac_twin.scene.twin_scene.TwinScene`, ``sionna.rt.Scene`` or
+            Mitsuba scene.
         origins: ``[N, 3]`` or ``[3]`` (shared), m.
         directions: ``[N, 3]`` unit vectors.
         bodies: boxes that occlude (:class:`Body`, e.g. the other robots).

@@ -16,6 +16,7 @@ from typing import Any
 
 from ..contract import schema as shared
 from ..errors import ConfigError
+from ..utils.files import read_regular_file
 
 # The names each key may take and the defaults are the add-on's (addon/contract/schema.py,
 # the one definition both sides read); these are the engine's views of them.
@@ -213,6 +214,23 @@ class LocalizationConfig:
 
 
 @dataclass(frozen=True)
+class LimitsConfig:
+    """``[limits]``: the resource budget a twin is checked against at load
+    (:func:`check_budget`).
+
+    ``step_memory_mb``: the channels a step builds, summed over the links and the
+    sensing links: ``symbols x subcarriers x (rx ports x tx ports) x 8 B`` each
+    (complex64 on every symbol: a step with moving robots builds that many, a
+    still one fewer), MB (2^20 B); ``devices`` and ``links`` (communication plus
+    sensing): how many a twin may hold.
+    """
+
+    step_memory_mb: float = 2048.0
+    devices: int = 256
+    links: int = 1024
+
+
+@dataclass(frozen=True)
 class TwinConfig:
     """The whole ``twin.toml``, validated."""
 
@@ -228,6 +246,7 @@ class TwinConfig:
     link_adaptation: LinkAdaptationConfig = field(default_factory=LinkAdaptationConfig)
     room: RoomConfig = field(default_factory=RoomConfig)
     localization: LocalizationConfig | None = None
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
     raw: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
@@ -347,6 +366,8 @@ class _Reader:
 #: OFDM grid (5G NR has at most 3,300 subcarriers per carrier, 802.11be 4,096 tones),
 #: spacing (5G NR at most 960 kHz), array size, tracer effort, powers.
 MAX_SUBCARRIERS = 65_536
+#: Largest twin.toml read, bytes.
+MAX_CONFIG_BYTES = 16 * 1024 * 1024
 MAX_SYMBOLS = 4_096
 MAX_SUBCARRIER_SPACING_HZ = 10e6
 MAX_FREQUENCY_HZ = 1e12
@@ -356,7 +377,7 @@ MAX_SAMPLES_PER_SRC = 100_000_000
 POWER_DBM_RANGE = (-150.0, 100.0)
 
 _TOP_KEYS = ("schema", "scene", "ofdm", "noise", "tracer", "devices", "links", "sensing",
-             "link_adaptation", "room", "localization")
+             "link_adaptation", "room", "localization", "limits")
 #: ``[localization] method`` values (engine/localization/baselines.py METHODS)
 LOCALIZATION_METHODS = ("MCA", "MCA-angles", "LOS-fix", "PDP", "kNN-CSI")
 LOCALIZATION_KEYS = ("method", "mode", "snr_db", "spacing_m", "fusion", "fix_std_m",
@@ -421,6 +442,9 @@ def _parse_path(r: _Reader, data: dict, prefix: str) -> dict:
         wps = r.get(data, "waypoints", prefix)
         if not isinstance(wps, list) or len(wps) < 2:
             raise r.fail(f"{prefix}waypoints", f"expected at least 2 [x, y] points, got {wps!r}")
+        if len(wps) > shared.MAX_WAYPOINTS:
+            raise r.fail(f"{prefix}waypoints", f"{len(wps)} waypoints, beyond the limit of "
+                         f"{shared.MAX_WAYPOINTS}")
         out["waypoints"] = [list(r.vector({"p": w}, "p", f"{prefix}waypoints[{j}].", 2))
                             for j, w in enumerate(wps)]
         out["closed"] = r.boolean(data, "closed", prefix, False)
@@ -446,6 +470,9 @@ def _parse_device(r: _Reader, data: Any, i: int, ofdm: OFDMConfig) -> DeviceConf
         raise r.fail(f"devices[{i}]", "expected a table")
     r.check_keys(data, _DEVICE_KEYS, prefix)
     name = r.string(data, "name", prefix)
+    why = shared.name_problem(name)
+    if why is not None:
+        raise r.fail(f"{prefix}name", why)
     prefix = f"devices[{i}] ({name})."
     kind = r.string(data, "kind", prefix, choices=DEVICE_KINDS)
     model = None
@@ -499,7 +526,10 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
 
     s = r.table(data, "scene", "")
     r.check_keys(s, ("name", "file", "frequency_hz"), "scene.")
-    scene_file = (path.parent / r.string(s, "file", "scene.")).resolve()
+    try:
+        scene_file = (path.parent / r.string(s, "file", "scene.")).resolve()
+    except (OSError, RuntimeError):  # Python raises either for a symbolic-link loop
+        raise r.fail("scene.file", "a symbolic-link loop, not a scene file") from None
     scene = SceneConfig(
         name=r.string(s, "name", "scene."),
         file=scene_file,
@@ -622,10 +652,61 @@ def parse_config(data: dict, path: Path) -> TwinConfig:
                              f"{dev.array.polarization!r} needs the paths' polarization "
                              "transfer matrices, which a path grid does not store (V only); "
                              'use tracer.backend = "sionna"')
+    limits = _parse_limits(r, data)
+    check_budget(r, limits, ofdm, devices, links, sensing)
     return TwinConfig(path=path, scene=scene, ofdm=ofdm, noise=noise, tracer=tracer,
                       devices=devices, links=tuple(links), schema=schema, raw=data,
                       sensing=sensing, link_adaptation=link_adaptation, room=room,
-                      localization=_parse_localization(r, data, devices))
+                      localization=_parse_localization(r, data, devices), limits=limits)
+
+
+def _parse_limits(r: _Reader, data: dict) -> LimitsConfig:
+    t = r.table(data, "limits", "", required=False)
+    d = LimitsConfig()
+    r.check_keys(t, tuple(d.__dataclass_fields__), "limits.")
+    return LimitsConfig(
+        step_memory_mb=r.number(t, "step_memory_mb", "limits.", d.step_memory_mb,
+                                positive=True),
+        devices=r.integer(t, "devices", "limits.", d.devices, minimum=1),
+        links=r.integer(t, "links", "limits.", d.links, minimum=1))
+
+
+def check_budget(r: _Reader, limits: LimitsConfig, ofdm: OFDMConfig, devices, links,
+                 sensing) -> None:
+    """Refuse a twin whose step would outgrow ``limits`` (:class:`LimitsConfig`), before
+    anything is allocated: each key may be within its own limit while their product
+    is not (65,536 subcarriers x 4,096 symbols x a 256 x 256 array).
+
+    Raises:
+        ConfigError: one line naming the product (its factors and the link that
+            dominates it) and the limit, under ``limits.<key>``.
+    """
+    if len(devices) > limits.devices:
+        raise r.fail("limits.devices", f"{len(devices)} devices, beyond the limit of "
+                     f"{limits.devices} (raise [limits] devices to allow more)")
+    pairs = [(lk.tx, lk.rx) for lk in links] + [(s.tx, s.rx) for s in sensing]
+    if len(pairs) > limits.links:
+        raise r.fail("limits.links", f"{len(pairs)} links (communication and sensing), beyond "
+                     f"the limit of {limits.links} (raise [limits] links to allow more)")
+    if not pairs:
+        return
+    ports = {d.name: d.array.num_ant for d in devices}
+    per_pair = [(ports[tx] * ports[rx], tx, rx) for tx, rx in pairs]
+    total_pairs = sum(p for p, _, _ in per_pair)
+    k_, n_ = ofdm.num_symbols, ofdm.num_subcarriers
+    need = 8 * k_ * n_ * total_pairs  # complex64 [K, N, Nr, Nt] per link, all held at once
+    budget = limits.step_memory_mb * 2 ** 20
+    if need > budget:
+        big, tx, rx = max(per_pair, key=lambda p: p[0])  # the first of the largest
+        where = (f"{tx} -> {rx} (1 link)" if len(pairs) == 1 else
+                 f"{tx} -> {rx} ... ({len(pairs)} links)")
+        factor = (f"{big} antenna pairs" if len(pairs) == 1 else
+                  f"{big} antenna pairs (the largest; {total_pairs} in all)")
+        raise r.fail("limits.step_memory_mb",
+                     f"a step's channels need {k_} symbols x {n_} subcarriers x {factor} x "
+                     f"8 B on {where} = {need:.2g} B, beyond the budget of "
+                     f"{limits.step_memory_mb:g} MB (raise [limits] step_memory_mb, or use "
+                     "fewer subcarriers, symbols, antennas or links)")
 
 
 def _parse_room(r: _Reader, data: dict) -> RoomConfig:
@@ -724,11 +805,11 @@ def load_config(path: str | Path) -> TwinConfig:
     path = Path(path)
     if path.is_dir():
         path = path / "twin.toml"
-    if not path.is_file():
+    if not path.exists() and not path.is_symlink():
         raise ConfigError(f"{path}: no such file (expected a twin.toml or a scene folder)")
+    blob = read_regular_file(path, MAX_CONFIG_BYTES, error=ConfigError, what="a twin.toml")
     try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
+        data = tomllib.loads(blob.decode("utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from exc
     except UnicodeDecodeError as exc:

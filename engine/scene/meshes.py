@@ -12,15 +12,15 @@ a scene or a viewer inside its folder.
 
 from __future__ import annotations
 
+import errno
 import hashlib
-import os
-import stat
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import numpy as np
 
 from ..errors import MeshError
+from ..utils.files import read_regular_file
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -78,43 +78,23 @@ def _resolve(path: Path, text: str) -> Path:
     naming the path as written (Python raises RuntimeError or OSError for it)."""
     try:
         return path.resolve()
-    except (OSError, RuntimeError) as exc:
-        raise MeshError(f"mesh path {text!r}: cannot be resolved (a symbolic-link loop?): "
-                        f"{type(exc).__name__}") from None
+    except RuntimeError:  # Python < 3.13 on a loop
+        raise MeshError(f"mesh path {text!r}: a symbolic-link loop") from None
+    except OSError as exc:
+        why = "a symbolic-link loop" if exc.errno == errno.ELOOP else exc.strerror
+        raise MeshError(f"mesh path {text!r}: cannot be resolved ({why})") from None
 
 
 def read_file(path: str | Path, max_bytes: int = MAX_MESH_BYTES) -> bytes:
-    """The bytes of a regular file of at most ``max_bytes`` bytes.
-
-    Opened without blocking and without following a final symbolic link, then
-    checked on the open descriptor, so a FIFO, a device or a file swapped in
-    meanwhile is refused before anything is read.
+    """The bytes of a regular file of at most ``max_bytes`` bytes
+    (:func:`~isac_twin.utils.files.read_regular_file`: opened without blocking and
+    checked on the open descriptor, so a FIFO, a device, a symbolic-link loop or a
+    file swapped in meanwhile is refused before anything is read).
 
     Raises:
         MeshError: naming the file: missing/unreadable, not a regular file, too large.
     """
-    path = Path(path)
-    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
-    try:
-        fd = os.open(path, flags)
-    except OSError as exc:
-        raise MeshError(f"{path}: cannot read mesh file ({exc.strerror})") from exc
-    try:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise MeshError(f"{path}: not a regular file (a mesh must be a PLY file)")
-        if st.st_size > max_bytes:
-            raise MeshError(f"{path}: {st.st_size} bytes exceeds the mesh size limit of "
-                            f"{max_bytes} bytes")
-        with os.fdopen(fd, "rb", closefd=False) as f:
-            blob = f.read(max_bytes + 1)
-    except OSError as exc:
-        raise MeshError(f"{path}: cannot read mesh file ({exc.strerror})") from exc
-    finally:
-        os.close(fd)
-    if len(blob) > max_bytes:
-        raise MeshError(f"{path}: grew past the mesh size limit of {max_bytes} bytes")
-    return blob
+    return read_regular_file(path, max_bytes, error=MeshError, what="a PLY mesh file")
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..contract import schema
 from ..errors import ConfigError, MeshError
+from ..utils.files import read_regular_file
 from .config import TwinConfig, load_config
 from .meshes import confine, read_ply
 from .room import check_placement
@@ -31,6 +32,8 @@ log = logging.getLogger(__name__)
 
 #: Thickest material layer accepted, m (a wall's, not a building's).
 MAX_THICKNESS_M = 10.0
+#: Largest scene.xml read, bytes.
+MAX_SCENE_XML_BYTES = 64 * 1024 * 1024
 
 #: Metres a device may stand outside the union of the meshes' bounding boxes
 #: (an AP mounted flush on a wall's outer face is still "in the room").
@@ -357,10 +360,12 @@ _SHAPE_CHILDREN = {("string", "filename"), ("boolean", "face_normals")}
 
 
 def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInfo]:
+    if not xml_path.exists() and not xml_path.is_symlink():
+        raise ConfigError(f"{xml_path}: scene file not found")
+    blob = read_regular_file(xml_path, MAX_SCENE_XML_BYTES, error=ConfigError,
+                             what="a Mitsuba scene XML file")
     try:
-        root = ET.parse(xml_path).getroot()
-    except FileNotFoundError as exc:
-        raise ConfigError(f"{xml_path}: scene file not found") from exc
+        root = ET.fromstring(blob)
     except ET.ParseError as exc:
         raise ConfigError(f"{xml_path}: not valid XML: {exc}") from exc
     if root.tag != "scene":
@@ -404,6 +409,9 @@ def _parse_scene_xml(xml_path: Path, frequency_hz: float) -> dict[str, ObjectInf
     for s in root.iter("shape"):
         sid = s.get("id", "")
         name = sid[5:] if sid.startswith("mesh-") else sid
+        why = schema.name_problem(name)
+        if why is not None:
+            raise ConfigError(f"{xml_path}: shape {sid[:80]!r}: name: {why}")
         if s.get("type") != "ply":
             raise ConfigError(f"{xml_path}: shape {name!r}: type {s.get('type')!r} "
                               "is not supported (expected 'ply')")

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..bus.msgs import Twist
-from ..contract import wire
+from ..contract import schema, wire
 from .state import Command
 
 __all__ = ["MAX_STEP_COUNT", "apply_command", "validate_command"]
@@ -60,6 +60,11 @@ def validate_command(twin, cmd: Command) -> None:
         if not isinstance(a.get("path"), dict):
             raise ValueError(f"{what}: path: expected an object such as "
                              '{"kind": "circle", "centre": [x, y], "radius": r}')
+        wps = a["path"].get("waypoints")
+        if isinstance(wps, list) and len(wps) > schema.MAX_WAYPOINTS:
+            # refused here, before the path is built and checked against the room
+            raise ValueError(f"{what}: path: {len(wps)} waypoints, beyond the limit of "
+                             f"{schema.MAX_WAYPOINTS}")
     elif cmd.op == "set_goal":
         robot()
         g = a.get("goal")

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..contract import wire
+from ..contract import schema, wire
 from ..errors import MeshError
 from ..scene.meshes import confine, parse_ply, read_ply
 from ..scene.twin_scene import BOUNDS_TOLERANCE_M
@@ -42,6 +42,13 @@ EditResult = Callable[[Edit, "str | None"], None]
 # an absolute path (POSIX or a Windows drive) in a message: a token starting with
 # / or X:\ that holds a further separator; not "m/s" or "1/2" (a word before the /)
 _ABS_PATH = re.compile(r"(?<![\w.])(?:[A-Za-z]:)?[\\/](?:[^\s'\"\\/]+[\\/])+([^\s'\"\\/]*)")
+
+
+def _short(name) -> str:
+    """``repr`` of a name for a message, cut to 64 characters (a name may be refused
+    for its length; repr escapes what is not printable)."""
+    text = str(name)
+    return repr(text) if len(text) <= 64 else repr(text[:64]) + f"... ({len(text)} characters)"
 
 
 def public_reason(exc: BaseException | str) -> str:
@@ -92,7 +99,7 @@ class SceneEditor:
             ValueError: naming the edit (op and target) and the field at fault.
         """
         tw = self._twin
-        what = f"edit {edit.op} {edit.target!r}"
+        what = f"edit {edit.op} {_short(edit.target)}"
         if edit.op not in wire.EDIT_OPS:
             raise ValueError(f"{what}: op: expected one of {', '.join(wire.EDIT_OPS)}")
         objects = self._names_after_queue()
@@ -126,6 +133,9 @@ class SceneEditor:
             tw.scene.check_material(edit.material, edit.thickness, what)
 
         if edit.op == "add":
+            why = schema.name_problem(edit.target)
+            if why is not None:
+                raise ValueError(f"{what}: target: {why}")
             if edit.target in objects or edit.target in devices:
                 raise ValueError(f"{what}: target: an object or device of that name exists")
             if bool(edit.mesh_file) == (edit.mesh_data is not None):
@@ -211,7 +221,7 @@ class SceneEditor:
             except Exception as exc:  # noqa: BLE001 - one edit must not stop the twin
                 log.error("edit %s %r not applied: %s: %s", e.op, e.target,
                           type(exc).__name__, exc)
-                error = f"edit {e.op} {e.target!r}: not applied: {self._why(e, exc)}"
+                error = f"edit {e.op} {_short(e.target)}: not applied: {self._why(e, exc)}"
             if reply is not None:
                 try:
                     reply(e, error)

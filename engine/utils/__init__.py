@@ -1,6 +1,7 @@
 """Utilities every layer may use: :mod:`.geometry` (poses and the one geometry
 convention: rotation, quaternions, angle wrap), :mod:`.npzfile` (versioned NPZ files),
-:mod:`.llvm` (the LLVM library Dr.Jit needs), :mod:`.threads` (BLAS on one thread)."""
+:mod:`.llvm` (the LLVM library Dr.Jit needs), :mod:`.threads` (BLAS on one thread),
+:mod:`.files` (reading a named file bounded and without blocking)."""
 
 from .geometry import (
     DevicePose,

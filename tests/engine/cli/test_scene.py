@@ -4,6 +4,7 @@ input file ends in one line and exit status 2."""
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -144,6 +145,61 @@ def test_bad_input_files_exit_2_with_one_line(box, tmp_path, capsys, case):
     f = folder / name
     f.write_bytes(damage(f.read_bytes()))
     assert main(["info", str(folder)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "Traceback" not in err, err
+    assert err.startswith("isac-twin: error: ") and re.search(expect, err), err
+
+
+def _loop(path):
+    """Make ``path`` one end of a symbolic-link loop."""
+    path.unlink(missing_ok=True)
+    other = path.with_name(path.name + ".loop")
+    path.symlink_to(other)
+    other.symlink_to(path)
+
+
+def _fifo(path):
+    path.unlink(missing_ok=True)
+    os.mkfifo(path)
+
+
+def _dir(path):
+    path.unlink(missing_ok=True)
+    path.mkdir()
+
+
+@pytest.mark.parametrize("name, make, expect", [
+    ("scene.xml", _dir, r"scene\.xml: not a regular file \(a directory\)"),
+    ("scene.xml", _fifo, r"scene\.xml: not a regular file \(a FIFO\)"),
+    ("scene.xml", _loop, r"twin\.toml: scene\.file: a symbolic-link loop"),
+    ("twin.toml", _fifo, r"twin\.toml: not a regular file \(a FIFO\)"),
+    ("twin.toml", _loop, r"twin\.toml: a symbolic-link loop"),
+    ("meshes/floor.ply", _loop,
+     r"scene\.xml: object 'floor': mesh path 'meshes/floor\.ply': a symbolic-link loop"),
+    ("meshes/floor.ply", _fifo, r"floor\.ply: not a regular file"),
+])
+@pytest.mark.parametrize("cmd", ["info", "trace"])
+def test_scene_files_that_are_not_regular_files_exit_2_at_once(box, tmp_path, capsys, name,
+                                                               make, expect, cmd):
+    """A scene file that is a directory, a FIFO or a symbolic-link loop is refused in
+    one line with exit 2, without blocking (before: a traceback and exit 1, and a FIFO
+    as scene.file hung ``info`` and ``trace``)."""
+    import shutil
+    import threading
+
+    folder = tmp_path / "scene"
+    shutil.copytree(box, folder)
+    make(folder / name)
+    rc = []
+    t = threading.Thread(target=lambda: rc.append(main([cmd, str(folder)])), daemon=True)
+    t.start()
+    t.join(60)
+    if t.is_alive():  # blocked on the FIFO: give it a writer so the thread ends
+        with open(folder / name, "wb"):
+            pass
+        t.join(10)
+        pytest.fail(f"isac-twin {cmd} blocked on {name}")
+    assert rc == [2]
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "Traceback" not in err, err
     assert err.startswith("isac-twin: error: ") and re.search(expect, err), err

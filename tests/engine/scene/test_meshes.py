@@ -25,8 +25,9 @@ def test_ascii_ply_is_accepted_exactly_when_mitsuba_loads_it(tmp_path, body, ok)
     """Before, the reader went by lines and accepted a vertex line with extra tokens,
     which Mitsuba refuses ("trailing tokens"); an ``add`` edit with such a mesh passed
     validation and failed inside the twin's step."""
-    import isac_twin  # noqa: F401  (points Dr.Jit at its LLVM before mitsuba loads)
     import mitsuba as mi
+
+    import isac_twin  # noqa: F401  (points Dr.Jit at its LLVM before mitsuba loads)
 
     mi.set_variant("llvm_ad_mono_polarized")
     blob = (HEADER + body).encode()

@@ -82,7 +82,8 @@ def test_material_undefined_at_frequency(tmp_path):
 
 def test_missing_mesh(folder):
     (folder / "meshes" / "ceiling.ply").unlink()
-    with pytest.raises(ConfigError, match=r"object 'ceiling': .*ceiling\.ply: cannot read mesh file"):
+    with pytest.raises(ConfigError,
+                       match=r"object 'ceiling': .*ceiling\.ply: cannot read a PLY mesh file"):
         load_scene(folder, load_sionna=False)
 
 
@@ -190,7 +191,8 @@ def test_oversized_mesh_is_refused_before_reading(tmp_path):
     big = tmp_path / "big.ply"
     with big.open("wb") as f:
         f.truncate(2000)
-    with pytest.raises(MeshError, match=r"big\.ply: 2000 bytes exceeds the mesh size limit of 1000"):
+    with pytest.raises(MeshError,
+                       match=r"big\.ply: 2000 bytes exceeds the size limit of 1000 bytes"):
         read_ply(big, max_bytes=1000)
 
 

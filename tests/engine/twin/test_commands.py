@@ -64,3 +64,32 @@ def test_set_path_is_checked_against_the_room_as_it_is_now(tmp_path):
     tw.apply_edit(Edit(op="move", target="Desk", position=(3.1, 4.0, 0.375)))
     tw.step()
     tw.set_path("robot1", through)  # free now
+
+
+def test_paths_and_names_from_a_viewer_are_bounded(lab):
+    """A 300,000-waypoint set_path stalled every viewer for 3.6 s while it was checked
+    against the room: now a polyline has at most ``MAX_WAYPOINTS`` waypoints, refused
+    when the command is validated (the same bound applies to twin.toml paths). Object
+    names an ``add`` gives are printable and of bounded length; the rejection quotes a
+    long name cut short."""
+    import numpy as np
+
+    from isac_twin.contract.schema import MAX_NAME_CHARS, MAX_WAYPOINTS
+
+    tw = Twin.from_scene(lab, seed=1, phy=False, sensing=False, localize=False)
+    ring = [[3 + np.cos(a), 2 + np.sin(a)] for a in np.linspace(0, 6.2, 300_000)]
+    with pytest.raises(ValueError, match=rf"command set_path: path: 300000 waypoints, beyond the "
+                                         rf"limit of {MAX_WAYPOINTS}"):
+        tw.validate_command(Command("set_path", {"robot": "robot1", "path": {
+            "kind": "polyline", "waypoints": ring}}))
+    ok = ring[::300_000 // MAX_WAYPOINTS][:MAX_WAYPOINTS]
+    tw.command(Command("set_path", {"robot": "robot1", "path": {"kind": "polyline",
+                                                                "waypoints": ok}}))
+    data = next((lab / "meshes").glob("*.ply")).read_bytes()
+    for name, why in (("", "the empty name"), ("   ", "the empty name"),
+                      ("x" * (MAX_NAME_CHARS + 1), f"beyond the limit of {MAX_NAME_CHARS}"),
+                      ("crate\n\x1b[2J", "not printable"), ("Bad\udcffName", "not printable")):
+        with pytest.raises(ValueError, match=f"target: .*{why}") as err:
+            tw.apply_edit(Edit(op="add", target=name, material="wood", mesh_data=data))
+        assert len(str(err.value)) < 300 and "\n" not in str(err.value)
+    tw.step()
