@@ -10,22 +10,32 @@ Two things a pty lacks are supplied here, and only here:
 * a **stable path**: :class:`PtyPort` publishes the slave under a symlink
   (like ``/dev/serial/by-id/...``) that is removed on "unplug" and re-pointed
   at a fresh pty on "replug", so a driver reconnects to the same name;
-* **modem lines**: ``setDTR`` on a pty raises ``ENOTTY``. The pyserial URL
-  handler ``pty://<path>`` (``engine/devices/urlhandler/protocol_pty.py``)
-  records DTR/RTS instead of calling the ioctl and forwards each change to
-  the emulator that registered for that pty (:func:`register_modem_listener`),
-  so an emulated RPLIDAR A1 can start its motor when DTR is cleared.
+* **modem lines**: pyserial sets DTR/RTS with the ``TIOCMBIS``/``TIOCMBIC``
+  ioctls and reads CTS/DSR/RI/CD with ``TIOCMGET``; the kernel's pty driver
+  has no modem lines and answers ``ENOTTY``. For a pty an emulator serves
+  (:func:`register_modem_listener`), pyserial's POSIX port keeps the lines
+  itself instead: a change is recorded (``Serial.modem_log``) and forwarded to
+  the emulator, so an emulated RPLIDAR A1 starts its motor when DTR is cleared,
+  and the inputs read as a USB serial adapter's (CTS, DSR, CD high, RI low).
+  This holds for any pyserial client in the emulator's process, as shipped
+  (``pyrplidar`` opens the path with plain ``serial.Serial``); on every other
+  port, ``ENOTTY`` comes through unchanged. The URL handler ``pty://<path>``
+  (``engine/devices/urlhandler/protocol_pty.py``) does the same for every pty.
 """
 
 from __future__ import annotations
 
+import errno
+import functools
 import logging
 import os
 import threading
+import time
 import tty
 from typing import Callable
 
 import serial
+from serial import serialposix
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +71,66 @@ def notify_modem(port_path: str, line: str, state: bool) -> None:
             cb(line, state)
         except Exception:  # an emulator bug must not break the client's write
             log.exception("modem listener for %s failed on %s=%s", port_path, line, state)
+
+
+def _served(port) -> bool:
+    """Whether an emulator listens to the modem lines of pyserial ``port``'s device."""
+    path = getattr(port, "portstr", None)
+    if not path:
+        return False
+    with _listeners_lock:
+        return os.path.realpath(path) in _listeners
+
+
+def _keep_modem_line(line: str, attr: str):
+    """A ``_update_<line>_state`` that sets the line by ioctl, or on a pty an
+    emulator serves (``ENOTTY``), records it and tells the emulator."""
+    def wrap(original):
+        @functools.wraps(original)
+        def update(self):
+            try:
+                return original(self)
+            except OSError as exc:
+                if exc.errno != errno.ENOTTY or not _served(self):
+                    raise
+            state = bool(getattr(self, attr))
+            if not hasattr(self, "modem_log"):
+                self.modem_log = []
+            self.modem_log.append((time.monotonic(), line, state))
+            notify_modem(self.portstr, line, state)
+        update._isac_twin_modem = True  # installed once
+        return update
+    return wrap
+
+
+def _input_line(name: str, level: bool):
+    """A modem-input property (CTS, DSR, RI, CD) that reads ``level`` on a pty an
+    emulator serves (a USB serial adapter's idle lines) and the ioctl elsewhere."""
+    original = getattr(serialposix.Serial, name)
+
+    def get(self):
+        try:
+            return original.fget(self)
+        except OSError as exc:
+            if exc.errno != errno.ENOTTY or not _served(self):
+                raise
+            return level
+    get._isac_twin_modem = True
+    return property(get, doc=original.__doc__)
+
+
+def _install_modem_lines() -> None:
+    """Let pyserial's POSIX port keep the modem lines of emulated ptys (module doc)."""
+    cls = serialposix.Serial
+    if getattr(cls._update_dtr_state, "_isac_twin_modem", False):
+        return
+    cls._update_dtr_state = _keep_modem_line("DTR", "_dtr_state")(cls._update_dtr_state)
+    cls._update_rts_state = _keep_modem_line("RTS", "_rts_state")(cls._update_rts_state)
+    for name, level in (("cts", True), ("dsr", True), ("ri", False), ("cd", True)):
+        setattr(cls, name, _input_line(name, level))
+
+
+_install_modem_lines()
 
 
 class PtyPort:

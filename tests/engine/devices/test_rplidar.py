@@ -189,17 +189,11 @@ def test_pyrplidar_gets_info_health_and_scans(emu):
         assert np.allclose(dist[far], 3000.0, atol=1.0)
 
 
-def test_pyrplidar_motor_pwm_and_dtr_at_the_pty_edge(monkeypatch):
-    """pyrplidar's set_motor_pwm clears DTR first: on a bare pty that raises ENOTTY.
-    Only the pty edge is patched: pyrplidar's ``serial.Serial`` becomes the
-    ``pty://`` port class, which records DTR and tells the emulator."""
-    from isac_twin.devices.urlhandler import protocol_pty
-
-    class PtySerial(protocol_pty.Serial):
-        def __init__(self, port=None, *args, **kwargs):
-            super().__init__("pty://" + port if port else None, *args, **kwargs)
-
-    monkeypatch.setattr(pyrplidar_serial.serial, "Serial", PtySerial)
+def test_pyrplidar_motor_pwm_and_dtr_at_the_pty_edge():
+    """pyrplidar's set_motor_pwm clears DTR first (on a bare pty the kernel refuses
+    it: the pty edge keeps the lines of an emulated port, ptyserial.py), then sends
+    SET_MOTOR_PWM, which an A1 (motor on DTR) ignores and an A2/A3 obeys."""
+    assert pyrplidar_serial.serial.Serial is serial.Serial  # nothing patched
     for motor_control in ("dtr", "pwm"):
         with EmulatedRPLidar(motor_control=motor_control, require_motor=True) as emu:
             def client():
@@ -219,6 +213,93 @@ def test_pyrplidar_motor_pwm_and_dtr_at_the_pty_edge(monkeypatch):
             assert pwm == (660 if motor_control == "pwm" else 0)  # an A1 parses and ignores 0xF0
             if motor_control == "dtr":
                 assert rp.CMD_SET_MOTOR_PWM in emu.ignored_commands
+
+
+def test_pyrplidar_full_api_unpatched_against_the_emulator():
+    """Every call of pyrplidar's API, as shipped (plain ``serial.Serial`` on the port's
+    path, nothing patched in the client): set_motor_pwm clears DTR, which on a bare pty
+    raised ENOTTY; the pty edge now keeps the modem lines of an emulated port, so the
+    A1's motor starts on DTR low as on the real adapter."""
+    with EmulatedRPLidar(left_wall_source, require_motor=True) as emu:
+        def client():
+            lidar = pyrplidar.PyRPlidar()
+            lidar.connect(port=emu.path, baudrate=115200, timeout=1)
+            port = lidar.lidar_serial._serial
+            assert type(port) is serial.Serial  # pyrplidar's own port class
+            try:
+                out = {"motor_before": emu.motor_on}
+                lidar.set_motor_pwm(660)
+                time.sleep(0.05)
+                out["motor_after"] = emu.motor_on
+                out["info"] = lidar.get_info()
+                out["health"] = lidar.get_health()
+                out["rate"] = lidar.get_samplerate()
+                out["count"] = lidar.get_scan_mode_count()
+                out["typical"] = lidar.get_scan_mode_typical()
+                out["modes"] = [m.name for m in lidar.get_scan_modes()]
+                for name, start in (("scan", lidar.start_scan), ("force", lidar.force_scan),
+                                    ("express", lambda: lidar.start_scan_express(0))):
+                    gen = start()
+                    out[name] = [m for _, m in zip(range(1000), gen())]  # > 1 turn
+                    lidar.stop()
+                    time.sleep(0.05)
+                    port.reset_input_buffer()  # pyrplidar never flushes after STOP
+                lidar.reset()
+                time.sleep(0.1)
+                port.reset_input_buffer()  # the boot banner a reset prints
+                out["info_after_reset"] = lidar.get_info()
+                out["lines"] = (port.cts, port.dsr, port.cd, port.ri)
+                return out
+            finally:
+                lidar.disconnect()
+
+        out = run_with_timeout(client, 15)
+    assert not out["motor_before"] and out["motor_after"]
+    assert out["info"].model == out["info_after_reset"].model == 0x18
+    assert out["health"].status == rp.STATUS_OK
+    assert (out["rate"].t_standard, out["rate"].t_express) == (508, 254)
+    assert (out["count"], out["typical"], out["modes"]) == (2, 1, ["Standard", "Express"])
+    for name in ("scan", "force", "express"):
+        nodes = [m for m in out[name] if m.distance > 0]
+        assert len(nodes) > 300, name
+        ang = np.array([m.angle for m in nodes])
+        dist = np.array([m.distance for m in nodes])
+        near = np.abs(ang - 270.0) < 5  # the wall at ROS +90 deg is at device 270 deg
+        assert near.any() and np.allclose(dist[near], 1000.0, atol=1.0), name
+    assert out["lines"] == (True, True, True, False)
+    assert rp.CMD_RESET not in emu.ignored_commands
+
+
+def test_plain_pyserial_sets_modem_lines_of_an_emulated_port_only():
+    """DTR/RTS set through plain pyserial reach the emulator serving the pty; on a
+    pty no emulator serves, the kernel's ENOTTY still comes through."""
+    import errno
+    import os
+
+    with EmulatedRPLidar() as emu:
+        port = serial.Serial(emu.path, 115200, timeout=0.5)
+        try:
+            port.dtr = False
+            time.sleep(0.02)
+            assert emu.dtr is False
+            port.dtr = True
+            port.rts = False
+            time.sleep(0.02)
+            assert emu.dtr is True
+            assert [(line, st) for _, line, st in port.modem_log][-3:] == [
+                ("DTR", False), ("DTR", True), ("RTS", False)]
+        finally:
+            port.close()
+    master, slave = os.openpty()
+    try:
+        port = serial.Serial(os.ttyname(slave), 115200, timeout=0.5)
+        with pytest.raises(OSError) as err:
+            port.dtr = False
+        assert err.value.errno == errno.ENOTTY
+        port.close()
+    finally:
+        os.close(master)
+        os.close(slave)
 
 
 # ----------------------------------------------------------------------------- our driver
