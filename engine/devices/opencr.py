@@ -178,13 +178,24 @@ class DiffDriveOdometry:
         return ds, dyaw
 
 
+#: Longest a single read of the port blocks, s. dynamixel_sdk waits for an answer by
+#: calling ``readPort`` in a loop until its packet timeout (~34 ms); with the SDK's own
+#: read timeout of 0 that loop spins and holds the GIL, starving every other thread of
+#: the process (a streaming camera, an emulated board) and so delaying the very answer
+#: it waits for. A read that blocks in ``select`` returns as soon as the bytes asked
+#: for are in, so this bounds the loop's turns without delaying any answer.
+READ_POLL_S = 0.01
+
+
 class _UrlPortHandler(PortHandler):
-    """The SDK's PortHandler, opening its port with ``serial.serial_for_url``."""
+    """The SDK's PortHandler, opening its port with ``serial.serial_for_url`` and a
+    blocking read of at most :data:`READ_POLL_S` (the SDK's own port spins)."""
 
     def setupPort(self, cflag_baud):  # noqa: N802 (SDK name)
         if self.is_open:
             self.closePort()
-        self.ser = serial.serial_for_url(self.port_name, baudrate=self.baudrate, bytesize=serial.EIGHTBITS, timeout=0)
+        self.ser = serial.serial_for_url(self.port_name, baudrate=self.baudrate, bytesize=serial.EIGHTBITS,
+                                         timeout=READ_POLL_S)
         self.is_open = True
         self.ser.reset_input_buffer()
         self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0

@@ -196,6 +196,38 @@ def test_driver_odometry_imu_battery(emu):
     assert 12 < rate < 25  # ~20 Hz like the ROS node
 
 
+def test_the_driver_waits_for_the_board_without_spinning(emu):
+    """dynamixel_sdk waits for an answer by calling ``readPort`` in a loop until its
+    packet timeout (34 ms + bytes). On a port opened with read timeout 0 each call
+    returned at once: the driver's thread spun, holding the GIL, and starved the
+    other threads of the robot's process (the camera's, the emulated board's), so
+    answers came late (with the OAK-D streaming: 37 timeouts in 10 s instead of 1).
+    The port now blocks in ``select`` up to ``READ_POLL_S`` per call, so a
+    transaction makes at most ``packet timeout / READ_POLL_S + 3`` calls, whatever
+    the load (before: hundreds)."""
+    drv = oc.OpenCR(emu.url)
+    drv.open()
+    try:
+        ser = drv.port.ser
+        assert 0 < ser.timeout == oc.READ_POLL_S
+        calls = {"n": 0}
+        read = ser.read
+
+        def counting(n=1):
+            calls["n"] += 1
+            return read(n)
+
+        ser.read = counting
+        n = 20
+        for _ in range(n):
+            drv.read_block()
+        timeout_ms = drv.port.tx_time_per_byte * (oc.BLOCK_LEN + 11) + 16 * 2.0 + 2.0
+        bound = math.ceil(timeout_ms / 1e3 / oc.READ_POLL_S) + 3
+        assert calls["n"] <= n * bound, calls["n"]
+    finally:
+        drv.close()
+
+
 def test_cmd_vel_scaling_truncates_like_the_ros_node():
     assert struct.unpack("<6i", oc.encode_cmd_vel(0.129, -1.239)) == (12, 0, 0, 0, 0, -123)
 
