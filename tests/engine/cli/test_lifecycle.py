@@ -44,20 +44,22 @@ def test_signals_set_the_stop_and_a_second_one_while_starting_exits():
 
 
 def test_wait_for_stop_returns_on_stop_or_after_lingering():
+    """Exact bounds only (no "fast enough"): a wait ends no earlier than its cause, and
+    a stop ends a linger before the linger would have ended it."""
     stop, done = threading.Event(), threading.Event()
     threading.Timer(0.3, stop.set).start()
     t0 = time.monotonic()
     wait_for_stop(stop, done)  # no linger: done alone does not end the wait
-    assert stop.is_set() and 0.25 < time.monotonic() - t0 < 5
+    assert stop.is_set() and time.monotonic() - t0 >= 0.25
     stop.clear()
     done.set()
     t0 = time.monotonic()
     wait_for_stop(stop, done, linger_s=0.4)
-    assert not stop.is_set() and 0.35 < time.monotonic() - t0 < 5
+    assert not stop.is_set() and time.monotonic() - t0 >= 0.35
     t0 = time.monotonic()
     threading.Timer(0.1, stop.set).start()
     wait_for_stop(stop, done, linger_s=30.0)  # a stop ends the lingering
-    assert time.monotonic() - t0 < 5
+    assert stop.is_set() and time.monotonic() - t0 < 30.0
 
 
 def test_bounded_stop_says_where_a_stuck_shutdown_is(capsys):
@@ -66,7 +68,7 @@ def test_bounded_stop_says_where_a_stuck_shutdown_is(capsys):
     hang = threading.Event()
     t0 = time.monotonic()
     assert not bounded_stop(hang.wait, 0.2, "isac-twin test", stage=lambda: "driver X")
-    assert time.monotonic() - t0 < 5
+    assert not hang.is_set() and time.monotonic() - t0 >= 0.15  # gave up, after its bound
     hang.set()
     assert capsys.readouterr().err == ("isac-twin test: warning: shutdown did not finish in "
                                        "0.2 s (stuck in driver X); exiting anyway\n")

@@ -112,10 +112,9 @@ def test_serve_ends_on_sigterm_and_after_its_linger(tmp_path, box_scene_dir):
     proc.send_signal(signal.SIGTERM)
     out = proc.communicate(timeout=30)[0].decode()
     assert proc.returncode == 0 and "isac-twin serve: stopped after 0 steps" in out, out
-    t0 = time.monotonic()
+    # nobody signals this one: it ends by itself after lingering (else run() times out)
     r = subprocess.run([sys.executable, "-m", "isac_twin.cli", "serve", str(box_scene_dir),
                         "--port", "0", "--rate", "0", "--steps", "2", "--linger", "0.5"],
                        capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "isac-twin serve: stopped after 2 steps" in r.stdout
-    assert time.monotonic() - t0 < 100
