@@ -99,6 +99,8 @@ def test_add_edits_read_no_host_file(tmp_path, lab):
     good = next(meshes.glob("*.ply"))
     os.mkfifo(meshes / "fifo.ply")
     (meshes / "out.ply").symlink_to(tmp_path / "outside.ply")
+    (meshes / "loop.ply").symlink_to(meshes / "loop2.ply")  # a symbolic-link loop: before,
+    (meshes / "loop2.ply").symlink_to(meshes / "loop.ply")  # its message named the host path
     shutil.copy(good, tmp_path / "outside.ply")
     assets = tmp_path / "assets"
     assets.mkdir()
@@ -107,7 +109,7 @@ def test_add_edits_read_no_host_file(tmp_path, lab):
     messages = set()
     for path in ("/dev/zero", str(meshes / "fifo.ply"), "meshes/fifo.ply", "/etc/passwd",
                  "/no/such/file.ply", "../lab/meshes/" + good.name, "meshes/out.ply",
-                 str(good), "meshes/missing.ply", "twin.toml"):
+                 str(good), "meshes/missing.ply", "twin.toml", "meshes/loop.ply"):
         with pytest.raises(ValueError) as err:
             tw.apply_edit(Edit(op="add", target="box", material="wood", mesh_file=path))
         messages.add(str(err.value))
