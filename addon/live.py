@@ -62,6 +62,8 @@ class LiveClient:
         self.peer_hello: dict | None = None
         self.outbox: collections.deque[bytes] = collections.deque(maxlen=max_outbox)
         self.received: collections.Counter = collections.Counter()
+        #: messages queued to send, by type (sent once :attr:`outbox` is empty)
+        self.sent: collections.Counter = collections.Counter()
         self.connects = 0
         self.decoder = wire.Decoder("e2v", peer="engine")
         self._sock: socket.socket | None = None
@@ -93,6 +95,7 @@ class LiveClient:
     def send(self, msg: dict) -> None:
         """Queue ``msg`` (validated and framed now, sent by the next ticks)."""
         self.outbox.append(wire.encode(msg))
+        self.sent[msg["type"]] += 1
 
     # ------------------------------------------------------------------ the tick
 

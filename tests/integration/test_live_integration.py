@@ -130,12 +130,14 @@ def test_an_edit_in_blender_changes_the_engines_next_paths(lab):
     wall.location.x += 0.5
     bpy.context.view_layer.update()
     n = s.applied["rays"]
-    s.tick()  # the tracker sends the move
-    # the engine has the edit before the reset and step are sent: the tracker may
-    # send it on a later tick, after them (the CI dry run once traced that step 0
-    # before the edit, which applies on the step after)
-    tick_until(s, lambda: p.edits_applied == 1, what="edit applied")
+    edits = s.client.sent["edit"]
+    # the move is on the wire before the reset and step are sent (the tracker may send
+    # it on a later tick: the CI dry run once traced that step 0 before the edit); the
+    # engine applies it as the step starts, and counts it applied then
+    tick_until(s, lambda: s.client.sent["edit"] > edits and not s.client.outbox
+               and not s.client._wbuf, what="the move sent")
     fresh_step0(n)
+    tick_until(s, lambda: p.edits_applied == 1, what="edit applied")
     after = [e for e in read_log(log) if e["step"] == 0][-1]
     assert before["robots"] == after["robots"]
     assert after["scene_hash"] != before["scene_hash"]

@@ -38,14 +38,18 @@ def test_pty_url_records_dtr_and_notifies(tmp_path):
     port = PtyPort(str(tmp_path / "ttyUSB0"))
     port.plug()
     seen = []
+    with pytest.raises(OSError):  # a bare pty nobody emulates has no modem lines
+        bare = serial.serial_for_url(port.link_path)
+        try:
+            bare.dtr = False
+        finally:
+            bare.close()
     register_modem_listener(port.link_path, lambda line, state: seen.append((line, state)))
     try:
-        with pytest.raises(OSError):  # the bare pty has no modem lines
-            bare = serial.serial_for_url(port.link_path)
-            try:
-                bare.dtr = False
-            finally:
-                bare.close()
+        bare = serial.serial_for_url(port.link_path)  # served: plain pyserial keeps them too
+        bare.dtr = False
+        bare.close()
+        assert seen[-1] == ("DTR", False)
         ser = serial.serial_for_url("pty://" + port.link_path)
         ser.dtr = False
         ser.rts = False
